@@ -1,0 +1,58 @@
+# TopoCut — one entry point per stage; `make run` runs the whole pipeline at smoke scale on CPU.
+PY      ?= python3
+VENV    ?= .venv
+BIN     := $(VENV)/bin
+STAMP   := $(VENV)/.stamp-setup
+ARGS    ?=
+TASK    ?= slice
+SCALE   ?= smoke
+RUN     := $(BIN)/python -m topocut.run scale=$(SCALE) task=$(TASK)
+
+.PHONY: setup run test lint bench simulate mppi teleop pretrain bc eval sweep paper-data clean-outputs
+
+setup: $(STAMP)
+
+# torch first, pinned to the CPU build on disk; then the project. Re-runs only when pyproject changes.
+$(STAMP): pyproject.toml
+	test -x $(BIN)/python || $(PY) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q "torch==2.13.0"
+	$(BIN)/python -m pip install -q -e ".[dev]"
+	touch $(STAMP)
+
+run: setup
+	$(RUN) stage=all logger=csv $(ARGS)
+
+test: setup
+	WANDB_MODE=disabled $(BIN)/python -m pytest -q $(ARGS)
+
+lint: setup
+	$(BIN)/ruff check topocut pipelines tests benchmarks
+
+bench: setup
+	$(BIN)/python benchmarks/sim_throughput.py --quick
+	$(BIN)/python benchmarks/topology.py --quick
+	$(BIN)/python benchmarks/reward.py
+	$(BIN)/python benchmarks/mppi.py --quick
+	$(BIN)/python benchmarks/train.py --quick
+	$(BIN)/python benchmarks/train_policy.py --quick
+
+simulate mppi pretrain bc eval: setup
+	$(RUN) stage=$@ $(ARGS)
+
+teleop: setup
+	$(RUN) stage=teleop $(ARGS)
+
+# Hydra multirun: 2 tasks x 2 objects on the joblib launcher, shards merged into one dataset version.
+sweep: setup
+	$(BIN)/python -m topocut.run -m stage=mppi task=slice,stick object=cake,cube hydra/launcher=joblib $(ARGS)
+	$(BIN)/python -m topocut.run stage=merge $(ARGS)
+
+# The paper's recipe: 5 training objects x 3 tasks x varied parameters (use a GPU machine or Slurm).
+paper-data: setup
+	$(BIN)/python -m topocut.run -m scale=paper stage=mppi task=slice,stick,dice \
+		object=cake,cube,ditto,ham,potato seed=0,1,2,3 hydra/launcher=joblib $(ARGS)
+	$(BIN)/python -m topocut.run scale=paper stage=merge $(ARGS)
+
+clean-outputs:
+	rm -rf outputs multirun

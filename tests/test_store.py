@@ -1,0 +1,79 @@
+"""Artifact store: versioning, hashing, tamper detection, kill-safety, reuse, resume."""
+import json
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+from topocut.data.store import ArtifactRef, ArtifactStore, CorruptArtifact, MissingArtifact, sha256_file
+
+
+def _commit(store, name, payload, config):
+    writer, existing = store.begin("dataset", name, config)
+    assert existing is None
+    (writer.path / "data.txt").write_text(payload)
+    return writer.commit({"n": len(payload)})
+
+
+def test_versions_increment_and_manifest_hashes(tmp_path):
+    store = ArtifactStore(tmp_path)
+    p1 = _commit(store, "demos", "abc", {"k": 1})
+    p2 = _commit(store, "demos", "abcd", {"k": 2})
+    assert (p1.name, p2.name) == ("v001", "v002")
+    assert store.resolve("dataset", "demos") == p2
+    assert store.resolve(ArtifactRef.parse("dataset/demos:v001")) == p1
+    m = json.loads((p2 / "manifest.json").read_text())
+    assert m["files"]["data.txt"] == sha256_file(p2 / "data.txt")
+    assert m["config"] == {"k": 2} and m["summary"] == {"n": 4}
+    assert "git_sha" in m["provenance"] and "packages" in m["provenance"]
+
+
+def test_tampered_file_is_refused_with_a_message_naming_it(tmp_path):
+    store = ArtifactStore(tmp_path)
+    p = _commit(store, "demos", "abc", {"k": 1})
+    (p / "data.txt").write_text("abX")
+    with pytest.raises(CorruptArtifact, match="data.txt.*sha256.*re-run"):
+        store.resolve("dataset", "demos")
+
+
+def test_missing_artifact_and_version_messages(tmp_path):
+    store = ArtifactStore(tmp_path)
+    with pytest.raises(MissingArtifact, match="no committed dataset named 'demos'"):
+        store.resolve("dataset", "demos")
+    _commit(store, "demos", "abc", {"k": 1})
+    with pytest.raises(MissingArtifact, match="available: v001"):
+        store.resolve("dataset", "demos", "v007")
+    with pytest.raises(ValueError, match="valid kinds"):
+        store.resolve("datasets", "demos")
+
+
+def test_same_config_is_reused_not_redone(tmp_path):
+    store = ArtifactStore(tmp_path)
+    p = _commit(store, "demos", "abc", {"k": 1})
+    writer, existing = store.begin("dataset", "demos", {"k": 1})
+    assert writer is None and existing == p
+    writer, existing = store.begin("dataset", "demos", {"k": 1}, inputs={"sim": "sim/cake:v001"})
+    assert existing is None and writer is not None  # different lineage -> new version
+
+
+def test_killed_writer_leaves_previous_version_intact_and_resumes(tmp_path):
+    store = ArtifactStore(tmp_path)
+    p1 = _commit(store, "demos", "first", {"k": 1})
+    script = textwrap.dedent(f"""
+        import os
+        from topocut.data.store import ArtifactStore
+        store = ArtifactStore({str(tmp_path)!r})
+        w, _ = store.begin("dataset", "demos", {{"k": 2}})
+        (w.path / "episode_0.txt").write_text("done")
+        os._exit(9)  # killed before commit
+    """)
+    r = subprocess.run([sys.executable, "-c", script])
+    assert r.returncode == 9
+    assert store.versions("dataset", "demos") == ["v001"]
+    assert store.resolve("dataset", "demos") == p1  # still verifies
+    writer, existing = store.begin("dataset", "demos", {"k": 2})
+    assert writer.resumed and (writer.path / "episode_0.txt").read_text() == "done"
+    (writer.path / "episode_1.txt").write_text("done")
+    p2 = writer.commit()
+    assert sorted(json.loads((p2 / "manifest.json").read_text())["files"]) == ["episode_0.txt", "episode_1.txt"]

@@ -1,0 +1,229 @@
+"""A versioned artifact store on the local file system.
+
+Layout::
+
+    <root>/<kind>/<name>/<version>/        committed, immutable
+        manifest.json                      schema, sha256 of every file, config, lineage, provenance
+        ...files...
+    <root>/<kind>/<name>/.partial-<key>/   work in progress of one config (resumable)
+
+A version directory appears only through ``os.replace`` of a fully written
+partial directory, so a writer killed half-way leaves earlier versions intact
+and its own partial work in place for the next run with the same config to
+resume from.  Two runs with the same config and inputs share one key: a
+finished one is reused instead of being redone.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterable
+
+SCHEMA_VERSION = 1
+KINDS = ("dataset", "checkpoint", "eval", "sim")
+_VERSION_RE = re.compile(r"^v(\d{3,})$")
+
+
+class MissingArtifact(FileNotFoundError):
+    """A requested artifact (kind/name/version) does not exist."""
+
+
+class CorruptArtifact(RuntimeError):
+    """A committed artifact's files do not match its manifest."""
+
+
+@dataclass(frozen=True)
+class ArtifactRef:
+    kind: str
+    name: str
+    version: str = "latest"
+
+    @classmethod
+    def parse(cls, text: str, default_kind: str | None = None) -> "ArtifactRef":
+        """``kind/name[:version]`` or ``name[:version]`` with ``default_kind``."""
+        body, _, version = text.partition(":")
+        kind, _, name = body.rpartition("/")
+        kind = kind or default_kind
+        if not kind or not name:
+            raise ValueError(f"artifact reference {text!r} must look like 'kind/name[:version]' with kind in {KINDS}")
+        return cls(kind, name, version or "latest")
+
+    def __str__(self) -> str:
+        return f"{self.kind}/{self.name}:{self.version}"
+
+
+def sha256_file(path: Path, chunk: int = 1 << 20) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(chunk):
+            h.update(block)
+    return h.hexdigest()
+
+
+def config_key(config: Any, inputs: Iterable[str] = ()) -> str:
+    """Stable short hash of a (JSON-able) config and the resolved input versions."""
+    blob = json.dumps({"config": config, "inputs": sorted(inputs)}, sort_keys=True, default=str)
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+def write_json_atomic(path: Path, obj: Any) -> None:
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    with open(tmp, "w") as f:
+        json.dump(obj, f, indent=2, sort_keys=True, default=str)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def provenance() -> dict:
+    """git SHA and dirty flag, package versions, interpreter."""
+    def git(*args: str) -> str | None:
+        try:
+            return subprocess.run(["git", *args], capture_output=True, text=True, timeout=5,
+                                  cwd=Path(__file__).resolve().parent).stdout.strip() or None
+        except (OSError, subprocess.SubprocessError):
+            return None
+
+    from importlib import metadata
+
+    packages = {}
+    for pkg in ("topocut", "taichi", "warp-lang", "torch", "lightning", "hydra-core", "zarr", "numpy", "scipy"):
+        try:
+            packages[pkg] = metadata.version(pkg)
+        except metadata.PackageNotFoundError:
+            packages[pkg] = None
+    return {
+        "git_sha": git("rev-parse", "HEAD"),
+        "git_dirty": bool(git("status", "--porcelain")),
+        "packages": packages,
+        "python": sys.version.split()[0],
+        "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+    }
+
+
+class VersionWriter:
+    """Work area for one new version; ``commit()`` hashes, writes the manifest and renames."""
+
+    def __init__(self, store: "ArtifactStore", kind: str, name: str, key: str, config: Any,
+                 inputs: dict[str, str], extra: dict | None = None):
+        self.store, self.kind, self.name, self.key = store, kind, name, key
+        self.config, self.inputs, self.extra = config, inputs, dict(extra or {})
+        self.path = store.root / kind / name / f".partial-{key}"
+        self.resumed = self.path.exists()
+        self.path.mkdir(parents=True, exist_ok=True)
+        self.committed: Path | None = None
+
+    def commit(self, summary: dict | None = None) -> Path:
+        files = {}
+        for p in sorted(self.path.rglob("*")):
+            if p.is_file() and p.name != "manifest.json" and ".tmp-" not in p.name:
+                files[str(p.relative_to(self.path))] = sha256_file(p)
+        version = self.store._next_version(self.kind, self.name)
+        manifest = {
+            "schema_version": SCHEMA_VERSION,
+            "kind": self.kind, "name": self.name, "version": version, "key": self.key,
+            "files": files, "config": self.config, "inputs": self.inputs,
+            "summary": summary or {}, "provenance": provenance(), **self.extra,
+        }
+        write_json_atomic(self.path / "manifest.json", manifest)
+        final = self.store.root / self.kind / self.name / version
+        os.replace(self.path, final)
+        self.committed = final
+        return final
+
+    def abandon(self) -> None:
+        shutil.rmtree(self.path, ignore_errors=True)
+
+
+class ArtifactStore:
+    def __init__(self, root: str | os.PathLike):
+        self.root = Path(root).resolve()
+        self.root.mkdir(parents=True, exist_ok=True)
+
+    # -- reading ------------------------------------------------------------
+    def versions(self, kind: str, name: str) -> list[str]:
+        d = self.root / kind / name
+        if not d.is_dir():
+            return []
+        vs = [p.name for p in d.iterdir() if p.is_dir() and _VERSION_RE.match(p.name)
+              and (p / "manifest.json").exists()]
+        return sorted(vs, key=lambda v: int(v[1:]))
+
+    def names(self, kind: str) -> list[str]:
+        d = self.root / kind
+        return sorted(p.name for p in d.iterdir() if p.is_dir()) if d.is_dir() else []
+
+    def resolve(self, kind: str | ArtifactRef, name: str | None = None, version: str = "latest",
+                verify: bool = True) -> Path:
+        ref = kind if isinstance(kind, ArtifactRef) else ArtifactRef(kind, name, version)
+        if ref.kind not in KINDS:
+            raise ValueError(f"unknown artifact kind {ref.kind!r}; valid kinds: {', '.join(KINDS)}")
+        versions = self.versions(ref.kind, ref.name)
+        if not versions:
+            known = self.names(ref.kind)
+            raise MissingArtifact(
+                f"no committed {ref.kind} named {ref.name!r} under {self.root / ref.kind}; "
+                f"known {ref.kind} names: {known or 'none'}. Run the stage that produces it first "
+                f"(e.g. `make mppi` for datasets, `make pretrain` for the encoder checkpoint).")
+        version = versions[-1] if ref.version == "latest" else ref.version
+        if version not in versions:
+            raise MissingArtifact(f"{ref.kind}/{ref.name} has no version {ref.version!r}; "
+                                  f"available: {', '.join(versions)} (or 'latest')")
+        path = self.root / ref.kind / ref.name / version
+        if verify:
+            self.verify(path)
+        return path
+
+    def manifest(self, path: Path) -> dict:
+        mpath = Path(path) / "manifest.json"
+        try:
+            return json.loads(mpath.read_text())
+        except (OSError, json.JSONDecodeError) as e:
+            raise CorruptArtifact(f"{mpath}: unreadable manifest ({e}); delete {path} and re-run the stage") from e
+
+    def verify(self, path: Path) -> dict:
+        """Check every file's sha256 against the manifest; raise CorruptArtifact naming the file."""
+        manifest = self.manifest(path)
+        for rel, digest in manifest["files"].items():
+            f = Path(path) / rel
+            if not f.exists():
+                raise CorruptArtifact(f"{f} is listed in {path}/manifest.json but missing; "
+                                      f"delete {path} and re-run the stage that made it")
+            if sha256_file(f) != digest:
+                raise CorruptArtifact(f"{f} does not match its sha256 in {path}/manifest.json "
+                                      f"(modified or truncated); delete {path} and re-run the stage that made it")
+        return manifest
+
+    def find_by_key(self, kind: str, name: str, key: str) -> Path | None:
+        for v in reversed(self.versions(kind, name)):
+            p = self.root / kind / name / v
+            if self.manifest(p).get("key") == key:
+                return p
+        return None
+
+    # -- writing ------------------------------------------------------------
+    def _next_version(self, kind: str, name: str) -> str:
+        vs = self.versions(kind, name)
+        return f"v{(int(vs[-1][1:]) + 1 if vs else 1):03d}"
+
+    def begin(self, kind: str, name: str, config: Any, inputs: dict[str, str] | None = None,
+              extra: dict | None = None) -> tuple[VersionWriter | None, Path | None]:
+        """Start (or resume) a version.  Returns (writer, None), or (None, existing) if the same
+        config and inputs were already committed, so the caller can reuse it."""
+        if kind not in KINDS:
+            raise ValueError(f"unknown artifact kind {kind!r}; valid kinds: {', '.join(KINDS)}")
+        inputs = dict(inputs or {})
+        key = config_key(config, [f"{k}={v}" for k, v in inputs.items()])
+        existing = self.find_by_key(kind, name, key)
+        if existing is not None:
+            return None, existing
+        return VersionWriter(self, kind, name, key, config, inputs, extra), None

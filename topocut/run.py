@@ -1,0 +1,72 @@
+"""The one entry point: ``python -m topocut.run stage=<...> task=<...> object=<...> scale=<...>``.
+
+Composes the config (typed schemas reject unknown keys and list valid group choices),
+runs cross-field checks, seeds every backend, picks the device, opens the logger and
+the artifact store, calls the stage, and always writes ``status.json`` and finishes
+the logger — whatever the stage did.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+import traceback
+from pathlib import Path
+
+import hydra
+from hydra.core.hydra_config import HydraConfig
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+
+from topocut.config import register_configs, validate
+from topocut.data.store import ArtifactStore, write_json_atomic
+from topocut.utils.context import RunContext
+from topocut.utils.logger import RunLogger
+from topocut.utils.runtime import resolve_device, seed_everything_all
+
+log = logging.getLogger("topocut")
+register_configs()
+
+
+def run_stage(cfg: DictConfig, run_dir: Path, overrides: list[str] | None = None) -> dict:
+    """Run ``cfg.stage`` with status and logging around it; returns the stage's summary."""
+    run_dir.mkdir(parents=True, exist_ok=True)
+    started = time.time()
+    status: dict = {"stage": cfg.stage.name, "status": "running", "overrides": overrides or []}
+    logger = None
+    try:
+        validate(cfg)
+        device = resolve_device(cfg.device)
+        seed_everything_all(cfg.seed)
+        store = ArtifactStore(Path(cfg.outputs_root))
+        resolved = OmegaConf.to_container(cfg, resolve=True)
+        logger = RunLogger(cfg.logger.kind, run_dir, name=f"{cfg.stage.name}-{cfg.task.name}",
+                           config=resolved, project=cfg.logger.project, mode=cfg.logger.mode,
+                           entity=cfg.logger.entity)
+        ctx = RunContext(store=store, run_dir=run_dir, device=device, seed=cfg.seed, logger=logger,
+                         progress=cfg.progress, config=resolved, overrides=overrides or [])
+        stage = instantiate(cfg.stage.run, _convert_="object")
+        summary = stage(ctx) or {}
+        status.update(status="ok", summary=summary)
+        return summary
+    except BaseException as e:
+        status.update(status="failed", error=f"{type(e).__name__}: {e}", traceback=traceback.format_exc())
+        raise
+    finally:
+        status["seconds"] = round(time.time() - started, 2)
+        write_json_atomic(run_dir / "status.json", status)
+        if logger is not None:
+            logger.finish(exit_code=0 if status["status"] == "ok" else 1)
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="config")
+def main(cfg: DictConfig) -> None:
+    hc = HydraConfig.get()
+    summary = run_stage(cfg, Path(hc.runtime.output_dir), list(hc.overrides.task))
+    log.info("summary: %s", json.dumps(summary, default=str))
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("HYDRA_FULL_ERROR", "0")
+    main()

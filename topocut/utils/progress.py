@@ -1,0 +1,23 @@
+"""Rich progress bars that stay quiet when output is not a terminal (CI logs)."""
+from __future__ import annotations
+
+from contextlib import contextmanager
+
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+
+@contextmanager
+def progress_bar(description: str, total: int, enabled: bool = True):
+    """Yield an ``advance(n=1, **fields)`` callable backed by a rich progress bar."""
+    if not enabled:
+        yield lambda n=1, **kw: None
+        return
+    columns = (TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+               TimeElapsedColumn(), TimeRemainingColumn(), TextColumn("{task.fields[info]}"))
+    with Progress(*columns, transient=False) as prog:
+        task = prog.add_task(description, total=total, info="")
+
+        def advance(n: int = 1, info: str = "") -> None:
+            prog.update(task, advance=n, info=info)
+
+        yield advance

@@ -1,0 +1,52 @@
+"""One seed for numpy, torch, Taichi and Warp; one device choice for all three backends."""
+from __future__ import annotations
+
+import logging
+import os
+import random
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+DEVICES = ("auto", "cpu", "cuda")
+
+
+class DeviceUnavailable(RuntimeError):
+    """`device=cuda` was asked for on a machine without a CUDA device."""
+
+
+def cuda_available() -> bool:
+    try:
+        import torch
+
+        return torch.cuda.is_available()
+    except ImportError:  # pragma: no cover - torch is a dependency
+        return False
+
+
+def resolve_device(device: str) -> str:
+    """Map ``auto|cpu|cuda`` to ``cpu`` or ``cuda``; asking for cuda without one is an error."""
+    if device not in DEVICES:
+        raise ValueError(f"device={device!r} is not valid; choose one of {', '.join(DEVICES)}")
+    if device == "auto":
+        device = "cuda" if cuda_available() else "cpu"
+    elif device == "cuda" and not cuda_available():
+        raise DeviceUnavailable("device=cuda was requested but no CUDA device is visible "
+                                "(torch.cuda.is_available() is False); use device=cpu or device=auto")
+    log.info("device: %s (taichi arch=%s, warp device=%s, torch device=%s)", device,
+             "cuda" if device == "cuda" else "cpu", "cuda:0" if device == "cuda" else "cpu", device)
+    return device
+
+
+def seed_everything_all(seed: int) -> None:
+    """Seed python, numpy, torch (with dataloader workers) and record the seed for Taichi/Warp.
+
+    Taichi takes its seed at ``ti.init(random_seed=...)`` (see ``topocut.sim.init_taichi``), and
+    Warp's random functions take explicit seeds, so both read ``TOPOCUT_SEED``.
+    """
+    random.seed(seed)
+    np.random.seed(seed % (2**32))
+    os.environ["TOPOCUT_SEED"] = str(seed)
+    from lightning.pytorch import seed_everything
+
+    seed_everything(seed, workers=True, verbose=False)
