@@ -23,6 +23,7 @@ from topocut.config import register_configs, validate
 from topocut.data.store import ArtifactStore, write_json_atomic
 from topocut.utils.context import RunContext
 from topocut.utils.logger import RunLogger
+from topocut.utils.progress import print_summary
 from topocut.utils.runtime import resolve_device, seed_everything_all
 
 log = logging.getLogger("topocut")
@@ -49,6 +50,8 @@ def run_stage(cfg: DictConfig, run_dir: Path, overrides: list[str] | None = None
         stage = instantiate(cfg.stage.run, _convert_="object")
         summary = stage(ctx) or {}
         status.update(status="ok", summary=summary)
+        if cfg.stage.name != "all":
+            print_summary(f"{cfg.stage.name}: done in {time.time() - started:.1f}s", summary)
         return summary
     except BaseException as e:
         status.update(status="failed", error=f"{type(e).__name__}: {e}", traceback=traceback.format_exc())

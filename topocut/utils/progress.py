@@ -21,3 +21,23 @@ def progress_bar(description: str, total: int, enabled: bool = True):
             prog.update(task, advance=n, info=info)
 
         yield advance
+
+
+def print_summary(title: str, summary: dict) -> None:
+    """A two-column rich table of a stage's summary (nested dicts flattened with '/')."""
+    from rich.console import Console
+    from rich.table import Table
+
+    def flat(d, prefix=""):
+        for k, v in d.items():
+            if isinstance(v, dict):
+                yield from flat(v, f"{prefix}{k}/")
+            else:
+                yield f"{prefix}{k}", v
+
+    table = Table(title=title, show_header=True, header_style="bold")
+    table.add_column("key")
+    table.add_column("value", overflow="fold")
+    for k, v in flat(summary):
+        table.add_row(k, f"{v:.4g}" if isinstance(v, float) else str(v))
+    Console().print(table)

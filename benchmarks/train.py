@@ -1,0 +1,115 @@
+"""Training / inference throughput of the dynamics model F: graph transformer vs PointNet (Table 2).
+
+    python benchmarks/train.py --device cuda [--batch 16 --points 256 --steps 10]
+
+For each model choice: parameter counts (whole F and the encoder Φ), training samples/s (forward,
+loss = CD + EMD + HD + Hungarian cluster loss, backward, AdamW step) and inference samples/s, measured
+on the CPU (reference, same process) and on --device; prints device/CPU and pointnet/graph ratios.
+The EMD assignment (scipy Hungarian, CPU) is timed on its own since it does not move to the GPU.
+Data: synthetic box-cut transitions (topocut.models.datamodule.synthetic_steps), pre-batched.
+"""
+from __future__ import annotations
+
+import argparse
+import time
+
+import torch
+
+from topocut.models.config import DynamicsConfig
+from topocut.models.datamodule import TransitionDataset, synthetic_steps
+from topocut.models.losses import dynamics_loss, position_losses
+from topocut.models.pointnet import build_model
+
+MODELS = ("graph_transformer", "pointnet")
+
+
+def make_batch(batch: int, points: int, device: str) -> dict:
+    ds = TransitionDataset(synthetic_steps(batch, max(2 * points, 512), seed=0), num_points=points, sort=True)
+    items = [ds[i] for i in range(batch)]
+    return {k: torch.stack([it[k] for it in items]).to(device) for k in items[0]}
+
+
+def sync(device: str) -> None:
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+
+
+def timed(fn, device: str, steps: int, warmup: int = 2) -> float:
+    """Seconds per call of fn, after warm-up."""
+    for _ in range(warmup):
+        fn()
+    sync(device)
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        fn()
+    sync(device)
+    return (time.perf_counter() - t0) / steps
+
+
+def measure(name: str, device: str, batch: dict, steps: int) -> dict:
+    torch.manual_seed(0)
+    cfg = DynamicsConfig(model=name, num_points=batch["x_t"].shape[1])
+    model = build_model(cfg).to(device)
+    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr)
+    x, f, m = batch["x_t"], batch["f_t"], batch["mask"]
+    B = x.shape[0]
+
+    def train_step():
+        pred, logits = model(x, f, x, m)
+        loss = dynamics_loss(pred, logits, batch["x_t1"], batch["f_t1"], cfg)["loss"]
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+
+    @torch.no_grad()
+    def infer():
+        model(x, f, x, m)
+
+    @torch.no_grad()
+    def emd_only():
+        position_losses(x, batch["x_t1"], cfg.pos_scale)
+
+    model.train()
+    t_train = timed(train_step, device, steps)
+    model.eval()
+    t_infer = timed(infer, device, steps)
+    t_loss = timed(emd_only, device, steps)
+    return {"params": sum(p.numel() for p in model.parameters()),
+            "enc_params": sum(p.numel() for p in model.encoder.parameters()),
+            "train_sps": B / t_train, "infer_sps": B / t_infer, "pos_loss_ms": 1e3 * t_loss}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    ap.add_argument("--batch", type=int, default=16)
+    ap.add_argument("--points", type=int, default=256)
+    ap.add_argument("--steps", type=int, default=10)
+    ap.add_argument("--cpu-steps", type=int, default=3, help="timed steps of the CPU reference run")
+    args = ap.parse_args()
+    if args.device == "cuda" and not torch.cuda.is_available():
+        raise SystemExit("--device cuda requested but torch.cuda.is_available() is False")
+
+    print(f"batch {args.batch}, {args.points} points, torch {torch.__version__}, "
+          f"{torch.get_num_threads()} CPU threads" + (f", {torch.cuda.get_device_name()}" if args.device == "cuda" else ""))
+    results = {}
+    for name in MODELS:
+        ref = measure(name, "cpu", make_batch(args.batch, args.points, "cpu"), args.cpu_steps)
+        dev = ref if args.device == "cpu" else measure(name, args.device, make_batch(args.batch, args.points,
+                                                                                       args.device), args.steps)
+        results[name] = (ref, dev)
+        print(f"\n{name}: {ref['params']:,} parameters (encoder Φ {ref['enc_params']:,})")
+        print(f"  {'':10s} {'train samples/s':>16s} {'infer samples/s':>16s} {'CD+EMD+HD ms':>13s}")
+        print(f"  {'cpu':10s} {ref['train_sps']:16.1f} {ref['infer_sps']:16.1f} {ref['pos_loss_ms']:13.1f}")
+        if args.device != "cpu":
+            print(f"  {args.device:10s} {dev['train_sps']:16.1f} {dev['infer_sps']:16.1f} {dev['pos_loss_ms']:13.1f}")
+        print(f"  {args.device}/cpu ratio: train {dev['train_sps'] / ref['train_sps']:.2f}x, "
+              f"infer {dev['infer_sps'] / ref['infer_sps']:.2f}x")
+    (g_ref, g_dev), (p_ref, p_dev) = results["graph_transformer"], results["pointnet"]
+    print(f"\npointnet / graph_transformer: parameters {p_ref['params'] / g_ref['params']:.2f}x, "
+          f"train time {g_dev['train_sps'] / p_dev['train_sps']:.2f}x, "
+          f"inference time {g_dev['infer_sps'] / p_dev['infer_sps']:.2f}x  (on {args.device})")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,118 @@
+"""stage=mppi: MPPI demonstrations guided by the spectral reward -> a versioned zarr dataset.
+
+One run writes ``data.episodes`` episodes of one task and object (seeds derived from
+``seed``).  In a Hydra multirun each job writes its own shard
+``dataset/<data.dataset>-<task>-<object>-s<seed>``; ``stage=merge`` joins them.
+Episodes are committed one by one: a killed run resumes where it stopped.
+"""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from pipelines._common import as_dict, object_pose
+from topocut.utils.context import RunContext
+from topocut.utils.progress import progress_bar
+
+
+def _is_multirun() -> bool:
+    try:
+        from hydra.core.hydra_config import HydraConfig
+        from hydra.types import RunMode
+
+        return HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
+    except Exception:  # noqa: BLE001 - outside Hydra
+        return False
+
+
+def episode_seed(run_seed: int, e: int) -> int:
+    return run_seed * 1000 + e
+
+
+def run(ctx: RunContext, sim, object, task, topology, reward, planner, data, compare_heuristic: bool = True) -> dict:
+    from topocut.data.episodes import EpisodeDataset, EpisodeWriter
+    from topocut.goals import make_goal
+    from topocut.planning import HeuristicPolicy, MPPIPolicy, run_episode, sim_rollout_factory
+    from topocut.sim import CuttingEnv, init_taichi
+
+    name = f"{data.dataset}-{task.name}-{object.name}-s{ctx.seed}" if _is_multirun() else data.dataset
+    config = as_dict(("sim", sim), ("object", object), ("task", task), ("topology", topology),
+                     ("reward", reward), ("planner", planner), ("episodes", data.episodes),
+                     ("points_per_step", data.points_per_step), ("seed", ctx.seed))
+    writer, existing = ctx.store.begin("dataset", name, config, extra={"seed": ctx.seed, "device": ctx.device})
+    if existing is not None:
+        return {"dataset": str(existing), "reused": True}
+    init_taichi(arch=ctx.device, seed=ctx.seed)
+    zpath = writer.path / "data.zarr"
+    ew = EpisodeWriter(zpath, points_per_step=data.points_per_step, board_z=sim.board_z)
+    done = ew.committed_keys()
+    env = CuttingEnv(sim, batch_size=max(1, sim.batch_size))
+    factory = sim_rollout_factory(env, reward, topology, board_z=sim.board_z, push=task.push)
+    expert = MPPIPolicy(planner, factory, seed=ctx.seed)
+    log_path = writer.path / "episodes.jsonl"
+    with progress_bar(f"mppi {task.name}/{object.name}", data.episodes * task.max_cuts, ctx.progress) as advance:
+        for e in range(data.episodes):
+            seed = episode_seed(ctx.seed, e)
+            if ew.episode_key({"task": task.name, "object": object.name, "seed": seed}) in done:
+                advance(task.max_cuts, info=f"episode {e} already committed")
+                continue
+            pose = object_pose(object, seed)
+            goal = make_goal(task, object.name, pose, spacing=sim.spacing)
+            record = {"episode": e, "seed": seed}
+            if compare_heuristic:  # the same episode under the heuristic, for docs/data.md's comparison
+                env.reset(object.name, pose, seed=seed)
+                _, hs = run_episode(env, goal, HeuristicPolicy(goal), reward, topology, task.max_cuts, task.push,
+                                    success_threshold=task.success_threshold)
+                record["heuristic_final_reward"] = hs["final_reward"]
+            env.reset(object.name, pose, seed=seed)
+            steps, summary = run_episode(env, goal, expert, reward, topology, task.max_cuts, task.push,
+                                         progress=advance, success_threshold=task.success_threshold)
+            meta = {"task": task.name, "object": object.name, "seed": seed, "pose": pose,
+                    "task_params": task, "material": {k: getattr(sim, k) for k in ("mu", "lam", "rho_core", "rho_skin",
+                                                                                    "eps_c", "eps_s", "m") if hasattr(sim, k)},
+                    "goal": goal.points, "goal_labels": goal.labels, "status": summary["status"],
+                    "final_reward": summary["final_reward"], "success": summary["success"]}
+            ew.add_episode(steps, meta)
+            record.update({k: summary[k] for k in ("status", "num_cuts", "final_reward", "success", "rewards")})
+            with open(log_path, "a") as f:
+                f.write(json.dumps(record, default=float) + "\n")
+            advance(task.max_cuts - summary["num_cuts"], info=f"episode {e}: reward {summary['final_reward']:.3f}")
+    ds = EpisodeDataset(zpath)
+    if ds.num_episodes != data.episodes:
+        raise RuntimeError(f"{zpath} holds {ds.num_episodes} episodes, expected data.episodes={data.episodes}")
+    records = [json.loads(line) for line in open(log_path)] if log_path.exists() else []
+    finals = [r["final_reward"] for r in records if r.get("status") == "ok"]
+    heur = [r["heuristic_final_reward"] for r in records if "heuristic_final_reward" in r]
+    summary = {"episodes": ds.num_episodes, "cuts": len(ds),
+               "success_rate": float(np.mean([r["success"] for r in records])) if records else 0.0,
+               "mean_final_reward": float(np.mean(finals)) if finals else float("nan"),
+               "failed_episodes": sum(r.get("status") != "ok" for r in records)}
+    if heur:
+        summary["heuristic_mean_final_reward"] = float(np.mean(heur))
+    _plot_rewards(records, writer.path / "rewards.png")
+    path = writer.commit(summary)
+    ctx.logger.log({f"mppi/{k}": v for k, v in summary.items() if isinstance(v, (int, float))})
+    ctx.logger.log_image("mppi/rewards", path / "rewards.png")
+    return {"dataset": str(path), **summary}
+
+
+def _plot_rewards(records: list[dict], path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5, 3.2))
+    for r in records:
+        ax.plot(range(1, len(r.get("rewards", [])) + 1), r.get("rewards", []), marker="o", label=f"ep {r['episode']}")
+        if "heuristic_final_reward" in r:
+            ax.axhline(r["heuristic_final_reward"], ls=":", lw=1, color="gray")
+    ax.set_xlabel("cut")
+    ax.set_ylabel("spectral reward")
+    ax.set_title("MPPI episodes (dotted: heuristic final reward)")
+    if records:
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)

@@ -1,0 +1,82 @@
+"""Every stage x task composes and instantiates; bad overrides and inconsistent values fail clearly."""
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+from hydra.errors import ConfigCompositionException
+from hydra.utils import instantiate
+from omegaconf import OmegaConf
+from omegaconf.errors import ConfigKeyError, ValidationError
+
+from topocut.config import STAGES, ConfigError, register_configs, validate
+
+CONF = str(Path(__file__).resolve().parents[1] / "conf")
+TASKS = ("slice", "stick", "dice", "pyramid")
+register_configs()
+
+
+def _compose(*overrides):
+    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
+        return compose(config_name="config", overrides=list(overrides))
+
+
+@pytest.mark.parametrize("task", TASKS)
+@pytest.mark.parametrize("stage", STAGES)
+def test_every_stage_and_task_composes_validates_and_instantiates(stage, task):
+    cfg = _compose(f"stage={stage}", f"task={task}", "logger=none")
+    assert cfg.stage.name == stage and cfg.task.name == task
+    validate(cfg)
+    fn = instantiate(cfg.stage.run, _convert_="object")
+    assert callable(fn)
+    for key, value in fn.keywords.items():  # sub-configs arrive as their dataclasses
+        node = cfg.stage.run[key]
+        if OmegaConf.is_config(node) and OmegaConf.get_type(node) not in (dict, list):
+            assert type(value) is OmegaConf.get_type(node), key
+
+
+@pytest.mark.parametrize("scale", ["smoke", "paper"])
+def test_scales_compose(scale):
+    cfg = _compose(f"scale={scale}")
+    validate(cfg)
+    assert cfg.scale_name == scale
+
+
+def test_every_object_and_model_composes():
+    for obj in ("cake", "cube", "ditto", "ham", "potato", "donut", "burger", "sushi", "steak", "tomato"):
+        validate(_compose(f"object={obj}"))
+    for model in ("graph_transformer", "pointnet"):
+        assert _compose(f"model={model}").model.name == model
+
+
+def test_typo_in_group_choice_lists_valid_choices():
+    with pytest.raises(ConfigCompositionException, match="(?s)Could not find 'stage/mpi'.*mppi"):
+        _compose("stage=mpi")
+    with pytest.raises(ConfigCompositionException, match="(?s)object/carrot.*cake"):
+        _compose("object=carrot")
+
+
+def test_typo_in_key_fails_naming_it():
+    with pytest.raises(ConfigCompositionException) as e:
+        _compose("sim.n_grd=32")
+    assert isinstance(e.value.__cause__, (ConfigKeyError, ValidationError)) and "n_grd" in str(e.value.__cause__)
+    with pytest.raises(ConfigCompositionException) as e:
+        _compose("sim.n_grid=abc")
+    assert "n_grid" in str(e.value.__cause__)
+
+
+def test_cfl_violation_names_the_key():
+    cfg = _compose("sim.dt=0.05")
+    with pytest.raises(ConfigError, match=r"sim\.dt"):
+        validate(cfg)
+
+
+def test_misspelt_stage_argument_names_the_key():
+    cfg = _compose("stage=mppi", "+stage.run.episods=3")
+    with pytest.raises(ConfigError, match=r"stage\.run\.episods.*valid"):
+        validate(cfg)
+
+
+def test_bad_device_value():
+    cfg = _compose("device=tpu")
+    with pytest.raises(ConfigError, match="device"):
+        validate(cfg)

@@ -1,0 +1,194 @@
+"""PDDP network, encoders, plane recovery, training and the deployed policy."""
+import importlib.util
+
+import numpy as np
+import pytest
+import torch
+
+from topocut.policies import PDDPConfig, PolicyTrainConfig, action_from_mask, fit_plane, make_obs
+from topocut.policies.base import Policy, history_from_actions
+from topocut.policies.encoders import FrozenEncoder, build_encoder
+from topocut.policies.module import PDDPModule, PDDPPolicy, PolicyDataset
+from topocut.policies.pddp import PDDPNet
+from topocut.sim.action import KnifeAction, cut_mask
+
+TINY = dict(n_blocks=2, hidden=32, obs_dim=32, n_heads=2, cond_dim=32, time_freq_dim=32, goal_hidden=16, dropout=0.0)
+
+
+def random_action(rng):
+    return KnifeAction(rng.uniform(0.44, 0.56), rng.uniform(0.44, 0.56), rng.uniform(-np.pi / 2, np.pi / 2),
+                       rng.uniform(-0.5, 0.5)).canonical()
+
+
+def box_points(rng, n):
+    return rng.uniform([0.35, 0.35, 0.05], [0.65, 0.65, 0.25], (n, 3)).astype(np.float32)
+
+
+@pytest.mark.parametrize("method", ["svm", "lsq"])
+def test_plane_round_trip(method):
+    """Random action -> cut_mask on random points -> recovered plane within 3 degrees and 0.01 offset."""
+    rng = np.random.default_rng(0)
+    for _ in range(10):
+        a = random_action(rng)
+        pts = box_points(rng, 2048)
+        mask = cut_mask(pts, a)
+        r = action_from_mask(pts, mask, method)
+        cos = float(r.normal @ a.normal)
+        angle = np.degrees(np.arccos(min(1.0, abs(cos))))
+        assert angle < 3.0
+        c = pts.mean(0)  # the planes' separation measured at the cloud's centre
+        offset = abs(a.normal @ (c - a.plane_point()) - np.sign(cos) * r.normal @ (c - r.plane_point()))
+        assert offset < 0.01
+        # the recovered plane cuts the points as the mask does (up to the canonical side convention)
+        m2 = cut_mask(pts, r)
+        assert max((m2 == mask).mean(), (m2 != mask).mean()) > 0.97
+        n, p = fit_plane(pts, mask, method)
+        assert ((pts - p) @ n > 0).astype(np.uint8)[mask == 1].mean() > 0.97  # normal points to class 1
+
+
+def test_plane_degenerate_masks():
+    pts = box_points(np.random.default_rng(1), 200)
+    assert action_from_mask(pts, np.zeros(200, np.uint8)) is None
+    assert action_from_mask(pts, np.ones(200, np.uint8), "lsq") is None
+    horizontal = (pts[:, 2] > 0.15).astype(np.uint8)  # a horizontal plane: no downward knife makes it
+    assert action_from_mask(pts, horizontal) is None
+    with pytest.raises(ValueError, match="svm"):
+        fit_plane(pts, horizontal, "ransac")
+
+
+@pytest.mark.parametrize("graph,goal_mode,score_param", [("uniform", "pool", "denoiser"), ("absorbing", "cross", "denoiser"),
+                                                          ("uniform", "cross", "direct"), ("absorbing", "pool", "direct")])
+def test_network_shapes_and_set_equivariance(graph, goal_mode, score_param):
+    torch.manual_seed(0)
+    net = PDDPNet(PDDPConfig(graph=graph, goal_mode=goal_mode, score_param=score_param, **TINY)).eval()
+    for p in net.parameters():  # zero-initialised adaLN/output layers would make the test trivial
+        torch.nn.init.normal_(p, std=0.2)
+    B, N, G = 2, 24, 10
+    d = 2 if graph == "uniform" else 3
+    z, goal, hist = torch.randn(B, N, 32), torch.rand(B, G, 3), torch.randn(B, 3, 7)
+    x = torch.randint(0, d, (B, N))
+    sigma = torch.tensor([0.1, 2.0])
+    ctx = net.context(z, goal, hist)
+    out = net(x, sigma, ctx)
+    assert out.shape == (B, N, d)
+    assert torch.all(out.gather(-1, x[..., None]) == 0)  # ratio 1 at the current state
+    perm = torch.randperm(N)
+    out_p = net(x[:, perm], sigma, net.context(z[:, perm], goal[:, torch.randperm(G)], hist))
+    torch.testing.assert_close(out_p, out[:, perm], atol=1e-4, rtol=1e-4)  # a set, not a sequence
+    assert not torch.allclose(out, net(x, sigma, net.context(z, goal, hist.flip(1))))  # history matters
+
+
+def test_paper_sizes():
+    net = PDDPNet(PDDPConfig())
+    assert len(net.blocks) == 12
+    assert net.blocks[0].attn.kv.weight.shape == (288, 96)  # 96 -> 288 fused qkv
+    assert net.blocks[0].mlp[0].weight.shape == (384, 96)
+    assert net.blocks[0].ada.weight.shape == (576, 128)
+    assert net.hist.weight.shape == (128, 21)
+    assert net.sigma_map.mlp[0].weight.shape == (128, 256)
+    assert net.out.linear.weight.shape == (2, 96)  # binary logits per point
+
+
+@pytest.mark.parametrize("kind", ["none", "graphconv", "pretrained"])
+def test_encoders(kind):
+    B, N = 2, 40
+    pts, labels = torch.rand(B, N, 3), torch.randint(-1, 4, (B, N))
+    if kind == "pretrained":
+        if importlib.util.find_spec("topocut.models.encoder") is None:
+            pytest.skip("topocut.models.encoder (TopoEncoder) is not written yet")
+        from topocut.models.encoder import TopoEncoder
+
+        enc = FrozenEncoder(TopoEncoder(hidden=96, num_labels=32))
+        enc.train()
+        assert not enc.encoder.training and not any(p.requires_grad for p in enc.parameters())
+        labels = labels.clamp_min(0)
+    else:
+        enc = build_encoder(kind)
+    out = enc(pts, labels)
+    assert out.shape == (B, N, enc.out_dim) and enc.out_dim == 96
+    assert torch.isfinite(out).all()
+    with pytest.raises(ValueError, match="graphconv"):
+        build_encoder("pointnet")
+    with pytest.raises(ValueError, match="ckpt"):
+        build_encoder("pretrained")
+
+
+def synthetic_steps(n_steps, n_points=64, seed=0):
+    """Steps whose mask is the cut of a fixed plane: learnable from the point positions alone."""
+    rng = np.random.default_rng(seed)
+    action = KnifeAction(0.5, 0.5, 0.4, 0.0)
+    steps = []
+    for _ in range(n_steps):
+        x = box_points(rng, n_points)
+        steps.append({"x_t": x, "f_t": np.zeros(n_points, np.int32), "mask": cut_mask(x, action),
+                      "history": np.zeros((3, 7), np.float32), "goal": box_points(rng, 16)})
+    return steps, action
+
+
+def test_training_reduces_loss_and_policy_acts():
+    torch.manual_seed(0)
+    steps, action = synthetic_steps(64)
+    ds = PolicyDataset(steps, num_points=64, num_goal_points=16)
+    module = PDDPModule(PDDPConfig(**TINY), "none", train=PolicyTrainConfig(lr=1e-3, warmup_steps=1, ema_decay=0.8,
+                                                                          num_points=64, num_goal_points=16))
+    batch = torch.utils.data.default_collate([ds[i] for i in range(32)])
+    t = torch.linspace(0.05, 0.95, 32)
+
+    def fixed_loss():  # same noise levels and perturbations every time
+        with torch.no_grad():
+            return module.loss(batch, t=t, generator=torch.Generator().manual_seed(0)).item()
+
+    before = fixed_loss()
+    opt = module.configure_optimizers()["optimizer"]
+    loader = torch.utils.data.DataLoader(ds, batch_size=16, shuffle=True)
+    for _ in range(24):  # 96 steps
+        for b in loader:
+            loss = module.loss(b)
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            module.on_train_batch_end(None, b, 0)
+    after = fixed_loss()
+    assert after < 0.4 * before, (before, after)
+
+    masks = module.sample_masks(batch, steps=16, generator=torch.Generator().manual_seed(1))
+    assert (masks == batch["mask"]).float().mean() > 0.8
+
+    policy = PDDPPolicy(module, steps=16, seed=0)
+    assert isinstance(policy, Policy)
+    rng = np.random.default_rng(5)
+    pts = box_points(rng, 200)  # more points than the network sees: the mask is spread back to all of them
+    policy.reset(type("Goal", (), {"points": box_points(rng, 16)})())
+    obs = make_obs(pts, np.zeros(200, np.int32), policy.goal, history=history_from_actions([]))
+    a = policy.act(obs)
+    assert a is not None and policy.last_mask.shape == (200,)
+    assert np.degrees(np.arccos(min(1.0, abs(a.normal @ action.normal)))) < 20.0
+
+
+def test_trainer_logs_metrics(tmp_path):
+    import lightning as L
+
+    steps, _ = synthetic_steps(16, n_points=32)
+    tr = PolicyTrainConfig(num_points=32, num_goal_points=16, warmup_steps=1, val_sample_steps=4)
+    module = PDDPModule(PDDPConfig(graph="absorbing", goal_mode="cross", **TINY), "graphconv", train=tr)
+    dl = torch.utils.data.DataLoader(PolicyDataset(steps, 32, 16), batch_size=8)
+    trainer = L.Trainer(max_steps=4, limit_val_batches=1, logger=False, enable_checkpointing=False,
+                        enable_progress_bar=False, enable_model_summary=False, accelerator="cpu",
+                        default_root_dir=tmp_path)
+    trainer.fit(module, dl, dl)
+    m = trainer.callback_metrics
+    assert {"train/loss", "val/loss", "val/mask_acc"} <= set(m)
+    assert 0.0 <= float(m["val/mask_acc"]) <= 1.0
+    ckpt = tmp_path / "p.ckpt"
+    trainer.save_checkpoint(ckpt)
+    policy = PDDPPolicy(str(ckpt), sampler="euler", steps=4, plane="lsq")
+    assert policy.module.cfg.graph == "absorbing" and policy.module.cfg.goal_mode == "cross"
+
+
+def test_config_errors():
+    with pytest.raises(ValueError, match="absorbing"):
+        PDDPConfig(graph="masked").validate()
+    with pytest.raises(ValueError, match="encoder_ckpt"):
+        PolicyTrainConfig(encoder="pretrained").validate()
+    with pytest.raises(KeyError, match="goal"):
+        make_obs(np.zeros((3, 3)), np.zeros(3), None)

@@ -1,0 +1,128 @@
+"""Spectral reward: invariances, discrimination, the eigenvector term, R(d), matching, torch path."""
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from topocut.reward import (RewardConfig, descriptor, match, piecewise_reward, spectral_descriptors,
+                            spectral_distance, spectral_reward)
+from topocut.reward.spectral import hks_signature, laplacian, resample, smallest_eigenpairs
+
+H = 0.004  # lattice spacing of the test shapes
+
+
+def box(a, b, c, seed=0, h=H):
+    rng = np.random.default_rng(seed)
+    g = np.stack(np.meshgrid(*[np.arange(h / 2, s, h) for s in (a, b, c)], indexing="ij"), -1).reshape(-1, 3)
+    return g + rng.uniform(-h / 4, h / 4, g.shape)  # jitter breaks lattice ties (FPS is then exactly equivariant)
+
+
+def sphere(r, seed=0):
+    p = box(2 * r, 2 * r, 2 * r, seed) - r
+    return p[np.linalg.norm(p, axis=1) < r]
+
+
+def moved(p, seed):
+    rng = np.random.default_rng(seed)
+    R = Rotation.random(random_state=seed).as_matrix()
+    return (p @ R.T + rng.uniform(-1, 1, 3))[rng.permutation(len(p))]
+
+
+CFG = RewardConfig(num_point=256, knn=20, num_eig=12)  # smaller than the defaults: fast tests
+
+
+def test_paper_eigenvector_term_vanishes_but_ours_does_not():
+    p = resample(box(0.03, 0.03, 0.06), CFG)
+    w, v = smallest_eigenpairs(laplacian(p, 0.006, CFG.knn), CFG.num_eig + 1)
+    # the paper's ||Phi^T Phi - Phi'^T Phi'||: Phi^T Phi = I for any orthonormal eigenbasis
+    np.testing.assert_allclose(v.T @ v, np.eye(v.shape[1]), atol=1e-8)
+    sig = hks_signature(w[1:], v[:, 1:], CFG)
+    assert np.ptp(sig) > 0.1  # the HKS distribution is not constant
+
+
+def test_invariance_to_rotation_translation_permutation():
+    x = box(0.03, 0.05, 0.08)
+    y = box(0.03, 0.03, 0.03, seed=2)
+    d0 = spectral_distance(x, y, CFG)
+    for s in range(3):
+        d = spectral_distance(moved(x, s), moved(y, s + 10), CFG)
+        assert abs(d - d0) / d0 < 1e-3
+    wx, sx = descriptor(x, 0.006, CFG)
+    wm, sm = descriptor(moved(x, 5), 0.006, CFG)
+    np.testing.assert_allclose(wm, wx, rtol=1e-6)
+    np.testing.assert_allclose(sm, sx, rtol=1e-6, atol=1e-9)
+    assert spectral_distance(x, moved(x, 7), CFG) < 1e-8
+
+
+DIMS = {"slice_t": (0.012, 0.06, 0.05), "slice_2t": (0.024, 0.06, 0.05), "stick": (0.016, 0.016, 0.06),
+        "die": (0.016, 0.016, 0.016), "cube": (0.026, 0.026, 0.026)}
+
+
+def make(k, seed=0):
+    return sphere(0.016, seed) if k == "sphere" else box(*DIMS[k], seed=seed)
+
+
+def test_distinct_shapes_are_farther_apart_than_poses_and_resamplings():
+    for a, b in [("slice_t", "slice_2t"), ("stick", "die"), ("sphere", "cube")]:
+        d = spectral_distance(make(a), make(b), CFG)
+        pose = max(spectral_distance(make(k), moved(make(k), 3), CFG) for k in (a, b))  # same particles moved
+        resampled = max(spectral_distance(make(k), moved(make(k, seed=9), 3), CFG) for k in (a, b))
+        assert d > 1e4 * pose and d > 4 * resampled, (a, b, d, pose, resampled)
+
+
+def test_eigenvector_term_alone_separates_shapes():
+    cfg = RewardConfig(num_point=256, knn=20, num_eig=12, alpha=0.0, beta=1.0)
+    stick, die = box(0.016, 0.016, 0.06), box(0.016, 0.016, 0.016)
+    same = spectral_distance(stick, moved(box(0.016, 0.016, 0.06, seed=4), 1), cfg)
+    assert spectral_distance(stick, die, cfg) > 10 * same
+
+
+def test_piecewise_reward_matches_the_paper_formula():
+    cfg = RewardConfig(r_max=1.0, gamma=1.0, tau=0.1, delta=4.0)
+    assert piecewise_reward(0.0, cfg) == 1.0
+    assert piecewise_reward(0.05, cfg) == pytest.approx(0.95)
+    assert piecewise_reward(0.1, cfg) == pytest.approx(0.9)  # continuous at tau
+    assert piecewise_reward(0.2, cfg) == pytest.approx(1.0 - 0.1 - 4.0 * 0.1)
+    assert piecewise_reward(10.0, cfg) == 0.0 and piecewise_reward(np.inf, cfg) == 0.0
+    with pytest.raises(ValueError, match="reward.delta"):
+        spectral_distance(box(0.02, 0.02, 0.02), box(0.02, 0.02, 0.02), RewardConfig(gamma=2.0, delta=1.0))
+
+
+def test_matching_is_order_invariant_and_bounded():
+    D = np.array([[0.5, 0.1, 3.0], [0.2, 0.9, 0.4], [np.inf, np.inf, np.inf], [0.3, 0.2, 0.1]])
+    pairs = match(D)
+    assert pairs == [(0, 1), (1, 0), (3, 2)]  # total 0.4: the optimum (checked by hand)
+    perm = [2, 0, 3, 1]
+    pairs_p = match(D[perm])
+    assert sorted((perm[f], g) for f, g in pairs_p) == pairs
+
+    die = box(0.016, 0.016, 0.016)
+    frags = [box(0.03, 0.03, 0.03), moved(box(0.016, 0.016, 0.016, seed=3), 2), box(0.004, 0.004, 0.008)]
+    goals = [die, box(0.016, 0.016, 0.04)]
+    r = spectral_reward(frags, goals, CFG)
+    r_p = spectral_reward(frags[::-1], goals, CFG)
+    assert r.total == pytest.approx(r_p.total) and r.cut_count == r_p.cut_count
+    assert (1, 0) in r.matching  # the moved die goes to the die goal
+    assert np.isinf(r.distances[2]).all()  # 8 points < min_points
+    assert 0.0 <= r.total <= CFG.r_max and np.all((0 <= r.per_goal) & (r.per_goal <= CFG.r_max))
+    assert r.per_goal[0] > 0.95 and r.cut_count >= 1
+    # kappa scales the sum
+    r2 = spectral_reward(frags, goals, RewardConfig(num_point=256, knn=20, num_eig=12, kappa=1.0))
+    assert r2.total == pytest.approx(r.per_goal.sum())
+    # no fragment -> every goal unmatched -> 0
+    assert spectral_reward([], goals, CFG).total == 0.0
+
+
+def test_torch_batch_matches_scipy_path():
+    torch = pytest.importorskip("torch")
+    clouds = [resample(box(0.02, 0.03, 0.05, seed=s), CFG) for s in range(2)]
+    n = min(len(c) for c in clouds)
+    clouds = [c[:n] for c in clouds]
+    w, s = spectral_descriptors(torch.tensor(np.stack(clouds)), CFG, sigma=0.006)
+    for i, c in enumerate(clouds):
+        wr, sr = descriptor(c, 0.006, CFG)
+        np.testing.assert_allclose(w[i].numpy(), wr, rtol=1e-6, atol=1e-9)
+        np.testing.assert_allclose(s[i].numpy(), sr, rtol=1e-5, atol=1e-7)
+    torch_cfg = RewardConfig(num_point=256, knn=20, num_eig=12, backend="torch")
+    a, b = box(0.016, 0.016, 0.04), box(0.016, 0.016, 0.016)
+    r1, r2 = spectral_reward([a, b], [b], CFG), spectral_reward([a, b], [b], torch_cfg)
+    np.testing.assert_allclose(r1.distances, r2.distances, rtol=1e-5, atol=1e-9)

@@ -1,0 +1,12 @@
+"""Planners and demonstration sources: MPPI, the heuristic controller, teleoperation, the episode runner.
+
+Pure numpy at import time; the simulator, topology and reward modules are
+imported when a rollout or an episode actually runs.
+"""
+from topocut.planning.config import MPPIConfig
+from topocut.planning.heuristic import HeuristicPolicy
+from topocut.planning.mppi import MPPI, MPPIPolicy, mppi_weights, shift
+from topocut.planning.rollout import Scorer, make_sim_rollout, run_episode, sim_rollout_factory
+
+__all__ = ["MPPIConfig", "MPPI", "MPPIPolicy", "HeuristicPolicy", "mppi_weights", "shift", "Scorer",
+           "make_sim_rollout", "sim_rollout_factory", "run_episode"]

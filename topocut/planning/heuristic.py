@@ -1,0 +1,39 @@
+"""Heuristic controller: the goal's ideal cut planes in order (the evaluation's "Heuristic" baseline).
+
+``Goal.planes`` (topocut.goals.make_goal) are the equally spaced planes that
+produce the target pieces on the nominal, undeformed object; executing them
+open loop ignores how the material deforms and moves.  They are also MPPI's
+initial guess and horizon fill.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from topocut.sim.action import KnifeAction
+
+
+class HeuristicPolicy:
+    """Policy protocol: ``reset(goal)``, ``act(obs) -> KnifeAction`` returning goal.planes[t]."""
+
+    def __init__(self, goal=None):
+        self.planes: list[KnifeAction] = []
+        self.t = 0
+        if goal is not None:
+            self.reset(goal)
+
+    def reset(self, goal) -> None:
+        planes = list(getattr(goal, "planes", []) or [])
+        if not planes:
+            raise ValueError("HeuristicPolicy needs a goal with at least one plane in goal.planes")
+        self.planes = [p if isinstance(p, KnifeAction) else KnifeAction.from_vector(p) for p in planes]
+        self.t = 0
+
+    def sequence(self, start: int, n: int) -> np.ndarray:
+        """Planes start .. start+n-1 as action vectors (n,4); past the last plane the last one repeats."""
+        idx = np.minimum(np.arange(start, start + n), len(self.planes) - 1)
+        return np.stack([self.planes[i].to_vector() for i in idx]).astype(np.float64)
+
+    def act(self, obs: dict | None = None) -> KnifeAction:
+        action = self.planes[min(self.t, len(self.planes) - 1)]
+        self.t += 1
+        return action

@@ -1,0 +1,264 @@
+"""Shared machinery of the pose-diffusion baselines (DP3, 3D Diffuser Actor).
+
+* Action representation: a knife pose [x, y, yaw, tilt] becomes the continuous 6-vector
+  [(x-cx)/s, (y-cy)/s, cos 2yaw, sin 2yaw, tilt cos yaw, tilt sin yaw] -- unique per cut plane, since
+  (yaw, tilt) and (yaw + pi, -tilt) describe the same plane and give the same vector; (cx, cy) is the
+  observation centroid and s = ``pos_scale`` (a typical object size), so poses are object-relative.
+* Gaussian diffusion: DDPM training (epsilon prediction, cosine schedule) and DDIM sampling
+  (eta = 0 deterministic; eta = 1 with all T steps is DDPM ancestral sampling).
+* ``PoseStepDataset``: dataset step dicts (docs/contracts.md) -> FPS'd, centred tensors.
+* ``PoseDiffusionModule`` (LightningModule) and ``PosePolicy`` (the Policy protocol).
+"""
+from __future__ import annotations
+
+import math
+
+import lightning as L
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from topocut.sim.action import KnifeAction
+
+KINDS = ("dp3", "3dda")
+REPR_DIM = 6
+
+
+# -- action representation ------------------------------------------------------------------------------
+def encode_action(vec, center, scale: float) -> np.ndarray:  # (...,4), (...,3) -> (...,6)
+    v, c = np.asarray(vec, np.float64), np.asarray(center, np.float64)
+    yaw, tilt = v[..., 2], v[..., 3]
+    return np.stack([(v[..., 0] - c[..., 0]) / scale, (v[..., 1] - c[..., 1]) / scale, np.cos(2 * yaw),
+                     np.sin(2 * yaw), tilt * np.cos(yaw), tilt * np.sin(yaw)], axis=-1).astype(np.float32)
+
+
+def decode_action(r, center, scale: float) -> KnifeAction:  # (6,), (3,) -> KnifeAction
+    r = np.asarray(r, np.float64)
+    yaw = 0.5 * math.atan2(r[3], r[2])  # (-pi/2, pi/2]
+    tilt = r[4] * math.cos(yaw) + r[5] * math.sin(yaw)
+    return KnifeAction(float(center[0] + scale * r[0]), float(center[1] + scale * r[1]), yaw, float(tilt)).canonical()
+
+
+# -- Gaussian diffusion ---------------------------------------------------------------------------------
+def cosine_alphas_cumprod(T: int, s: float = 0.008, max_beta: float = 0.999) -> np.ndarray:
+    """Nichol & Dhariwal's schedule: betas from abar(t) = cos^2(((t/T)+s)/(1+s) pi/2), clipped at max_beta."""
+    f = lambda t: math.cos((t / T + s) / (1 + s) * math.pi / 2) ** 2  # noqa: E731
+    betas = np.array([min(1 - f(i + 1) / f(i), max_beta) for i in range(T)])
+    return np.cumprod(1.0 - betas)
+
+
+class GaussianDiffusion(nn.Module):
+    def __init__(self, num_train_steps: int = 100):
+        super().__init__()
+        self.T = num_train_steps
+        self.register_buffer("abar", torch.tensor(cosine_alphas_cumprod(num_train_steps), dtype=torch.float32))
+
+    @property
+    def betas(self) -> torch.Tensor:  # T,
+        prev = torch.cat([self.abar.new_ones(1), self.abar[:-1]])
+        return 1 - self.abar / prev
+
+    def q_sample(self, x0, t, noise):  # x_t = sqrt(abar_t) x0 + sqrt(1 - abar_t) eps
+        a = self.abar[t].view(-1, *[1] * (x0.dim() - 1))
+        return a.sqrt() * x0 + (1 - a).sqrt() * noise
+
+    def loss(self, eps_fn, x0, generator=None):
+        t = torch.randint(0, self.T, (x0.shape[0],), device=x0.device, generator=generator)
+        noise = torch.randn(x0.shape, device=x0.device, generator=generator)
+        return F.mse_loss(eps_fn(self.q_sample(x0, t, noise), t), noise)
+
+    @torch.no_grad()
+    def sample(self, eps_fn, shape, steps: int | None = None, eta: float = 0.0, generator=None,
+               clip: float | None = 1.0, device=None):
+        """DDIM (Song et al. 2021) over ``steps`` evenly spaced timesteps T-ratio, ..., 0 ("leading")."""
+        steps = steps or self.T
+        if not 1 <= steps <= self.T:
+            raise ValueError(f"sampling steps={steps} must lie in [1, num_train_steps={self.T}]")
+        ratio = self.T // steps
+        x = torch.randn(shape, device=device or self.abar.device, generator=generator)
+        for t in reversed(range(0, steps * ratio, ratio)):
+            a = self.abar[t]
+            a_prev = self.abar[t - ratio] if t - ratio >= 0 else self.abar.new_tensor(1.0)
+            eps = eps_fn(x, torch.full((shape[0],), t, device=x.device, dtype=torch.long))
+            x0 = (x - (1 - a).sqrt() * eps) / a.sqrt()
+            if clip is not None:
+                x0 = x0.clamp(-clip, clip)
+                eps = (x - a.sqrt() * x0) / (1 - a).sqrt()  # keep eps consistent with the clipped x0
+            sigma = eta * ((1 - a_prev) / (1 - a) * (1 - a / a_prev)).clamp(min=0).sqrt()
+            x = a_prev.sqrt() * x0 + (1 - a_prev - sigma ** 2).clamp(min=0).sqrt() * eps
+            if eta > 0 and t - ratio >= 0:
+                x = x + sigma * torch.randn(shape, device=x.device, generator=generator)
+        return x
+
+
+# -- data ---------------------------------------------------------------------------------------------
+def _fps_idx(points, n: int, seed: int) -> np.ndarray:
+    if len(points) <= n:  # too few points: repeat some so that every sample has n
+        return np.resize(np.arange(len(points)), n)
+    from topocut.metrics import fps
+
+    return np.asarray(fps(points, n, seed=seed), np.int64)
+
+
+def prepare_inputs(points, labels, goal, goal_labels, history, num_points: int = 256, num_goal_points: int = 256,
+                   pos_scale: float = 0.15, board_z: float = 0.05, num_labels: int = 32, seed: int = 0,
+                   idx=None, goal_idx=None) -> dict:
+    """Observation -> network inputs in the object-centred frame (float32 / int64 numpy)."""
+    points, goal = np.asarray(points, np.float32), np.asarray(goal, np.float32)
+    center = points.mean(axis=0).astype(np.float64)  # 3,
+    idx = _fps_idx(points, num_points, seed) if idx is None else idx
+    goal_idx = _fps_idx(goal, num_goal_points, seed) if goal_idx is None else goal_idx
+    hist = np.array(history, np.float32).reshape(-1, 7)
+    valid = np.abs(hist[:, 3:]).sum(axis=1) > 0  # zero-padded rows (no cut yet) have no quaternion
+    hist[valid, :3] = (hist[valid, :3] - center) / pos_scale
+    lab = lambda a: np.clip(np.asarray(a, np.int64) + 1, 0, num_labels - 1)  # noqa: E731  (-1 unassigned -> 0)
+    return {"points": ((points[idx] - center) / pos_scale).astype(np.float32), "labels": lab(labels)[idx],
+            "goal": ((goal[goal_idx] - center) / pos_scale).astype(np.float32), "goal_labels": lab(goal_labels)[goal_idx],
+            "history": hist, "board": np.float32((board_z - center[2]) / pos_scale), "center": center.astype(np.float32)}
+
+
+class PoseStepDataset(torch.utils.data.Dataset):
+    """Step dicts (x_t, f_t, history, goal, goal_labels, action) -> prepared inputs + action representation.
+
+    FPS indices are cached per step, so only the first epoch pays for them.
+    """
+
+    def __init__(self, steps, num_points: int = 256, num_goal_points: int = 256, pos_scale: float = 0.15,
+                 board_z: float = 0.05, num_labels: int = 32, seed: int = 0):
+        self.steps, self.kw = steps, dict(num_points=num_points, num_goal_points=num_goal_points, pos_scale=pos_scale,
+                                          board_z=board_z, num_labels=num_labels, seed=seed)
+        self._idx: dict[int, tuple] = {}
+
+    def __len__(self) -> int:
+        return len(self.steps)
+
+    def __getitem__(self, i: int) -> dict:
+        s = self.steps[i]
+        cached = self._idx.get(i, (None, None))
+        out = prepare_inputs(s["x_t"], s["f_t"], s["goal"], s["goal_labels"], s["history"], idx=cached[0],
+                             goal_idx=cached[1], **self.kw)
+        if i not in self._idx:
+            self._idx[i] = (_fps_idx(np.asarray(s["x_t"]), self.kw["num_points"], self.kw["seed"]),
+                            _fps_idx(np.asarray(s["goal"]), self.kw["num_goal_points"], self.kw["seed"]))
+        out["action"] = encode_action(s["action"], out["center"], self.kw["pos_scale"])
+        return out
+
+
+def action_stats(steps, pos_scale: float = 0.15) -> np.ndarray:
+    """(M,6) action representations of the steps (for PoseDiffusionModule.set_action_stats)."""
+    return np.stack([encode_action(s["action"], np.asarray(s["x_t"], np.float64).mean(0), pos_scale) for s in steps])
+
+
+# -- LightningModule -----------------------------------------------------------------------------------------
+class PoseDiffusionModule(L.LightningModule):
+    """DDPM over one knife pose per step with a DP3 or 3D-Diffuser-Actor denoiser."""
+
+    def __init__(self, kind: str = "dp3", num_points: int = 256, num_goal_points: int = 256, num_labels: int = 32,
+                 use_labels: bool = True, enc_dim: int = 64, down_dims: tuple = (64, 128, 256), horizon: int = 4,
+                 dim: int = 96, heads: int = 4, layers: int = 2, context_layers: int = 1, lr: float = 1e-4,
+                 weight_decay: float = 1e-6, num_train_steps: int = 100, num_inference_steps: int | None = None,
+                 eta: float | None = None, pos_scale: float = 0.15, board_z: float = 0.05):
+        super().__init__()
+        if kind not in KINDS:
+            raise ValueError(f"kind={kind!r} is not valid; choose one of {', '.join(KINDS)}")
+        self.save_hyperparameters()
+        if kind == "dp3":
+            from topocut.policies.baselines.dp3 import DP3Net
+
+            self.net = DP3Net(REPR_DIM, num_labels, use_labels, enc_dim, tuple(down_dims), horizon)
+        else:
+            from topocut.policies.baselines.diffuser_actor import DiffuserActorNet
+
+            self.net = DiffuserActorNet(REPR_DIM, num_labels, use_labels, dim, heads, layers, context_layers)
+        self.diffusion = GaussianDiffusion(num_train_steps)
+        # DP3 samples with 10 deterministic DDIM steps; 3DDA with DDPM ancestral sampling over all T steps
+        self.num_inference_steps = num_inference_steps or (10 if kind == "dp3" else num_train_steps)
+        self.eta = (0.0 if kind == "dp3" else 1.0) if eta is None else eta
+        self.register_buffer("act_mid", torch.zeros(REPR_DIM))  # normalised = (r - mid) / half, in [-1, 1]
+        self.register_buffer("act_half", torch.ones(REPR_DIM))
+
+    def set_action_stats(self, reprs, min_half: float = 1e-2) -> None:
+        r = torch.as_tensor(np.asarray(reprs), dtype=torch.float32)  # M,6
+        lo, hi = r.min(0).values, r.max(0).values
+        self.act_mid.copy_((lo + hi) / 2)
+        self.act_half.copy_(((hi - lo) / 2).clamp(min=min_half))
+
+    def normalize(self, r):
+        return (r - self.act_mid) / self.act_half
+
+    def denormalize(self, x):
+        return x * self.act_half + self.act_mid
+
+    def _eps_fn(self, cond):
+        return lambda x, t: self.net.denoise(x, t, cond, self.denormalize(x))
+
+    def compute_loss(self, batch, generator=None):
+        x0 = self.normalize(batch["action"])[:, None].expand(-1, self.net.horizon, -1)  # B,H,6
+        return self.diffusion.loss(self._eps_fn(self.net.encode(batch)), x0, generator)
+
+    @torch.no_grad()
+    def predict(self, batch, generator=None, steps: int | None = None) -> torch.Tensor:  # -> B,6 representation
+        B = batch["points"].shape[0]
+        x = self.diffusion.sample(self._eps_fn(self.net.encode(batch)), (B, self.net.horizon, REPR_DIM),
+                                  steps or self.num_inference_steps, self.eta, generator, device=self.device)
+        return self.denormalize(x.mean(dim=1))  # the padded sequence is read as its mean pose
+
+    def training_step(self, batch, batch_idx):
+        loss = self.compute_loss(batch)
+        self.log("train/loss", loss, prog_bar=True, batch_size=batch["points"].shape[0])
+        return loss
+
+    def validation_step(self, batch, batch_idx):
+        B = batch["points"].shape[0]
+        self.log("val/loss", self.compute_loss(batch), batch_size=B)
+        err = pose_errors(self.predict(batch), batch["action"], self.hparams.pos_scale)
+        self.log("val/pose_err", err["xy"], prog_bar=True, batch_size=B)
+        self.log("val/yaw_err", err["yaw"], batch_size=B)
+
+    def configure_optimizers(self):
+        return torch.optim.AdamW(self.parameters(), lr=self.hparams.lr, weight_decay=self.hparams.weight_decay)
+
+
+def pose_errors(pred, target, pos_scale: float) -> dict:
+    """Mean cut-point distance (scene units) and mean angle between blade lines (rad) of (B,6) representations."""
+    xy = (pred[:, :2] - target[:, :2]).norm(dim=-1).mean() * pos_scale
+    d = 0.5 * (torch.atan2(pred[:, 3], pred[:, 2]) - torch.atan2(target[:, 3], target[:, 2]))
+    yaw = torch.atan2(torch.sin(2 * d), torch.cos(2 * d)).abs().mean() / 2  # lines: difference modulo pi
+    return {"xy": xy, "yaw": yaw}
+
+
+# -- Policy -----------------------------------------------------------------------------------------------
+class PosePolicy:
+    """Policy protocol over a trained PoseDiffusionModule: ``reset(goal)``, ``act(obs) -> KnifeAction``.
+
+    Sampling noise comes from a generator re-seeded at every reset, so an episode is reproducible.
+    """
+
+    def __init__(self, module: PoseDiffusionModule, seed: int = 0, device: str = "cpu", steps: int | None = None):
+        self.module, self.seed, self.steps = module.to(device).eval(), seed, steps
+        self.device = torch.device(device)
+        self.goal, self.generator = None, None
+
+    def reset(self, goal) -> None:
+        self.goal = goal
+        self.generator = torch.Generator(self.device).manual_seed(self.seed)
+
+    def act(self, obs: dict) -> KnifeAction:
+        if self.generator is None:
+            raise RuntimeError("PosePolicy.act called before reset(goal)")
+        hp = self.module.hparams
+        goal = obs.get("goal", getattr(self.goal, "points", None))
+        goal_labels = obs.get("goal_labels", getattr(self.goal, "labels", None))
+        if goal is None or goal_labels is None:
+            raise KeyError(f"PosePolicy needs obs['goal'] and obs['goal_labels'] (or a goal); obs has {', '.join(obs)}")
+        inp = prepare_inputs(obs["points"], obs["labels"], goal, goal_labels, obs["history"], hp.num_points,
+                             hp.num_goal_points, hp.pos_scale, hp.board_z, hp.num_labels, seed=self.seed)
+        batch = {k: torch.as_tensor(np.asarray(v))[None].to(self.device) for k, v in inp.items()}
+        r = self.module.predict(batch, self.generator, self.steps)[0].cpu().numpy()
+        return decode_action(r, inp["center"], hp.pos_scale)
+
+
+def load_pose_policy(path, seed: int = 0, device: str = "cpu", steps: int | None = None) -> PosePolicy:
+    module = PoseDiffusionModule.load_from_checkpoint(str(path), map_location=device)
+    return PosePolicy(module, seed, device, steps)

@@ -1,0 +1,104 @@
+"""Configs of the PDDP policy (network + discrete diffusion) and of its training.
+
+Plain-typed dataclasses so Hydra can register them as structured-config schemas.
+Sizes follow the paper's appendix "Policy Model Architecture - PDDP".
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+GRAPHS = ("uniform", "absorbing")
+NOISES = ("loglinear", "geometric")
+GOAL_MODES = ("pool", "cross")
+SCORE_PARAMS = ("denoiser", "direct")
+ENCODERS = ("none", "pretrained", "graphconv")
+LOSSES = ("dse", "sq")
+PREDICTORS = ("analytic", "euler")
+PLANE_METHODS = ("svm", "lsq")
+
+
+def _check(name: str, value: str, valid: tuple) -> None:
+    if value not in valid:
+        raise ValueError(f"{name}={value!r} is not valid; choose one of {', '.join(valid)}")
+
+
+@dataclass
+class PDDPConfig:
+    # -- discrete diffusion -------------------------------------------------
+    graph: str = "uniform"  # "uniform" on 2 states is the paper's bit-flip noise; "absorbing" adds a mask state
+    noise: str = "loglinear"  # schedule sigma(t), t in [0, 1]
+    noise_eps: float = 1e-3  # loglinear: e^{-sigma(1)} = eps
+    sigma_min: float = 1e-4  # geometric
+    sigma_max: float = 20.0  # geometric
+    num_classes: int = 2  # mask labels (0 = keep side, 1 = +n side of the cut plane)
+    score_param: str = "denoiser"  # "denoiser": per-point class logits -> exact log-scores; "direct": SEDD log-scores
+    scale_by_sigma: bool = True  # "direct" only: offset log-scores by their sigma-dependent baseline (SEDD trick)
+    # -- network ------------------------------------------------------------
+    obs_dim: int = 96  # per-point embedding z_t from the encoder
+    hidden: int = 96  # DDiT width
+    n_blocks: int = 12
+    n_heads: int = 4
+    mlp_ratio: int = 4  # 96 -> 384 -> 96
+    dropout: float = 0.4
+    cond_dim: int = 128  # adaLN conditioning width
+    time_freq_dim: int = 256  # sinusoidal sigma features
+    history_len: int = 3
+    pose_dim: int = 7
+    goal_hidden: int = 64  # goal encoder 3 -> 64 -> hidden
+    goal_mode: str = "pool"  # "pool": max+mean pooled goal vector joins the conditioning; "cross": cross-attention
+    center_points: bool = False  # subtract the observation centroid from observation and goal points
+
+    def validate(self) -> "PDDPConfig":
+        _check("policy.graph", self.graph, GRAPHS)
+        _check("policy.noise", self.noise, NOISES)
+        _check("policy.goal_mode", self.goal_mode, GOAL_MODES)
+        _check("policy.score_param", self.score_param, SCORE_PARAMS)
+        if self.hidden % self.n_heads:
+            raise ValueError(f"policy.hidden={self.hidden} must be divisible by policy.n_heads={self.n_heads}")
+        if self.num_classes < 2:
+            raise ValueError(f"policy.num_classes={self.num_classes} must be >= 2")
+        return self
+
+
+@dataclass
+class PolicyTrainConfig:
+    encoder: str = "pretrained"  # none | pretrained | graphconv (the paper's three perception configurations)
+    encoder_ckpt: str | None = None  # pretrain checkpoint for encoder="pretrained"
+    num_points: int = 256  # observation points per sample (FPS)
+    num_goal_points: int = 256
+    loss: str = "dse"  # "dse" (denoising score entropy) | "sq" (squared-error ablation)
+    lr: float = 3e-4
+    weight_decay: float = 0.0
+    warmup_steps: int = 500
+    grad_clip: float = 1.0
+    ema_decay: float = 0.999
+    batch_size: int = 64
+    max_epochs: int = 100
+    val_fraction: float = 0.1
+    val_sample_steps: int = 16  # sampler steps for val/mask_acc
+    num_workers: int = 0
+    seed: int = 0
+
+    def validate(self) -> "PolicyTrainConfig":
+        _check("policy_train.encoder", self.encoder, ENCODERS)
+        _check("policy_train.loss", self.loss, LOSSES)
+        if self.encoder == "pretrained" and not self.encoder_ckpt:
+            raise ValueError("policy_train.encoder='pretrained' needs policy_train.encoder_ckpt (a pretrain checkpoint)")
+        return self
+
+
+@dataclass
+class SamplerConfig:
+    predictor: str = "analytic"  # analytic (Tweedie tau-leaping) | euler
+    steps: int = 32
+    denoise: bool = True  # final Tweedie step from sigma(eps) to 0
+    eps: float = 1e-5  # smallest sampling time
+    plane: str = "svm"  # svm | lsq (action reconstruction)
+    retries: int = 3  # resample when a mask has one class only
+
+    def validate(self) -> "SamplerConfig":
+        _check("sampler.predictor", self.predictor, PREDICTORS)
+        _check("sampler.plane", self.plane, PLANE_METHODS)
+        if self.steps < 1:
+            raise ValueError(f"sampler.steps={self.steps} must be >= 1")
+        return self

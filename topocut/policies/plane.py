@@ -1,0 +1,97 @@
+"""Action reconstruction: the knife plane separating a predicted cut mask.
+
+The mask convention is topocut.sim.action.cut_mask: 1 on the +n side of the
+canonical plane of the action.  Any plane that separates the two classes gives
+an action whose cut splits the points exactly as the mask does, so the plane
+is recovered by a linear classifier:
+
+  "svm": a linear SVM (max-margin plane; the paper's choice), on isotropically
+         normalised coordinates so that angles are preserved;
+  "lsq": total least squares through the class boundary: the midpoints of each
+         point and its k nearest opposite-class points lie within half a gap of
+         the cut; the normal is the smallest principal axis of the tightest such
+         midpoints (weighted by inverse gap).
+
+A mask with one class only (or too few points of one) has no plane: the
+functions return None, meaning "no cut".
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from topocut.sim.action import KnifeAction
+
+PLANE_METHODS = ("svm", "lsq")
+
+
+def _normalise(points):
+    c = points.mean(0)
+    s = float(np.sqrt(((points - c) ** 2).sum(1).mean())) or 1.0
+    return c, s
+
+
+def _svm_plane(points, mask, C: float):
+    from sklearn.svm import LinearSVC
+
+    c, s = _normalise(points)
+    clf = LinearSVC(C=C, dual=False, max_iter=5000, tol=1e-6)  # squared hinge, primal solver: converges on separable data
+    clf.fit((points - c) / s, mask)
+    w, b = clf.coef_[0], float(clf.intercept_[0])  # w . (x - c)/s + b = 0, w points to class 1
+    nrm = np.linalg.norm(w)
+    if nrm == 0:
+        return None
+    n = w / nrm
+    point = c - (b * s / nrm) * n  # the plane point closest to the centroid
+    return n, point
+
+
+def _lsq_plane(points, mask, keep: float, k: int = 3):
+    from scipy.spatial import cKDTree
+
+    a, b = points[mask == 0], points[mask == 1]
+    k = min(k, len(a), len(b))
+    da, ia = cKDTree(b).query(a, k)  # each class-0 point's k nearest class-1 points
+    db, ib = cKDTree(a).query(b, k)
+    da, ia, db, ib = (v.reshape(v.shape[0], k) for v in (da, ia, db, ib))
+    mids = np.concatenate([((a[:, None] + b[ia]) / 2).reshape(-1, 3), ((b[:, None] + a[ib]) / 2).reshape(-1, 3)])
+    gaps = np.concatenate([da.ravel(), db.ravel()])  # M
+    sel = gaps <= np.quantile(gaps, keep)  # the pairs straddling the boundary most tightly
+    m, g = mids[sel], gaps[sel]
+    if len(m) < 3:
+        return None
+    # a midpoint's offset from the plane is at most half its gap: weight close pairs more
+    w = 1.0 / (g + 0.1 * np.median(g) + 1e-12)
+    point = (w[:, None] * m).sum(0) / w.sum()
+    n = np.linalg.svd((m - point) * np.sqrt(w)[:, None], full_matrices=False)[2][-1]
+    if n @ (b.mean(0) - a.mean(0)) < 0:  # orient towards class 1
+        n = -n
+    return n, point
+
+
+def fit_plane(points, mask, method: str = "svm", min_points: int = 3, C: float = 100.0, keep: float = 0.1):
+    """Plane (normal (3,), point (3,)) with class 1 on the +normal side, or None for a one-class mask."""
+    if method not in PLANE_METHODS:
+        raise ValueError(f"plane method={method!r} is not valid; choose one of {', '.join(PLANE_METHODS)}")
+    pts = np.asarray(points, dtype=np.float64)
+    m = np.asarray(mask).astype(np.int64).reshape(-1)
+    if pts.shape[0] != m.shape[0]:
+        raise ValueError(f"points ({pts.shape[0]}) and mask ({m.shape[0]}) differ in length")
+    n1 = int(m.sum())
+    if min(n1, len(m) - n1) < min_points:
+        return None
+    return _svm_plane(pts, m, C) if method == "svm" else _lsq_plane(pts, m, keep)
+
+
+def action_from_mask(points, mask, method: str = "svm", board_z: float = 0.05, max_tilt_deg: float = 75.0,
+                     **kw) -> KnifeAction | None:
+    """The canonical KnifeAction whose plane separates ``mask``; None when no cut can be made:
+    a one-class mask, or a plane tilted more than ``max_tilt_deg`` from vertical (a near-horizontal
+    plane, which a downward knife cannot cut)."""
+    plane = fit_plane(points, mask, method, **kw)
+    if plane is None:
+        return None
+    try:
+        action = KnifeAction.from_plane(plane[0], plane[1], board_z)
+    except ValueError:
+        return None
+    return action if abs(np.degrees(action.tilt)) <= max_tilt_deg else None

@@ -1,0 +1,182 @@
+"""Spectral shape descriptors and the spectral distance d_spec (paper §3.2, appendix).
+
+Pipeline for one point cloud X (docs/reward.md has the derivations):
+  1. resample to n = min(num_point, N) points by FPS started at the point farthest from the centroid
+     (pose- and order-equivariant);
+  2. kNN graph (k = knn) with W_ij = exp(-d_ij^2 / sigma^2), symmetrised by max(W, W^T);
+  3. L = D - W, smallest num_eig + 1 eigenpairs, the constant mode dropped;
+  4. descriptor = (lambda_1..K, quantiles of the normalised HKS h_t(x) at t = c / lambda_K).
+
+d_spec(X, Y) = alpha * mean_k (log(lx_k + f) - log(ly_k + f))^2 + beta * mean_q (sx_q - sy_q)^2.
+sigma is shared by both graphs (fixed, or set by the reference Y), so a larger copy of a
+shape is sparser at fixed n, has weaker edges and smaller eigenvalues: absolute size counts.
+"""
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as sla
+from scipy.spatial import cKDTree
+
+from topocut.metrics.sampling import fps
+from topocut.reward.config import RewardConfig
+
+
+def _cfg(cfg: RewardConfig | None) -> RewardConfig:
+    return (cfg or RewardConfig()).validate()
+
+
+def _points(x, name: str = "points") -> np.ndarray:
+    if type(x).__module__.split(".")[0] == "torch":
+        x = x.detach().cpu().numpy()
+    x = np.asarray(x, dtype=np.float64)
+    if x.ndim != 2 or x.shape[1] != 3:
+        raise ValueError(f"{name} must be an (n,3) point array, got shape {x.shape}")
+    return x
+
+
+def resample(points, cfg: RewardConfig | None = None) -> np.ndarray:
+    """FPS subset (min(num_point, N), 3) of an (N,3) cloud."""
+    cfg = cfg or RewardConfig()
+    p = _points(points)
+    return p if len(p) <= cfg.num_point else p[fps(p, cfg.num_point)]
+
+
+def mean_knn_distance(points, k: int) -> float:
+    """Mean distance from each point to its k nearest neighbours (points already resampled)."""
+    p = _points(points)
+    k = min(k, len(p) - 1)
+    return float(cKDTree(p).query(p, k + 1)[0][:, 1:].mean())
+
+
+def reference_sigma(goals, cfg: RewardConfig | None = None) -> float:
+    """The graph width used for every fragment compared with ``goals`` (list of (m,3) clouds)."""
+    cfg = _cfg(cfg)
+    if cfg.sigma is not None:
+        return float(cfg.sigma)
+    return cfg.sigma_scale * float(np.mean([mean_knn_distance(resample(g, cfg), cfg.knn) for g in goals]))
+
+
+def laplacian(points: np.ndarray, sigma: float, knn: int) -> sp.csr_matrix:
+    """Sparse combinatorial Laplacian L = D - W (n,n) of the symmetrised Gaussian kNN graph."""
+    n = len(points)
+    k = min(knn, n - 1)
+    d, j = cKDTree(points).query(points, k + 1)  # n,k+1 (self first)
+    d, j = d[:, 1:], j[:, 1:]
+    W = sp.csr_matrix((np.exp(-(d / sigma) ** 2).ravel(), (np.repeat(np.arange(n), k), j.ravel())), shape=(n, n))
+    W = W.maximum(W.T)  # i~j if either is among the other's k nearest
+    return (sp.diags(np.asarray(W.sum(1)).ravel()) - W).tocsr()
+
+
+def smallest_eigenpairs(L, m: int, method: str = "eigsh"):
+    """The m smallest eigenpairs (values (m,), vectors (n,m)) of a symmetric PSD matrix.
+
+    method="eigsh": ARPACK shift-invert just below 0 (fast for sparse L);
+    method="eigh": dense LAPACK with subset_by_index (the reference).
+    """
+    n = L.shape[0]
+    if method == "eigsh" and m < n - 1:
+        try:
+            w, v = sla.eigsh(L.tocsc(), k=m, sigma=-1e-3, which="LM")
+            order = np.argsort(w)
+            return w[order], v[:, order]
+        except (sla.ArpackNoConvergence, RuntimeError):
+            pass  # fall through to the dense solver
+    elif method not in ("eigsh", "eigh"):
+        raise ValueError(f"unknown eigen method {method!r}; valid: eigsh, eigh")
+    import scipy.linalg
+
+    dense = L.toarray() if sp.issparse(L) else np.asarray(L)
+    return scipy.linalg.eigh(dense, subset_by_index=[0, min(m, n) - 1])
+
+
+def hks_signature(evals: np.ndarray, evecs: np.ndarray, cfg: RewardConfig) -> np.ndarray:
+    """Quantiles of the normalised heat kernel signature at times t = c / lambda_K.
+
+    h_t(x) = sum_k exp(-lambda_k t) phi_k(x)^2 over the K kept non-constant modes,
+    divided by its mean over x (= sum_k exp(-lambda_k t) / n), so values are O(1) for any n.
+    phi_k^2 is blind to the sign of phi_k and the HKS to the basis chosen inside a
+    (fully kept) eigenspace; quantiles forget the point order.  Times scaled by the
+    largest kept eigenvalue damp the last modes by exp(-c): an eigenspace split by the
+    truncation at K has little weight, which keeps the signature stable under resampling;
+    scaling also makes it size-free (absolute size is carried by the eigenvalue term).
+    evals (..., K), evecs (..., n, K) -> (..., len(hks_times) * num_quantiles).
+    """
+    lamK = np.maximum(evals[..., -1:], cfg.eig_floor)  # ...,1
+    q = (np.arange(cfg.num_quantiles) + 0.5) / cfg.num_quantiles
+    sigs = []
+    for c in cfg.hks_times:
+        h = (np.exp(-evals * (c / lamK))[..., None, :] * evecs ** 2).sum(-1)  # ...,n
+        h = h / h.mean(-1, keepdims=True)
+        sigs.append(np.moveaxis(np.quantile(h, q, axis=-1), 0, -1))  # ...,Q
+    return np.concatenate(sigs, -1)
+
+
+def descriptor(points, sigma: float, cfg: RewardConfig | None = None, method: str = "eigsh"):
+    """(eigvals (K,), signature (S,)) of one cloud (N,3) with graph width sigma (scipy path)."""
+    cfg = _cfg(cfg)
+    p = resample(points, cfg)
+    if len(p) < cfg.min_points:
+        raise ValueError(f"a fragment needs at least reward.min_points={cfg.min_points} points, got {len(p)}")
+    w, v = smallest_eigenpairs(laplacian(p, sigma, cfg.knn), cfg.num_eig + 1, method)
+    w, v = np.maximum(w[1:], 0.0), v[:, 1:]  # drop the constant mode (lambda_0 = 0)
+    return w, hks_signature(w, v, cfg)
+
+
+def descriptor_distance(eig_x, sig_x, eig_y, sig_y, cfg: RewardConfig | None = None):
+    """d_spec from two descriptors; broadcasts over leading axes."""
+    cfg = cfg or RewardConfig()
+    f = cfg.eig_floor
+    d_eig = ((np.log(eig_x + f) - np.log(eig_y + f)) ** 2).mean(-1)
+    d_vec = ((sig_x - sig_y) ** 2).mean(-1)
+    return cfg.alpha * d_eig + cfg.beta * d_vec
+
+
+def spectral_distance(x, y, cfg: RewardConfig | None = None, sigma: float | None = None) -> float:
+    """d_spec(x, y) for clouds (n,3), (m,3); y is the reference (goal) whose kNN scale sets sigma.
+
+    Returns inf when either cloud has fewer than cfg.min_points points.
+    """
+    cfg = _cfg(cfg)
+    x, y = resample(_points(x, "x"), cfg), resample(_points(y, "y"), cfg)  # once; resample is then a no-op
+    if min(len(x), len(y)) < cfg.min_points:
+        return float("inf")
+    s = reference_sigma([y], cfg) if sigma is None else float(sigma)
+    return float(descriptor_distance(*descriptor(x, s, cfg), *descriptor(y, s, cfg), cfg))
+
+
+def spectral_descriptors(batch, cfg: RewardConfig | None = None, sigma=None):
+    """Batched torch path: batch (B,n,3) -> (eigvals (B,K), signature (B,S)) torch tensors.
+
+    The clouds are used as given (resample beforehand, e.g. with fps_torch).  sigma: float,
+    (B,) tensor, or None for each cloud's own mean kNN distance x sigma_scale.  Dense
+    (B,n,n) Laplacians and torch.linalg.eigh in float64 on the batch's device.
+    """
+    import torch
+
+    cfg = _cfg(cfg)
+    x = torch.as_tensor(batch).to(torch.float64)  # B,n,3
+    if x.dim() != 3 or x.shape[-1] != 3:
+        raise ValueError(f"spectral_descriptors expects (B,n,3), got {tuple(x.shape)}")
+    B, n, _ = x.shape
+    k = min(cfg.knn, n - 1)
+    d = torch.cdist(x, x)  # B,n,n
+    dk, jk = d.topk(k + 1, dim=-1, largest=False)  # B,n,k+1 (self first)
+    dk, jk = dk[..., 1:], jk[..., 1:]
+    if sigma is None:
+        s = cfg.sigma if cfg.sigma is not None else cfg.sigma_scale * dk.mean((1, 2))
+    else:
+        s = sigma
+    s = torch.as_tensor(s, dtype=torch.float64, device=x.device).reshape(-1, 1, 1).expand(B, 1, 1)
+    W = torch.zeros_like(d).scatter_(-1, jk, torch.exp(-(dk / s) ** 2))
+    W = torch.maximum(W, W.transpose(1, 2))
+    L = torch.diag_embed(W.sum(-1)) - W
+    w, v = torch.linalg.eigh(L)  # ascending
+    w, v = w[:, 1:cfg.num_eig + 1].clamp_min(0.0), v[:, :, 1:cfg.num_eig + 1]
+    lamK = w[:, -1:].clamp_min(cfg.eig_floor)  # B,1
+    q = (torch.arange(cfg.num_quantiles, dtype=torch.float64, device=x.device) + 0.5) / cfg.num_quantiles
+    sigs = []
+    for c in cfg.hks_times:
+        h = (torch.exp(-w * (c / lamK))[:, None, :] * v ** 2).sum(-1)  # B,n
+        sigs.append(torch.quantile(h / h.mean(-1, keepdim=True), q, dim=-1).T)  # B,Q
+    return w, torch.cat(sigs, -1)

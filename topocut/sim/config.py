@@ -1,0 +1,127 @@
+"""Simulator settings (Hydra group ``sim``); units and defaults are explained in docs/sim.md."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Optional
+
+PUSH_MODES = ("separate", "press", "settle", "none")
+KNIFE_MODES = ("wedge", "sticky")
+ARCHS = ("cpu", "cuda")
+
+
+@dataclass
+class SimConfig:
+    # -- discretisation --------------------------------------------------------
+    n_grid: int = 64  # grid nodes per axis over the unit cube (128 on GPU)
+    dt: Optional[float] = None  # substep length [s]; None = cfl * CFL bound (see cfl_bound)
+    cfl: float = 0.5  # fraction of the CFL bound used when dt is None
+    particle_spacing: Optional[float] = None  # lattice spacing; None = half a grid cell
+    batch_size: int = 1  # B independent scenes simulated together
+    arch: str = "cpu"
+    # -- materials (0: plasto-elastic core, 1: von Mises skin) -------------------
+    mu: float = 2083.33
+    lam: float = 1388.89
+    rho_core: float = 4.0
+    rho_skin: float = 1.0
+    skin_thickness: float = 0.01
+    eps_c: float = 0.025  # critical compression: damaged when J <= (1 - eps_c)^m
+    eps_s: float = 0.01  # critical stretch: damaged when J >= (1 + eps_s)^m
+    m: float = 1.0  # damage sensitivity exponent
+    damaged_stiffness: float = 0.01  # mu and lambda scale of a damaged particle (irreversible)
+    yield_stress: float = 60.0  # initial von Mises yield stress of the skin
+    softening: float = 120.0  # gamma: sigma_y -= gamma * |d eps_p|; damaged at sigma_y <= 0
+    j_min: float = 0.05  # runaway-J bounds: outside them the step raises SimulationDiverged
+    j_max: float = 20.0
+    # -- scene -------------------------------------------------------------------
+    gravity: float = 9.8  # along -z; 0 disables
+    board: bool = True  # cutting board at z = board_z (friction boundary)
+    board_z: float = 0.05
+    friction: float = 0.5  # Coulomb coefficient of the board
+    walls: bool = True  # domain walls (3 cells thick)
+    # -- knife -------------------------------------------------------------------
+    knife_half_length: float = 0.3  # along the blade axis u
+    knife_height: float = 0.45  # blade height (along -w, above its cutting edge)
+    knife_half_thickness: float = 0.002  # along the blade normal n
+    knife_margin: Optional[float] = None  # contact inflation of the blade SDF; None = half a grid cell
+    knife_mode: str = "wedge"  # wedge: splits material sideways; sticky: nodes inside take the knife velocity
+    knife_wedge: float = 0.15  # wedge: sideways opening speed / knife speed (half-angle tangent of the bevel)
+    knife_friction: float = 0.2  # Coulomb coefficient on the blade faces
+    knife_speed: float = 2.5  # travel speed along w [units/s]
+    knife_clearance: float = 0.01  # start height of the edge above the object's top
+    osc_amplitude: float = 0.002  # blade oscillation along u [units]
+    osc_frequency: float = 60.0  # [Hz]
+    cut_substeps: Optional[int] = None  # fixes the substeps of the travel (the speed follows); None = from speed
+    dwell_substeps: int = 50  # knife resting on the board before it is withdrawn
+    check_every: int = 200  # substeps between divergence checks (host sync)
+    # -- push (after a cut) --------------------------------------------------------
+    push_mode: str = "separate"  # separate | press | settle | none (docs/sim.md)
+    push_accel: float = 12.0  # 'separate': sideways acceleration of each side of the last cut
+    push_substeps: int = 300  # forcing / pressing phase
+    settle_substeps: int = 300  # free settling afterwards
+    press_depth: float = 0.006  # 'press': how far a flat plate goes below the object's top
+    press_speed: float = 0.3
+
+    # -- derived -------------------------------------------------------------------
+    @property
+    def dx(self) -> float:
+        return 1.0 / self.n_grid
+
+    @property
+    def spacing(self) -> float:
+        return self.particle_spacing if self.particle_spacing is not None else 0.5 * self.dx
+
+    @property
+    def margin(self) -> float:
+        return self.knife_margin if self.knife_margin is not None else 0.5 * self.dx
+
+    def wave_speed(self) -> float:
+        """Fastest elastic (P-)wave speed sqrt((lam + 2 mu) / rho) over both materials."""
+        return math.sqrt((self.lam + 2 * self.mu) / min(self.rho_core, self.rho_skin))
+
+    def max_knife_speed(self) -> float:
+        return self.knife_speed + 2 * math.pi * self.osc_frequency * self.osc_amplitude
+
+    def cfl_bound(self) -> float:
+        """Largest stable substep: dx / (wave speed + knife speed)."""
+        return self.dx / (self.wave_speed() + self.max_knife_speed())
+
+    def effective_dt(self) -> float:
+        return self.dt if self.dt is not None else self.cfl * self.cfl_bound()
+
+    def validate(self) -> "SimConfig":
+        def bad(key, msg):
+            raise ValueError(f"sim.{key}: {msg}")
+
+        if self.n_grid < 16:
+            bad("n_grid", f"{self.n_grid} is too coarse; use >= 16 (64 on CPU, 128 on GPU)")
+        if self.arch not in ARCHS:
+            bad("arch", f"{self.arch!r}; valid: {', '.join(ARCHS)}")
+        if self.knife_mode not in KNIFE_MODES:
+            bad("knife_mode", f"{self.knife_mode!r}; valid: {', '.join(KNIFE_MODES)}")
+        if self.push_mode not in PUSH_MODES:
+            bad("push_mode", f"{self.push_mode!r}; valid: {', '.join(PUSH_MODES)}")
+        if self.batch_size < 1:
+            bad("batch_size", f"{self.batch_size} must be >= 1")
+        if not 0 < self.cfl <= 1:
+            bad("cfl", f"{self.cfl} must lie in (0, 1]")
+        if self.spacing <= 0 or self.spacing > self.dx:
+            bad("particle_spacing", f"{self.spacing} must lie in (0, dx={self.dx:.4g}] (2 per cell is usual)")
+        for key in ("mu", "lam", "rho_core", "rho_skin", "knife_speed", "knife_half_thickness"):
+            if getattr(self, key) <= 0:
+                bad(key, f"{getattr(self, key)} must be > 0")
+        if not 0 < self.damaged_stiffness <= 1:
+            bad("damaged_stiffness", f"{self.damaged_stiffness} must lie in (0, 1]")
+        if not (0 < self.eps_c < 1 and self.eps_s > 0 and self.m > 0):
+            bad("eps_c", f"need 0 < eps_c < 1, eps_s > 0, m > 0 (got {self.eps_c}, {self.eps_s}, {self.m})")
+        if not 0 < self.board_z < 0.5:
+            bad("board_z", f"{self.board_z} must lie in (0, 0.5) (domain is the unit cube)")
+        bound = self.cfl_bound()
+        dt = self.effective_dt()
+        if not 0 < dt <= bound:
+            bad("dt", f"{dt:.3g} violates the CFL bound dt <= dx / (c + v_knife) = {bound:.3g} "
+                      f"(n_grid={self.n_grid}, wave speed c={self.wave_speed():.3g}); set sim.dt <= {bound:.3g} "
+                      f"or sim.dt=null to use cfl * bound")
+        if self.cut_substeps is not None and self.cut_substeps < 1:
+            bad("cut_substeps", f"{self.cut_substeps} must be >= 1 or null")
+        return self

@@ -1,0 +1,253 @@
+"""CuttingEnv: B cutting scenes, knife cuts and pushes on top of the batched MLS-MPM solver.
+
+A cut moves a thin blade (``KnifeAction``) from just above the object down
+along its in-plane travel direction w to the board while it oscillates along
+its long axis u; it then rests ``dwell_substeps`` and is withdrawn.  A push
+(``SimConfig.push_mode``) settles the pieces afterwards.  See docs/sim.md.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from topocut.sim.action import KnifeAction, KnifeSweep
+from topocut.sim.config import SimConfig
+from topocut.sim.mpm import MPMSolver, init_taichi
+from topocut.sim.objects import ObjectPose, sample_object
+
+NO_STEP = 2 ** 30
+
+
+class SimulationDiverged(RuntimeError):
+    """NaN/Inf positions or a runaway J = det F; ``step`` is the first bad substep, ``scene`` its scene."""
+
+    def __init__(self, step: int, scene: int):
+        super().__init__(f"simulation diverged at substep {step} (scene {scene}): NaN/Inf position or "
+                         f"J outside (sim.j_min, sim.j_max); lower sim.dt or sim.knife_speed")
+        self.step, self.scene = step, scene
+
+
+@dataclass
+class SimState:
+    x: np.ndarray  # B,N,3 f32
+    v: np.ndarray  # B,N,3 f32
+    material: np.ndarray  # N, i32 (0 core, 1 skin)
+    damage: np.ndarray  # B,N bool
+    sweeps: list = field(default_factory=list)  # B lists: the last cut's KnifeSweep per scene
+
+
+@dataclass
+class CutInfo:
+    sweeps: list  # B, KnifeSweep per scene
+    force: np.ndarray  # B,3 mean force the knife exerted on the material over the cut
+    peak_force: np.ndarray  # B, largest |force| in one substep
+    work: np.ndarray  # B, work done by the knife on the material
+    knife_end: np.ndarray  # B,3 edge midpoint where the knife stopped
+    newly_damaged: np.ndarray  # B, particles damaged by this cut
+    substeps: int
+    wall_time: float
+
+
+class CuttingEnv:
+    def __init__(self, cfg: SimConfig | None = None, batch_size: int | None = None):
+        self.cfg = (cfg or SimConfig()).validate()
+        self.B = self.batch_size = int(batch_size or self.cfg.batch_size)
+        if self.B < 1:
+            raise ValueError(f"batch_size must be >= 1, got {self.B}")
+        init_taichi(self.cfg.arch)
+        self.dt = self.cfg.effective_dt()
+        self.solver: MPMSolver | None = None
+        self.n = 0
+        self.object = None
+        self.sweeps: list[list[KnifeSweep]] = [[] for _ in range(self.B)]
+        self.step_count = 0
+
+    # -- particles ---------------------------------------------------------------------
+    def _ensure(self, n: int) -> MPMSolver:
+        if self.solver is None or self.solver.capacity < n:
+            if self.solver is not None:
+                self.solver.destroy()
+            capacity = int(math.ceil(n * 1.15 / 1024) * 1024)
+            self.solver = MPMSolver(self.cfg, self.B, capacity)
+        self.n = n
+        return self.solver
+
+    def reset(self, object: str, pose: ObjectPose | None = None, seed: int = 0) -> SimState:
+        x, material = sample_object(object, pose, self.cfg.spacing, self.cfg.skin_thickness, seed, self.cfg.board_z)
+        self.load_particles(x, material)
+        self.object = object
+        return self.state()
+
+    def load_particles(self, x, material, v=None) -> None:
+        """Put particles (N,3), materials (N,) and optional velocities (N,3) into every scene, at rest state."""
+        x = np.asarray(x, np.float32).reshape(-1, 3)
+        self.set_state({"x": x, "material": np.asarray(material, np.int32),
+                        "v": np.zeros_like(x) if v is None else np.asarray(v, np.float32)}, b=None)
+
+    # -- state -------------------------------------------------------------------------
+    def state(self) -> SimState:
+        s, n = self._need(), self.n
+        return SimState(x=s.x.to_numpy()[:, :n], v=s.v.to_numpy()[:, :n], material=s.material.to_numpy()[:n],
+                        damage=s.damage.to_numpy()[:, :n].astype(bool), sweeps=[list(w) for w in self.sweeps])
+
+    def get_state(self, b: int = 0) -> dict:
+        s, n = self._need(), self.n
+        if not 0 <= b < self.B:
+            raise ValueError(f"scene b={b} out of range [0, {self.B})")
+        return {"x": s.x.to_numpy()[b, :n], "v": s.v.to_numpy()[b, :n], "C": s.C.to_numpy()[b, :n],
+                "F": s.F.to_numpy()[b, :n], "sigma_y": s.sigma_y.to_numpy()[b, :n],
+                "damage": s.damage.to_numpy()[b, :n].astype(bool), "material": s.material.to_numpy()[:n],
+                "sweeps": [w.asdict() for w in self.sweeps[b]], "object": self.object}
+
+    def set_state(self, state: dict, b: int | None = None) -> None:
+        """Load a get_state() dict into scene b (None: every scene). Missing C/F/sigma_y/damage mean rest state."""
+        x = np.asarray(state["x"], np.float32).reshape(-1, 3)
+        n = len(x)
+        if b is not None and not 0 <= b < self.B:
+            raise ValueError(f"scene b={b} out of range [0, {self.B})")
+        if b is not None and self.B > 1 and n != self.n:
+            raise ValueError(f"state has {n} particles but the env holds {self.n}; load it with b=None")
+        s = self._ensure(n)
+        scenes = range(self.B) if b is None else [b]
+        cap = s.capacity
+        defaults = {"v": np.zeros((n, 3)), "C": np.zeros((n, 3, 3)), "F": np.broadcast_to(np.eye(3), (n, 3, 3)),
+                    "sigma_y": np.full(n, self.cfg.yield_stress), "damage": np.zeros(n)}
+        targets = {"x": s.x, "v": s.v, "C": s.C, "F": s.F, "sigma_y": s.sigma_y, "damage": s.damage}
+        for key, fld in targets.items():
+            arr = fld.to_numpy()  # B,cap,...
+            val = np.asarray(state.get(key, defaults.get(key)))
+            for sb in scenes:
+                arr[sb, :n] = val
+            arr[:, n:cap] = 0
+            fld.from_numpy(arr)
+        if "material" in state:
+            mat = np.zeros(cap, np.int32)
+            mat[:n] = np.asarray(state["material"], np.int32)
+            s.material.from_numpy(mat)
+        s.Jp.from_numpy(np.linalg.det(s.F.to_numpy()).astype(np.float32))
+        sweeps = [KnifeSweep.fromdict(d) if isinstance(d, dict) else d for d in state.get("sweeps", [])]
+        for sb in scenes:
+            self.sweeps[sb] = list(sweeps)
+        self.object = state.get("object", self.object)
+        s.bad_step.fill(NO_STEP)
+        s.k_on.fill(0)
+
+    def _need(self) -> MPMSolver:
+        if self.solver is None:
+            raise RuntimeError("no particles loaded: call reset(object) or set_state(...) first")
+        return self.solver
+
+    # -- time stepping -------------------------------------------------------------------
+    def _check(self) -> None:
+        bad = self.solver.bad_step.to_numpy()
+        if (bad < NO_STEP).any():
+            b = int(np.argmin(bad))
+            raise SimulationDiverged(int(bad[b]), b)
+
+    def simulate(self, substeps: int, push_accel: float = 0.0, t0: float = 0.0, contact: int = 0) -> None:
+        """Advance every scene by ``substeps`` substeps.
+
+        An armed knife follows its motion from time t0; ``contact`` 0 treats it as a
+        wedge, 1 as a solid body (sticky inside, sliding contact band).
+        """
+        s = self._need()
+        for i in range(substeps):
+            s.substep(self.n, self.step_count, t0 + i * self.dt, push_accel, contact)
+            self.step_count += 1
+            if (i + 1) % self.cfg.check_every == 0:
+                self._check()
+        self._check()
+
+    def _arm_knife(self, o, u, w, nrm, half, depth, speed, amp) -> None:
+        s = self.solver
+        for fld, val in ((s.k_o, o), (s.k_u, u), (s.k_w, w), (s.k_n, nrm), (s.k_half, half)):
+            fld.from_numpy(np.asarray(val, np.float32).reshape(self.B, 3))
+        s.k_depth.from_numpy(np.asarray(depth, np.float32))
+        s.k_speed.from_numpy(np.full(self.B, speed, np.float32))
+        s.k_amp.from_numpy(np.full(self.B, amp, np.float32))
+        s.k_on.fill(1)
+        s.reset_knife_stats()
+
+    def cut(self, action: KnifeAction | list[KnifeAction]) -> CutInfo:
+        """One cut per scene (a single action goes to every scene), all scenes in one launch sequence."""
+        t_wall = time.perf_counter()
+        cfg, s = self.cfg, self._need()
+        acts = [action] * self.B if isinstance(action, KnifeAction) else list(action)
+        if len(acts) != self.B:
+            raise ValueError(f"cut got {len(acts)} actions for batch_size={self.B}")
+        x = s.x.to_numpy()[:, :self.n].astype(np.float64)  # B,N,3
+        dmg0 = s.damage.to_numpy()[:, :self.n].sum(1)
+        frames, o0, depth = [], [], []
+        for b, a in enumerate(acts):
+            a = a.canonical()
+            u, w, nrm = a.blade_axis, a.travel, a.normal
+            p0 = a.plane_point(cfg.board_z)
+            p0 = p0 + u * float(u @ (x[b].mean(0) - p0))  # centre the blade on the object
+            z_start = a.z_start if a.z_start is not None else x[b, :, 2].max() + cfg.knife_clearance + cfg.margin
+            t_board = max(z_start - cfg.board_z, 0.0) / -w[2]  # travel until the edge reaches the board
+            depth.append(t_board if a.depth is None else min(max(a.depth, 0.0), t_board))
+            o0.append(p0 - w * t_board)
+            frames.append((u, w, nrm))
+        depth = np.asarray(depth)
+        if cfg.cut_substeps is not None:
+            speed = max(depth.max(), 1e-6) / (cfg.cut_substeps * self.dt)
+            if speed * self.dt > 0.5 * cfg.dx:
+                raise ValueError(f"sim.cut_substeps={cfg.cut_substeps} moves the knife more than half a cell "
+                                 f"per substep; raise it above {int(depth.max() / (0.5 * cfg.dx)) + 1}")
+        else:
+            speed = cfg.knife_speed
+        travel = int(math.ceil(depth.max() / (speed * self.dt)))
+        half = [cfg.knife_half_length, cfg.knife_height / 2, cfg.knife_half_thickness]
+        self._arm_knife(o0, [f[0] for f in frames], [f[1] for f in frames], [f[2] for f in frames],
+                        [half] * self.B, depth, speed, cfg.osc_amplitude)
+        total = travel + cfg.dwell_substeps
+        try:
+            self.simulate(total, contact=0 if cfg.knife_mode == "wedge" else 1)
+        finally:
+            s.k_on.fill(0)
+        om = 2 * math.pi * cfg.osc_frequency
+        sweeps, ends = [], []
+        for b, (u, w, nrm) in enumerate(frames):
+            t_stop = depth[b] / speed
+            ends.append(o0[b] + w * depth[b] + u * cfg.osc_amplitude * math.sin(om * t_stop))
+            sweeps.append(KnifeSweep(origin=tuple(map(float, o0[b])), u=tuple(map(float, u)), w=tuple(map(float, w)),
+                                     n=tuple(map(float, nrm)), half_length=cfg.knife_half_length + cfg.osc_amplitude,
+                                     depth=float(depth[b]), half_thickness=cfg.knife_half_thickness + cfg.margin))
+        self.sweeps = [[sw] for sw in sweeps]
+        duration = total * self.dt
+        return CutInfo(sweeps=sweeps, force=s.k_imp.to_numpy() / duration, peak_force=s.k_peak.to_numpy(),
+                       work=s.k_work.to_numpy().astype(np.float64), knife_end=np.asarray(ends),
+                       newly_damaged=s.damage.to_numpy()[:, :self.n].sum(1) - dmg0, substeps=total,
+                       wall_time=time.perf_counter() - t_wall)
+
+    def push(self) -> None:
+        """Settle the pieces after a cut according to sim.push_mode (docs/sim.md)."""
+        cfg, s = self.cfg, self._need()
+        if cfg.push_mode == "none":
+            return
+        if cfg.push_mode == "separate":
+            nrm = np.zeros((self.B, 3), np.float32)
+            pts = np.zeros((self.B, 3), np.float32)
+            for b, sw in enumerate(self.sweeps):
+                if sw:  # scenes never cut are not pushed (a zero normal switches the force off)
+                    nrm[b], pts[b] = sw[-1].n, sw[-1].origin
+            s.push_n.from_numpy(nrm)
+            s.push_p.from_numpy(pts)
+            self.simulate(cfg.push_substeps, push_accel=cfg.push_accel)
+        elif cfg.push_mode == "press":  # a flat plate (the knife box laid horizontally) pressing down lightly
+            x = s.x.to_numpy()[:, :self.n]
+            top = x[:, :, 2].max(1)
+            o = np.stack([x[:, :, 0].mean(1), x[:, :, 1].mean(1), top + cfg.knife_clearance], -1)
+            depth = np.full(self.B, cfg.knife_clearance + cfg.press_depth)
+            tile = lambda v: np.tile(np.asarray(v, np.float32), (self.B, 1))  # noqa: E731
+            self._arm_knife(o, tile([1, 0, 0]), tile([0, 0, -1]), tile([0, 1, 0]), tile([0.4, 0.02, 0.4]),
+                            depth, cfg.press_speed, 0.0)
+            try:
+                self.simulate(int(math.ceil(depth.max() / (cfg.press_speed * self.dt))) + cfg.push_substeps,
+                              contact=1)
+            finally:
+                s.k_on.fill(0)
+        self.simulate(cfg.settle_substeps)

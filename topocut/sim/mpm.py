@@ -1,0 +1,303 @@
+"""Batched 3D MLS-MPM (APIC, quadratic B-splines) with damage, a von Mises skin and an SDF knife.
+
+Written in the style of Taichi's mpm3d.py: fields x, v, C, F, Jp, grid_v,
+grid_m, each with a leading batch axis b (B independent scenes in one set of
+fields), one kernel launch per phase (p2g, grid_op, g2p); ``substep`` composes
+them in Python.  Jp holds J_p = det F_p, the quantity the damage rule reads.
+
+Per particle: material (0 core, 1 skin), damage (0/1, permanent) and the
+skin's current yield stress.  Per scene: the knife (an oriented box, one
+SDF evaluation per grid node) and the push plane.
+"""
+
+
+import math
+
+import taichi as ti
+
+from topocut.sim.config import SimConfig
+
+_STATE = {"arch": None}
+
+
+def init_taichi(arch: str = "cpu", seed: int = 0, debug: bool = False, cpu_threads: "int | None" = None) -> str:
+    """Initialise Taichi once per process (idempotent); returns the arch in use.
+
+    A second call is a no-op; asking for another arch than the one running is
+    an error (re-initialising would free every simulator's fields).
+    ``cpu_threads=1`` makes CPU runs bit-reproducible (atomic adds then run in
+    a fixed order).
+    """
+    from taichi.lang import impl
+
+    if arch not in ("cpu", "cuda"):
+        raise ValueError(f"arch={arch!r}; valid: cpu, cuda")
+    if impl.get_runtime().prog is not None:
+        running = "cuda" if impl.current_cfg().arch == ti.cuda else "cpu"
+        if _STATE["arch"] is not None and running != arch:
+            raise RuntimeError(f"Taichi already runs on {running}; cannot switch to {arch} in this process")
+        _STATE["arch"] = running
+        return running
+    kw = dict(default_fp=ti.f32, random_seed=seed, debug=debug, offline_cache=True, log_level=ti.WARN)
+    if cpu_threads:
+        kw["cpu_max_num_threads"] = int(cpu_threads)
+    ti.init(arch=ti.cuda if arch == "cuda" else ti.cpu, **kw)
+    if arch == "cuda" and impl.current_cfg().arch != ti.cuda:
+        ti.reset()
+        raise RuntimeError("arch=cuda requested but Taichi found no usable CUDA device; use sim.arch=cpu")
+    _STATE["arch"] = arch
+    return arch
+
+
+@ti.data_oriented
+class MPMSolver:
+    """Fields of B scenes with room for ``capacity`` particles each; kernels read cfg constants."""
+
+    def __init__(self, cfg: SimConfig, B: int, capacity: int):
+        self.cfg, self.B, self.capacity = cfg, B, capacity
+        n = self.n_grid = cfg.n_grid
+        self.dx, self.inv_dx, self.dt = 1.0 / n, float(n), cfg.effective_dt()
+        self.vol = cfg.spacing ** 3
+        self.jc, self.js = (1 - cfg.eps_c) ** cfg.m, (1 + cfg.eps_s) ** cfg.m
+        fb = ti.FieldsBuilder()
+        f32, vec, mat = ti.f32, ti.types.vector(3, ti.f32), ti.types.matrix(3, 3, ti.f32)
+        self.x, self.v = vec.field(), vec.field()  # B,N,3
+        self.C, self.F = mat.field(), mat.field()  # B,N,3,3
+        self.Jp, self.sigma_y = ti.field(f32), ti.field(f32)  # B,N
+        self.damage = ti.field(ti.i32)  # B,N
+        self.material = ti.field(ti.i32)  # N
+        self.grid_v, self.grid_m = vec.field(), ti.field(f32)  # B,n,n,n
+        fb.dense(ti.ij, (B, capacity)).place(self.x, self.v, self.C, self.F, self.Jp, self.sigma_y, self.damage)
+        fb.dense(ti.i, capacity).place(self.material)
+        fb.dense(ti.axes(0, 1, 2, 3), (B, n, n, n)).place(self.grid_v, self.grid_m)
+        # knife per scene: start edge midpoint, frame (u, w, n), half extents, travel, oscillation amplitude
+        self.k_o, self.k_u, self.k_w, self.k_n, self.k_half = (vec.field() for _ in range(5))
+        self.k_depth, self.k_amp, self.k_speed = ti.field(f32), ti.field(f32), ti.field(f32)
+        self.k_on = ti.field(ti.i32)
+        self.k_imp, self.k_imp_step = vec.field(), vec.field()  # momentum the knife gave the grid
+        self.k_work, self.k_peak = ti.field(f32), ti.field(f32)
+        self.push_n, self.push_p = vec.field(), vec.field()  # last cut plane per scene
+        self.bad_step = ti.field(ti.i32)  # first substep with NaN / runaway J (2**30 = none)
+        fb.dense(ti.i, B).place(self.k_o, self.k_u, self.k_w, self.k_n, self.k_half, self.k_depth, self.k_amp,
+                                self.k_speed, self.k_on, self.k_imp, self.k_imp_step, self.k_work, self.k_peak,
+                                self.push_n, self.push_p, self.bad_step)
+        self.tree = fb.finalize()
+        self.bad_step.fill(2 ** 30)
+
+    def destroy(self) -> None:
+        self.tree.destroy()
+
+    # -- constitutive models (Kirchhoff stress tau = P F^T) ---------------------------
+    @ti.func
+    def fixed_corotated(self, F, R, J, scale):
+        mu, la = self.cfg.mu * scale, self.cfg.lam * scale
+        return 2 * mu * (F - R) @ F.transpose() + ti.Matrix.identity(ti.f32, 3) * la * J * (J - 1)
+
+    @ti.func
+    def polar_rotation(self, F):
+        """R of F = R S by Newton's iteration R <- (R + R^-T) / 2 (F is near a rotation; cheaper than an SVD)."""
+        R = F
+        for _ in ti.static(range(4)):
+            R = 0.5 * (R + R.inverse().transpose())
+        return R
+
+    @ti.func
+    def von_mises_return(self, sig, b, p, scale):
+        """Project the Hencky strain onto the yield surface; soften sigma_y by gamma * |d eps_p|."""
+        eps = ti.Vector([ti.log(ti.max(sig[d, d], 1e-4)) for d in ti.static(range(3))])
+        dev = eps - eps.sum() / 3.0
+        norm = dev.norm() + 1e-12
+        sy = ti.max(self.sigma_y[b, p], 0.0)
+        dgamma = norm - sy / (2 * self.cfg.mu * scale)
+        if dgamma > 0:
+            eps -= dgamma / norm * dev
+            self.sigma_y[b, p] = sy - self.cfg.softening * dgamma
+            if self.sigma_y[b, p] <= 0:
+                self.damage[b, p] = 1
+        return ti.Matrix([[ti.exp(eps[0]), 0, 0], [0, ti.exp(eps[1]), 0], [0, 0, ti.exp(eps[2])]])
+
+    @ti.func
+    def damaged_flow(self, sig):
+        """A damaged core particle forgets its shear (flows), keeping a clamped volume ratio."""
+        J = ti.min(ti.max(sig[0, 0] * sig[1, 1] * sig[2, 2], 0.3), 3.0)
+        c = ti.pow(J, 1.0 / 3.0)
+        return ti.Matrix([[c, 0, 0], [0, c, 0], [0, 0, c]])
+
+    @ti.func
+    def base_node(self, xp):
+        base = ti.cast(xp * self.inv_dx - 0.5, ti.i32)
+        return ti.max(ti.min(base, self.n_grid - 3), 0)  # keeps a NaN particle inside memory bounds
+
+    # -- the three phases ------------------------------------------------------------
+    @ti.kernel
+    def p2g(self, n: ti.i32, step: ti.i32, push_accel: ti.f32):
+        for I in ti.grouped(self.grid_m):
+            self.grid_v[I] = ti.Vector.zero(ti.f32, 3)
+            self.grid_m[I] = 0.0
+        for b, p in ti.ndrange(self.B, n):
+            base = self.base_node(self.x[b, p])
+            fx = self.x[b, p] * self.inv_dx - base.cast(ti.f32)
+            w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1) ** 2, 0.5 * (fx - 0.5) ** 2]
+            F = (ti.Matrix.identity(ti.f32, 3) + self.dt * self.C[b, p]) @ self.F[b, p]
+            J = F.determinant()
+            if J <= self.jc or J >= self.js:
+                self.damage[b, p] = 1
+            if not (self.cfg.j_min < J < self.cfg.j_max):  # also catches NaN
+                ti.atomic_min(self.bad_step[b], step)
+            mat = self.material[p]
+            scale = 1.0
+            R = ti.Matrix.identity(ti.f32, 3)
+            if self.damage[b, p] == 1:
+                scale = self.cfg.damaged_stiffness
+            if mat == 1 or self.damage[b, p] == 1:  # plastic: needs the singular values
+                U, sig, V = ti.svd(F)
+                if mat == 1:
+                    sig = self.von_mises_return(sig, b, p, scale)
+                else:
+                    sig = self.damaged_flow(sig)
+                F = U @ sig @ V.transpose()
+                R = U @ V.transpose()
+                J = sig[0, 0] * sig[1, 1] * sig[2, 2]
+            else:  # healthy core: elastic only
+                R = self.polar_rotation(F)
+            self.F[b, p] = F
+            self.Jp[b, p] = J
+            tau = self.fixed_corotated(F, R, J, scale)
+            mass = self.vol * (self.cfg.rho_skin if mat == 1 else self.cfg.rho_core)
+            stress = -self.dt * self.vol * 4 * self.inv_dx * self.inv_dx * tau
+            affine = stress + mass * self.C[b, p]
+            mom = mass * self.v[b, p]
+            if push_accel != 0:  # 'separate' push: each side of the last cut is pushed away from it
+                side = ti.math.sign((self.x[b, p] - self.push_p[b]).dot(self.push_n[b]))
+                nh = ti.Vector([self.push_n[b][0], self.push_n[b][1], 0.0])
+                if nh.norm() > 1e-6:  # scenes without a cut have a zero normal
+                    mom += mass * self.dt * push_accel * side * nh.normalized()
+            for off in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
+                dpos = (off.cast(ti.f32) - fx) * self.dx
+                weight = w[off[0]][0] * w[off[1]][1] * w[off[2]][2]
+                self.grid_v[b, base + off] += weight * (mom + affine @ dpos)
+                self.grid_m[b, base + off] += weight * mass
+
+    @ti.func
+    def knife_motion(self, b, t):
+        """Edge midpoint and velocity of scene b's knife at time t (stopped once it travelled k_depth)."""
+        t_stop = self.k_depth[b] / self.k_speed[b]
+        moving = t < t_stop
+        te = ti.min(t, t_stop)
+        om = 2 * math.pi * self.cfg.osc_frequency
+        edge = self.k_o[b] + self.k_w[b] * self.k_speed[b] * te + self.k_u[b] * self.k_amp[b] * ti.sin(om * te)
+        vel = ti.Vector.zero(ti.f32, 3)
+        if moving:
+            vel = self.k_w[b] * self.k_speed[b] + self.k_u[b] * self.k_amp[b] * om * ti.cos(om * te)
+        return edge, vel
+
+    @ti.func
+    def knife_sdf(self, b, pos, edge):
+        """Signed distance to the inflated blade box and its outward normal."""
+        half = self.k_half[b]
+        d = pos - (edge - self.k_w[b] * half[1])
+        loc = ti.Vector([d.dot(self.k_u[b]), d.dot(self.k_w[b]), d.dot(self.k_n[b])])
+        q = ti.abs(loc) - half
+        qo = ti.max(q, 0.0)
+        sd = qo.norm() + ti.min(q.max(), 0.0) - self.cfg.margin
+        g = ti.Vector.zero(ti.f32, 3)
+        if qo.norm() > 0:
+            g = qo / qo.norm()
+        else:  # inside: the face of largest q
+            qm = q.max()
+            for i in ti.static(range(3)):
+                if q[i] == qm:
+                    g = ti.Vector([1.0 if i == 0 else 0.0, 1.0 if i == 1 else 0.0, 1.0 if i == 2 else 0.0])
+        g = g * ti.math.sign(loc + 1e-12)
+        nrm = g[0] * self.k_u[b] + g[1] * self.k_w[b] + g[2] * self.k_n[b]
+        return sd, nrm
+
+    @ti.func
+    def collide(self, v, vk, nrm, target, mu):
+        """Raise the normal velocity relative to the collider to >= target; Coulomb friction on the rest."""
+        vr = v - vk
+        vn = vr.dot(nrm)
+        out = v
+        if vn < target:
+            vt = vr - vn * nrm
+            vt *= ti.max(0.0, 1 - mu * (target - vn) / (vt.norm() + 1e-12))
+            out = vk + vt + target * nrm
+        return out
+
+    @ti.kernel
+    def grid_op(self, t: ti.f32, contact: ti.i32):
+        for b, i, j, k in self.grid_m:
+            m = self.grid_m[b, i, j, k]
+            if m > 0:
+                v = self.grid_v[b, i, j, k] / m
+                v[2] -= self.dt * self.cfg.gravity
+                pos = ti.Vector([i, j, k]).cast(ti.f32) * self.dx
+                if self.k_on[b] == 1:
+                    edge, vk = self.knife_motion(b, t)
+                    sd, nrm = self.knife_sdf(b, pos, edge)
+                    v_old = v
+                    if contact == 0:  # wedge: a sharp blade splits material to either side, never pushes it ahead
+                        side = self.k_n[b] * ti.math.sign((pos - edge).dot(self.k_n[b]) + 1e-12)
+                        if sd < 0 or (sd < self.dx and ti.abs(nrm.dot(self.k_n[b])) > 0.5):
+                            target = self.k_speed[b] * self.cfg.knife_wedge if sd < 0 else 0.0
+                            v = self.collide(v, vk, side, target, self.cfg.knife_friction)
+                    else:  # solid: nodes inside move with the body, a contact band around it slides with friction
+                        if sd < 0:
+                            v = vk
+                        elif sd < self.dx:
+                            v = self.collide(v, vk, nrm, 0.0, self.cfg.knife_friction)
+                    self.k_imp_step[b] += m * (v - v_old)
+                if ti.static(self.cfg.board):
+                    if pos[2] <= self.cfg.board_z and v[2] < 0:
+                        vt = ti.Vector([v[0], v[1], 0.0])
+                        vt_n = vt.norm() + 1e-12
+                        v = vt * ti.max(0.0, 1 + self.cfg.friction * v[2] / vt_n)
+                if ti.static(self.cfg.walls):
+                    I = ti.Vector([i, j, k])
+                    for d in ti.static(range(3)):
+                        if I[d] < 3 and v[d] < 0:
+                            v[d] = 0
+                        if I[d] > self.n_grid - 3 and v[d] > 0:
+                            v[d] = 0
+                self.grid_v[b, i, j, k] = v
+
+    @ti.kernel
+    def g2p(self, n: ti.i32, step: ti.i32, t: ti.f32):
+        for b in range(self.B):  # knife bookkeeping for the substep that grid_op just ran
+            if self.k_on[b] == 1:
+                imp = self.k_imp_step[b]
+                _, vk = self.knife_motion(b, t)
+                self.k_imp[b] += imp
+                self.k_work[b] += imp.dot(vk)
+                self.k_peak[b] = ti.max(self.k_peak[b], imp.norm() / self.dt)
+                self.k_imp_step[b] = ti.Vector.zero(ti.f32, 3)
+        for b, p in ti.ndrange(self.B, n):
+            base = self.base_node(self.x[b, p])
+            fx = self.x[b, p] * self.inv_dx - base.cast(ti.f32)
+            w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1) ** 2, 0.5 * (fx - 0.5) ** 2]
+            new_v = ti.Vector.zero(ti.f32, 3)
+            new_C = ti.Matrix.zero(ti.f32, 3, 3)
+            for off in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
+                dpos = (off.cast(ti.f32) - fx) * self.dx
+                weight = w[off[0]][0] * w[off[1]][1] * w[off[2]][2]
+                g_v = self.grid_v[b, base + off]
+                new_v += weight * g_v
+                new_C += 4 * self.inv_dx * self.inv_dx * weight * g_v.outer_product(dpos)
+            self.v[b, p], self.C[b, p] = new_v, new_C
+            xn = self.x[b, p] + self.dt * new_v
+            if not (xn.norm() < 10.0):  # NaN or escaped
+                ti.atomic_min(self.bad_step[b], step)
+            self.x[b, p] = xn
+
+    def substep(self, n: int, step: int, t: float = 0.0, push_accel: float = 0.0, contact: int = 0) -> None:
+        self.p2g(n, step, push_accel)
+        self.grid_op(t, contact)
+        self.g2p(n, step, t)
+
+    @ti.kernel
+    def reset_knife_stats(self):
+        for b in range(self.B):
+            self.k_imp[b] = ti.Vector.zero(ti.f32, 3)
+            self.k_imp_step[b] = ti.Vector.zero(ti.f32, 3)
+            self.k_work[b] = 0.0
+            self.k_peak[b] = 0.0
