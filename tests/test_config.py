@@ -6,7 +6,7 @@ from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
-from omegaconf.errors import ConfigKeyError, ValidationError
+from omegaconf.errors import OmegaConfBaseException
 
 from topocut.config import STAGES, ConfigError, register_configs, validate
 
@@ -45,7 +45,7 @@ def test_every_object_and_model_composes():
     for obj in ("cake", "cube", "ditto", "ham", "potato", "donut", "burger", "sushi", "steak", "tomato"):
         validate(_compose(f"object={obj}"))
     for model in ("graph_transformer", "pointnet"):
-        assert _compose(f"model={model}").model.name == model
+        assert _compose(f"model={model}").model.model == model
 
 
 def test_typo_in_group_choice_lists_valid_choices():
@@ -58,7 +58,7 @@ def test_typo_in_group_choice_lists_valid_choices():
 def test_typo_in_key_fails_naming_it():
     with pytest.raises(ConfigCompositionException) as e:
         _compose("sim.n_grd=32")
-    assert isinstance(e.value.__cause__, (ConfigKeyError, ValidationError)) and "n_grd" in str(e.value.__cause__)
+    assert isinstance(e.value.__cause__, OmegaConfBaseException) and "sim.n_grd" in str(e.value.__cause__)
     with pytest.raises(ConfigCompositionException) as e:
         _compose("sim.n_grid=abc")
     assert "n_grid" in str(e.value.__cause__)

@@ -198,7 +198,7 @@ def test_denoiser_parametrisation_gives_exact_scores(graph):
                 continue  # an unmasked absorbing state has no reverse jumps: its scores are unused
             post = p0 @ P[b, :2]  # p(x0_1 = c, x_2,t = b) up to normalisation
             log_pi = torch.tensor(np.log(post / post.sum()))[None]
-            got = graph.score_from_denoiser(log_pi, torch.tensor([a]), torch.tensor([[sigma]], dtype=torch.float64))
+            got = graph.score_from_denoiser(log_pi, torch.tensor([a]), torch.tensor([sigma], dtype=torch.float64))
             exact = np.log(pt[:, b] / pt[a, b])
             keep = pt[:, b] > 0
             np.testing.assert_allclose(got[0].numpy()[keep], exact[keep], rtol=1e-9, atol=1e-9)

@@ -15,7 +15,6 @@ from topocut.models.module import DynamicsModule, load_encoder
 from topocut.models.pointnet import FeaturePropagation, PointNetDynamics, PointNetEncoder, SetAbstraction
 
 
-
 @pytest.fixture(autouse=True, scope="module")
 def one_thread():
     """Tiny tensors: OpenMP's second thread only adds spin-wait (10x slower on a loaded 2-core box)."""
@@ -189,8 +188,9 @@ def test_datamodule_reads_episode_dataset(tmp_path):
     for e, obj in enumerate(["cube", "cake", "donut"]):
         w.add_episode(synthetic_steps(2, 120, seed=e), {"task": "slice", "object": obj, "seed": e,
                                                        "goal": np.zeros((10, 3)), "goal_labels": np.zeros(10)})
-    dm = EpisodeDataModule(str(tmp_path / "d.zarr"), num_points=32, batch_size=2, val_fraction=0.5,
-                           held_out_objects=["donut"])
+    dm = EpisodeDataModule.from_config(str(tmp_path / "d.zarr"), tiny_cfg(num_points=32, noise=False), batch_size=2,
+                                       val_fraction=0.5, held_out_objects=["donut"])
+    assert dm.noise_std == 0.0
     dm.setup("fit")
     assert len(dm.train_set) == 2 and len(dm.val_set) == 4  # 1 seen val episode + the donut, 2 steps each
     batch = next(iter(dm.val_dataloader()))

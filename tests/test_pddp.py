@@ -125,7 +125,16 @@ def synthetic_steps(n_steps, n_points=64, seed=0):
     return steps, action
 
 
-def test_training_reduces_loss_and_policy_acts():
+@pytest.fixture
+def one_thread():
+    """One intra-op thread: these tiny models run faster without threading overhead on a busy CPU."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def test_training_reduces_loss_and_policy_acts(one_thread):
     torch.manual_seed(0)
     steps, action = synthetic_steps(64)
     ds = PolicyDataset(steps, num_points=64, num_goal_points=16)
@@ -165,7 +174,7 @@ def test_training_reduces_loss_and_policy_acts():
     assert np.degrees(np.arccos(min(1.0, abs(a.normal @ action.normal)))) < 20.0
 
 
-def test_trainer_logs_metrics(tmp_path):
+def test_trainer_logs_metrics(tmp_path, one_thread):
     import lightning as L
 
     steps, _ = synthetic_steps(16, n_points=32)

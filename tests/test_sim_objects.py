@@ -2,8 +2,7 @@
 import numpy as np
 import pytest
 
-from topocut.sim.objects import (OBJECTS, SEEN, UNSEEN, ObjectPose, object_sdf, random_pose, sample_object,
-                                 sample_sdf)
+from topocut.sim.objects import OBJECTS, SEEN, UNSEEN, ObjectPose, object_sdf, random_pose, sample_object, sample_sdf
 
 
 def test_name_lists_follow_the_contract():

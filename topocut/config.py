@@ -18,7 +18,7 @@ from topocut.eval.config import EvalConfig
 from topocut.goals.config import TaskConfig
 from topocut.models.config import DynamicsConfig
 from topocut.planning.config import MPPIConfig
-from topocut.policies.config import PDDPConfig
+from topocut.policies.config import PDDPConfig, PolicyTrainConfig, SamplerConfig
 from topocut.reward.config import RewardConfig
 from topocut.sim.config import SimConfig
 from topocut.sim.objects import OBJECTS
@@ -75,6 +75,15 @@ class DataConfig:
 
 
 @dataclass
+class PolicyConfig:
+    """PDDP: the network and diffusion (``net``), its training (``train``) and its sampler."""
+
+    net: PDDPConfig = field(default_factory=PDDPConfig)
+    train: PolicyTrainConfig = field(default_factory=PolicyTrainConfig)
+    sampler: SamplerConfig = field(default_factory=SamplerConfig)
+
+
+@dataclass
 class TopoCutConfig:
     stage: StageConfig = field(default_factory=StageConfig)
     task: TaskConfig = field(default_factory=TaskConfig)
@@ -85,7 +94,7 @@ class TopoCutConfig:
     planner: MPPIConfig = field(default_factory=MPPIConfig)
     observation: ObservationConfig = field(default_factory=ObservationConfig)
     model: DynamicsConfig = field(default_factory=DynamicsConfig)
-    policy: PDDPConfig = field(default_factory=PDDPConfig)
+    policy: PolicyConfig = field(default_factory=PolicyConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     trainer: TrainerConfig = field(default_factory=TrainerConfig)
     data: DataConfig = field(default_factory=DataConfig)
@@ -121,7 +130,13 @@ def validate(cfg: DictConfig) -> None:
     except ValueError as e:
         msg = str(e)
         raise ConfigError(msg if msg.startswith("sim.") else f"sim: {msg}") from e
-    _check(cfg.planner.num_samples >= 1, "planner.num_samples", "must be >= 1")
+    for group, node in (("planner", cfg.planner), ("observation", cfg.observation), ("policy.net", cfg.policy.net)):
+        obj = OmegaConf.to_object(node)
+        try:
+            obj.validate()
+        except ValueError as e:
+            msg = str(e)
+            raise ConfigError(msg if msg.startswith(group.split(".")[0]) else f"{group}: {msg}") from e
     _check_stage_args(cfg)
 
 

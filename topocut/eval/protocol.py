@@ -15,6 +15,7 @@ without the simulator.
 """
 from __future__ import annotations
 
+import functools
 import json
 import os
 import time
@@ -142,10 +143,10 @@ def make_observe_fn(mode: str = "particles", num_points: int = 2048, obs_cfg=Non
 
 
 # -- one episode ---------------------------------------------------------------------------------------
-def _default_goal_fn(task_cfg, obj, pose, spacing):
+def _default_goal_fn(task_cfg, obj, pose, spacing, board_z=0.05):
     from topocut.goals import make_goal
 
-    return make_goal(task_cfg, obj, pose, spacing)
+    return make_goal(task_cfg, obj, pose, spacing, board_z=board_z)
 
 
 def _default_discover(x, damage, sweeps, previous, topo_cfg):
@@ -203,13 +204,13 @@ def evaluate_episode(spec: EpisodeSpec, policy, env, task_cfg, reward_cfg=None, 
     ``policy.act`` returning None ends the episode early.  SimulationDiverged marks it ``failed``; an
     exception from the policy marks it ``error`` (both keep the steps completed before).
     """
-    goal_fn, discover_fn, reward_fn = (goal_fn or _default_goal_fn, discover_fn or _default_discover,
-                                       reward_fn or _default_reward)
+    board_z = _board_z(env)
+    goal_fn, discover_fn, reward_fn = (goal_fn or functools.partial(_default_goal_fn, board_z=board_z),
+                                       discover_fn or _default_discover, reward_fn or _default_reward)
     observe_fn = observe_fn or (lambda x, labels: (np.asarray(x, np.float32), np.asarray(labels, np.int32)))
     Diverged = _diverged_type()
     t0 = time.perf_counter()
     result = EpisodeResult(spec=spec.asdict(), policy=policy_name)
-    board_z = _board_z(env)
     B = int(getattr(env, "batch_size", 1) or 1)
 
     env.reset(spec.object, spec.pose, seed=spec.seed)

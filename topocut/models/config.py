@@ -46,7 +46,7 @@ class DynamicsConfig:
     warmup_steps: int = 50
     min_lr_ratio: float = 0.05  # cosine decays to lr * this
 
-    def validate(self) -> "DynamicsConfig":
+    def validate(self) -> DynamicsConfig:
         if self.model not in MODELS:
             raise ValueError(f"model.model={self.model!r} is not valid; choose one of {', '.join(MODELS)}")
         for name in ("num_points", "num_labels", "hidden", "k", "cross_k", "num_layers", "num_heads", "query_hidden",
@@ -59,6 +59,9 @@ class DynamicsConfig:
             raise ValueError(f"model.pointnet_ratio={self.pointnet_ratio} must lie in (0, 1]")
         if not self.pointnet_dims:
             raise ValueError("model.pointnet_dims must list at least one block width")
+        bad = [d for d in self.pointnet_dims if d % self.num_heads]
+        if bad:
+            raise ValueError(f"model.pointnet_dims: width {bad[0]} is not divisible by model.num_heads={self.num_heads}")
         if min(self.noise_std, self.coord_scale, self.pos_scale, self.lr) < 0 or self.coord_scale == 0:
             raise ValueError("model.noise_std, model.pos_scale and model.lr must be >= 0 and model.coord_scale > 0")
         return self

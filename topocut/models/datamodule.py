@@ -14,7 +14,7 @@ held-out objects (unseen) into validation too, tagged ``seen=False``.
 """
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import lightning as L
 import numpy as np
@@ -94,6 +94,12 @@ class EpisodeDataModule(L.LightningDataModule):
         self.held_out = tuple(held_out_objects)
         self.train_set = self.val_set = None
         self.split: dict[str, list[int]] = {}
+
+    @classmethod
+    def from_config(cls, path: str, cfg, **kw) -> EpisodeDataModule:
+        """Input options from a DynamicsConfig (num_points, sort, noise/noise_std, num_labels); ``kw``: the rest."""
+        return cls(path, num_points=cfg.num_points, sort=cfg.sort, noise_std=cfg.noise_std if cfg.noise else 0.0,
+                   num_labels=cfg.num_labels, **kw)
 
     def split_episodes(self, objects: list[str]) -> dict[str, list[int]]:
         """Episode indices per split: ``train``, ``val`` (seen objects) and ``unseen`` (held-out objects)."""

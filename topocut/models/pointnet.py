@@ -15,7 +15,7 @@ cross-attention runs between its encoding and decoding halves.
 """
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 from torch import nn

@@ -37,3 +37,29 @@ class HeuristicPolicy:
         action = self.planes[min(self.t, len(self.planes) - 1)]
         self.t += 1
         return action
+
+
+class FixedTrajectoryPolicy(HeuristicPolicy):
+    """The evaluation's "Heuristic" baseline: the task's equally spaced planes for the object's *nominal*
+    pose, executed open loop — blind to the episode's randomised translation, yaw and scale.
+
+    (HeuristicPolicy on the episode's own goal knows the true pose: that is the "oracle" reference.)
+    """
+
+    def __init__(self, task_cfgs: dict, spacing: float, board_z: float = 0.05):
+        super().__init__()
+        self.task_cfgs, self.spacing, self.board_z = dict(task_cfgs), spacing, board_z
+        self._cache: dict[tuple[str, str], object] = {}
+
+    def reset(self, goal) -> None:
+        from topocut.goals import make_goal
+        from topocut.sim.objects import ObjectPose
+
+        key = (goal.task, goal.object)
+        if key not in self._cache:
+            if goal.task not in self.task_cfgs:
+                raise KeyError(f"FixedTrajectoryPolicy has no TaskConfig for task {goal.task!r}; "
+                               f"known: {', '.join(self.task_cfgs)}")
+            self._cache[key] = make_goal(self.task_cfgs[goal.task], goal.object, ObjectPose(),
+                                         spacing=self.spacing, board_z=self.board_z)
+        super().reset(self._cache[key])

@@ -35,6 +35,8 @@ def history_from_actions(actions: list[KnifeAction], board_z: float = 0.05, hist
 
 def make_obs(points, labels, goal, goal_labels=None, history=None) -> dict:
     """Validated observation dict; history None = no previous cut, goal_labels None = all 0."""
+    if goal is None:
+        raise KeyError(f"make_obs needs a goal point cloud (g,3); a policy observation needs {', '.join(OBS_KEYS)}")
     obs = {"points": points, "labels": labels, "goal": goal,
            "goal_labels": np.zeros(len(np.asarray(goal)), np.int32) if goal_labels is None else goal_labels,
            "history": np.zeros((HISTORY_LEN, POSE_FEATURE_DIM), np.float32) if history is None else history}

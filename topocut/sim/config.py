@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Optional
 
 PUSH_MODES = ("separate", "press", "settle", "none")
 KNIFE_MODES = ("wedge", "sticky")
@@ -14,9 +13,9 @@ ARCHS = ("cpu", "cuda")
 class SimConfig:
     # -- discretisation --------------------------------------------------------
     n_grid: int = 64  # grid nodes per axis over the unit cube (128 on GPU)
-    dt: Optional[float] = None  # substep length [s]; None = cfl * CFL bound (see cfl_bound)
+    dt: float | None = None  # substep length [s]; None = cfl * CFL bound (see cfl_bound)
     cfl: float = 0.5  # fraction of the CFL bound used when dt is None
-    particle_spacing: Optional[float] = None  # lattice spacing; None = half a grid cell
+    particle_spacing: float | None = None  # lattice spacing; None = half a grid cell
     batch_size: int = 1  # B independent scenes simulated together
     arch: str = "cpu"
     # -- materials (0: plasto-elastic core, 1: von Mises skin) -------------------
@@ -43,7 +42,7 @@ class SimConfig:
     knife_half_length: float = 0.3  # along the blade axis u
     knife_height: float = 0.45  # blade height (along -w, above its cutting edge)
     knife_half_thickness: float = 0.002  # along the blade normal n
-    knife_margin: Optional[float] = None  # contact inflation of the blade SDF; None = half a grid cell
+    knife_margin: float | None = None  # contact inflation of the blade SDF; None = half a grid cell
     knife_mode: str = "wedge"  # wedge: splits material sideways; sticky: nodes inside take the knife velocity
     knife_wedge: float = 0.15  # wedge: sideways opening speed / knife speed (half-angle tangent of the bevel)
     knife_friction: float = 0.2  # Coulomb coefficient on the blade faces
@@ -51,7 +50,7 @@ class SimConfig:
     knife_clearance: float = 0.01  # start height of the edge above the object's top
     osc_amplitude: float = 0.002  # blade oscillation along u [units]
     osc_frequency: float = 60.0  # [Hz]
-    cut_substeps: Optional[int] = None  # fixes the substeps of the travel (the speed follows); None = from speed
+    cut_substeps: int | None = None  # fixes the substeps of the travel (the speed follows); None = from speed
     dwell_substeps: int = 50  # knife resting on the board before it is withdrawn
     check_every: int = 200  # substeps between divergence checks (host sync)
     # -- push (after a cut) --------------------------------------------------------
@@ -89,7 +88,7 @@ class SimConfig:
     def effective_dt(self) -> float:
         return self.dt if self.dt is not None else self.cfl * self.cfl_bound()
 
-    def validate(self) -> "SimConfig":
+    def validate(self) -> SimConfig:
         def bad(key, msg):
             raise ValueError(f"sim.{key}: {msg}")
 

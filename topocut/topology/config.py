@@ -2,29 +2,28 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
 
 
 @dataclass
 class TopologyConfig:
     # --- grid ---------------------------------------------------------------
     resolution: int = 128  # nodes along the longest axis of the padded particle bounding box
-    voxel_size: Optional[float] = None  # fixed node spacing instead (overrides resolution)
+    voxel_size: float | None = None  # fixed node spacing instead (overrides resolution)
     max_resolution: int = 256  # cap on nodes per axis when voxel_size is given
     padding_voxels: int = 3  # empty nodes kept around the particles' bounding box (+ the particle radius)
     # --- implicit surface SDF(x) = min_p |x - x_p| - r_p ----------------------
-    particle_radius: Optional[float] = None  # r_p; None: radius_factor * particle spacing (median 3rd-NN distance)
+    particle_radius: float | None = None  # r_p; None: radius_factor * particle spacing (median 3rd-NN distance)
     radius_factor: float = 1.2  # > sqrt(3)/2 fills a lattice's interior; 1.2 also closes tunnels in jittered samples
     # exact distances within r_p + band_voxels*h of a particle, clamped beyond: 1 voxel is enough, since
     # marching cubes interpolates only along edges that change sign, whose nodes have |sdf| <= h
     band_voxels: float = 1.0
-    board_z: Optional[float] = 0.05  # nothing below the board's top face is material (None: no board)
+    board_z: float | None = 0.05  # nothing below the board's top face is material (None: no board)
     # --- knife carving ------------------------------------------------------
     carve: bool = True
     min_gap_voxels: float = 2.0  # carved slab is at least this many voxels thick (a gap the grid resolves)
     # a sweep whose lower end is within this many voxels of the board is carved on through the board
     board_snap_voxels: float = 2.0
-    carve_radius: Optional[float] = None  # carve only within this distance of damaged particles; None: 3 r_p
+    carve_radius: float | None = None  # carve only within this distance of damaged particles; None: 3 r_p
     # --- keep earlier splits ------------------------------------------------
     preserve_splits: bool = True  # different previous clusters never merge (cutting only splits)
     # --- mesh ---------------------------------------------------------------
@@ -33,9 +32,9 @@ class TopologyConfig:
     min_component_voxels: int = 8  # pieces with fewer inside nodes are dropped (debris)
     max_void_voxels: int = 64  # enclosed empty regions up to this size are filled (gaps between particles)
     # --- particle assignment ------------------------------------------------
-    tau: Optional[float] = None  # proximity threshold to a piece's surface; None: 2 r_p + half the gap
+    tau: float | None = None  # proximity threshold to a piece's surface; None: 2 r_p + half the gap
 
-    def validate(self) -> "TopologyConfig":
+    def validate(self) -> TopologyConfig:
         if self.resolution < 8:
             raise ValueError(f"topology.resolution must be >= 8, got {self.resolution}")
         if self.voxel_size is not None and self.voxel_size <= 0:

@@ -39,7 +39,7 @@ class ObservationConfig:
     noise_margin: float = 3.0  # free-space test tolerance, in noise_std (+ half a voxel)
     board_z: float = 0.05
 
-    def validate(self) -> "ObservationConfig":
+    def validate(self) -> ObservationConfig:
         if self.mode not in MODES:
             raise ValueError(f"observation.mode {self.mode!r} unknown; valid: {', '.join(MODES)}")
         if self.num_points < 1:

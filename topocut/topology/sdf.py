@@ -130,9 +130,9 @@ def _carve(sdf: wp.array3d(dtype=float), lower: wp.vec3, h: float,
         box = outside + wp.min(wp.max(q[0], wp.max(q[1], q[2])), 0.0)
         if box < 0.0:
             # the knife only separates where it went through damaged material
-            near = int(0)
+            near = int(0)  # noqa: UP018 (a literal would be a Warp constant, not mutable in the loop)
             query = wp.hash_grid_query(damaged, x, carve_radius)
-            idx = int(0)
+            idx = int(0)  # noqa: UP018
             while wp.hash_grid_query_next(query, idx):
                 if wp.length(dpts[idx] - x) <= carve_radius:
                     near = 1

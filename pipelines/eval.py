@@ -1,0 +1,96 @@
+"""stage=eval: the benchmark protocol (paper §4, Table 1) over every policy -> eval/<name>.
+
+Policies: ``oracle`` (the goal's ideal planes for the true pose: the R̂ reference), ``heuristic``
+(the same planes for the nominal pose, open loop), ``mppi`` (the expert), ``pddp``, ``pddp_noperc``,
+``pddp_graphconv``, ``dp3``, ``3dda`` (checkpoints from the bc stage, latest versions).
+Episodes are committed one by one; an interrupted evaluation resumes.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+from omegaconf import OmegaConf
+
+from pipelines._common import as_dict
+from topocut.utils.context import RunContext
+
+CONF_TASKS = Path(__file__).resolve().parent.parent / "conf" / "task"
+LEARNED = ("pddp", "pddp_noperc", "pddp_graphconv", "dp3", "3dda")
+SCRIPTED = ("oracle", "heuristic", "mppi")
+
+
+def task_configs(names, max_cuts: int) -> dict:
+    """TaskConfig per task from conf/task/<name>.yaml (one source of truth for task parameters)."""
+    from topocut.goals.config import TaskConfig
+
+    out = {}
+    for name in names:
+        f = CONF_TASKS / f"{name}.yaml"
+        if not f.exists():
+            raise KeyError(f"eval.tasks: unknown task {name!r}; valid: {', '.join(sorted(p.stem for p in CONF_TASKS.glob('*.yaml')))}")
+        cfg = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(TaskConfig), OmegaConf.load(f)))
+        cfg.max_cuts = max_cuts
+        out[name] = cfg
+    return out
+
+
+def build_policies(ctx: RunContext, names, env, sim, planner, reward, topology, task_cfgs, sampler=None):
+    from topocut.planning import HeuristicPolicy, MPPIPolicy, sim_rollout_factory
+    from topocut.planning.heuristic import FixedTrajectoryPolicy
+
+    bad = [n for n in names if n not in SCRIPTED + LEARNED]
+    if bad:
+        raise ValueError(f"eval.policies: unknown policy {bad[0]!r}; valid: {', '.join(SCRIPTED + LEARNED)}")
+    policies, inputs = {}, {}
+    for name in names:
+        if name == "oracle":
+            policies[name] = HeuristicPolicy()
+        elif name == "heuristic":
+            policies[name] = FixedTrajectoryPolicy(task_cfgs, spacing=sim.spacing, board_z=sim.board_z)
+        elif name == "mppi":
+            push = any(t.push for t in task_cfgs.values())
+            factory = sim_rollout_factory(env, reward, topology, board_z=sim.board_z, push=push)
+            policies[name] = MPPIPolicy(planner, factory, seed=ctx.seed)
+        else:
+            path = ctx.store.resolve("checkpoint", name)
+            inputs[name] = f"checkpoint/{name}:{path.name}"
+            if name.startswith("pddp"):
+                from topocut.policies.module import PDDPPolicy
+
+                steps = sampler.steps if sampler is not None else 32
+                predictor = sampler.predictor if sampler is not None else "analytic"
+                policies[name] = PDDPPolicy(str(path / "model.ckpt"), sampler=predictor, steps=steps,
+                                            device=ctx.device)
+            else:
+                from topocut.policies.baselines.module import load_pose_policy
+
+                policies[name] = load_pose_policy(path / "model.ckpt", seed=ctx.seed, device=ctx.device)
+    return policies, inputs
+
+
+def run(ctx: RunContext, eval, sim, topology, reward, planner, observation, data, sampler=None) -> dict:
+    from topocut.eval.protocol import episode_specs, make_observe_fn, run_evaluation
+    from topocut.eval.report import write_report
+    from topocut.sim import CuttingEnv, init_taichi
+
+    specs = episode_specs(eval)
+    task_cfgs = task_configs(eval.tasks, eval.max_cuts)
+    init_taichi(arch=ctx.device, seed=ctx.seed)
+    env = CuttingEnv(sim, batch_size=max(1, sim.batch_size) if "mppi" in eval.policies else 1)
+    policies, inputs = build_policies(ctx, eval.policies, env, sim, planner, reward, topology, task_cfgs, sampler)
+    config = as_dict(("eval", eval), ("sim", sim), ("topology", topology), ("reward", reward),
+                     ("planner", planner), ("observation", observation), ("seed", ctx.seed))
+    writer, existing = ctx.store.begin("eval", eval.name, config, inputs, extra={"seed": ctx.seed,
+                                                                                "device": ctx.device})
+    if existing is not None:
+        return {"eval": str(existing), "reused": True}
+    observe_fn = make_observe_fn(eval.observation, eval.num_points, observation, seed=eval.seed)
+    run_evaluation(specs, policies, env, task_cfgs, writer.path, reward, topology, observe_fn, cfg=eval,
+                   progress=ctx.progress, logger=ctx.logger, spacing=sim.spacing)
+    report = write_report(writer.path, reference=eval.reference, normalize_by=eval.normalize_by)
+    rows = report["rows"]
+    path = writer.commit({"episodes": len(specs) * len(policies), "policies": list(policies)})
+    ctx.logger.log_image("eval/results", path / "results.png")
+    print((path / "results.md").read_text())
+    return {"eval": str(path), "episodes": len(specs) * len(policies), "rows": len(rows),
+            "table": str(path / "results.md")}

@@ -1,0 +1,48 @@
+"""stage=pretrain: the dynamics model F (and its encoder Φ) on a dataset version -> checkpoint/perception."""
+from __future__ import annotations
+
+import json
+import shutil
+
+from pipelines._common import as_dict
+from topocut.utils.context import RunContext
+from topocut.utils.training import MetricHistory, build_trainer, resume_path
+
+
+def checkpoint_name(model) -> str:
+    return "perception" if model.model == "graph_transformer" else f"perception-{model.model}"
+
+
+def run(ctx: RunContext, model, trainer, data) -> dict:
+    from topocut.models import DynamicsModule, EpisodeDataModule
+
+    ds_path = ctx.store.resolve("dataset", data.dataset, data.version)
+    inputs = {"dataset": f"dataset/{data.dataset}:{ds_path.name}"}
+    config = as_dict(("model", model), ("trainer", trainer), ("seed", ctx.seed))
+    name = checkpoint_name(model)
+    writer, existing = ctx.store.begin("checkpoint", name, config, inputs, extra={"seed": ctx.seed,
+                                                                                  "device": ctx.device})
+    if existing is not None:
+        return {"checkpoint": str(existing), "reused": True}
+    dm = EpisodeDataModule(str(ds_path / "data.zarr"), num_points=model.num_points, sort=model.sort,
+                           noise_std=model.noise_std if model.noise else 0.0, num_labels=model.num_labels,
+                           batch_size=trainer.batch_size, num_workers=trainer.num_workers,
+                           val_fraction=trainer.val_fraction, held_out_objects=trainer.held_out_objects,
+                           seed=ctx.seed)
+    module = DynamicsModule(model)
+    history = MetricHistory()
+    work = writer.path / "work"  # Lightning's own checkpoints while training (resume point)
+    fit = build_trainer(trainer, trainer.max_epochs, work, logger=ctx.logger.lightning(ctx.run_dir),
+                        progress=ctx.progress, callbacks=[history])
+    fit.fit(module, datamodule=dm, ckpt_path=resume_path(work))
+    metrics = {k: float(v) for k, v in fit.callback_metrics.items()}
+    shutil.copyfile(work / "last.ckpt", writer.path / "model.ckpt")
+    shutil.rmtree(work)
+    history.plot(writer.path / "loss.png")
+    history.dump(writer.path / "history.json")
+    (writer.path / "metrics.json").write_text(json.dumps({"metrics": metrics, "split": dm.split}, indent=2))
+    summary = {"model": model.model, "parameters": sum(p.numel() for p in module.parameters()),
+               "train_episodes": len(dm.split["train"]), **{k: round(v, 5) for k, v in metrics.items()}}
+    path = writer.commit(summary)
+    ctx.logger.log_image("pretrain/loss", path / "loss.png")
+    return {"checkpoint": str(path), **summary}

@@ -1,0 +1,55 @@
+"""stage=teleop: drive the knife from a Taichi window, or replay a saved log into a dataset.
+
+Live: ``python -m topocut.run stage=teleop object=cake`` opens a window (mouse moves the knife plane,
+wheel turns it, shift+wheel tilts; c cut, p push, u undo, s save, esc quit); the session's action log is
+saved next to the run. Replay (headless): ``stage.run.replay=<log.json>`` re-executes the log in the
+simulator and writes the same dataset records as MPPI (labels and rewards recomputed).
+"""
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+from pipelines._common import as_dict, object_pose
+from topocut.utils.context import RunContext
+
+
+def run(ctx: RunContext, sim, object, task, topology, reward, data, replay: str | None = None,
+        backend: str = "auto") -> dict:
+    from topocut.data.episodes import EpisodeDataset, EpisodeWriter
+    from topocut.goals import make_goal
+    from topocut.planning.teleop import TeleopSession, load_log, run_window
+    from topocut.planning.teleop import replay as replay_log
+    from topocut.sim import CuttingEnv, init_taichi
+    from topocut.sim.objects import ObjectPose
+
+    init_taichi(arch=ctx.device, seed=ctx.seed)
+    env = CuttingEnv(sim, batch_size=1)
+    if replay is None:
+        pose = object_pose(object, ctx.seed)
+        goal = make_goal(task, object.name, pose, spacing=sim.spacing, board_z=sim.board_z)
+        session = TeleopSession(env, goal, object.name, pose, ctx.seed, task.name, reward, topology,
+                                task.success_threshold)
+        run_window(session, backend=backend)
+        log_path = session.save(ctx.run_dir / "teleop_log.json")
+    else:
+        log_path = Path(replay)
+        if not log_path.exists():
+            raise FileNotFoundError(f"stage.run.replay: teleop log {log_path} does not exist")
+    log = load_log(log_path)
+    pose = ObjectPose(**log["pose"]) if isinstance(log.get("pose"), dict) else ObjectPose()
+    goal = make_goal(task, log["object"], pose, spacing=sim.spacing, board_z=sim.board_z)
+    config = as_dict(("sim", sim), ("task", task), ("topology", topology), ("reward", reward), ("log", log))
+    writer, existing = ctx.store.begin("dataset", f"teleop-{task.name}-{log['object']}", config)
+    if existing is not None:
+        return {"dataset": str(existing), "reused": True}
+    steps, summary = replay_log(log, env, goal, reward, topology, task.success_threshold)
+    ew = EpisodeWriter(writer.path / "data.zarr", points_per_step=data.points_per_step, board_z=sim.board_z)
+    if ew.num_episodes == 0:
+        ew.add_episode(steps, {"task": task.name, "object": log["object"], "seed": log["seed"], "pose": pose,
+                               "source": "teleop", "goal": goal.points, "goal_labels": goal.labels,
+                               "status": summary.get("status", "ok")})
+    shutil.copyfile(log_path, writer.path / "teleop_log.json")
+    ds = EpisodeDataset(writer.path / "data.zarr")
+    path = writer.commit({"episodes": ds.num_episodes, "cuts": len(ds)})
+    return {"dataset": str(path), "cuts": len(ds), "final_reward": summary.get("final_reward")}

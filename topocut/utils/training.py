@@ -1,0 +1,84 @@
+"""Lightning plumbing shared by the training stages: trainer construction, loss history, splits."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+from lightning.pytorch.callbacks import Callback
+
+
+class MetricHistory(Callback):
+    """Epoch-level copies of the logged scalars, for plots and metrics.json."""
+
+    def __init__(self):
+        self.rows: list[dict] = []
+
+    def _record(self, trainer, phase: str) -> None:
+        row = {"epoch": trainer.current_epoch, "phase": phase}
+        for k, v in trainer.callback_metrics.items():
+            try:
+                row[k] = float(v)
+            except (TypeError, ValueError):
+                continue
+        self.rows.append(row)
+
+    def on_train_epoch_end(self, trainer, pl_module) -> None:
+        self._record(trainer, "train")
+
+    def last(self) -> dict:
+        return {k: v for k, v in (self.rows[-1] if self.rows else {}).items() if k not in ("phase",)}
+
+    def plot(self, path: Path, keys=("train/loss", "val/loss")) -> Path:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(5, 3.2))
+        for key in keys:
+            pts = [(r["epoch"], r[key]) for r in self.rows if key in r]
+            if pts:
+                ax.plot(*zip(*pts), marker=".", label=key)
+        ax.set_xlabel("epoch")
+        ax.set_ylabel("loss")
+        ax.legend()
+        fig.tight_layout()
+        fig.savefig(path, dpi=120)
+        plt.close(fig)
+        return Path(path)
+
+    def dump(self, path: Path) -> None:
+        Path(path).write_text(json.dumps(self.rows, indent=1))
+
+
+def build_trainer(trainer_cfg, max_epochs: int, ckpt_dir: Path, logger=False, progress: bool = True,
+                  callbacks=(), gradient_clip_val: float | None = None):
+    """A Lightning Trainer from the `trainer` config group (accelerator, devices, strategy, precision)."""
+    import lightning as L
+    from lightning.pytorch.callbacks import ModelCheckpoint
+
+    ckpt = ModelCheckpoint(dirpath=str(ckpt_dir), save_last=True, save_top_k=0, every_n_epochs=1)
+    return L.Trainer(accelerator=trainer_cfg.accelerator, devices=trainer_cfg.devices, strategy=trainer_cfg.strategy,
+                     precision=trainer_cfg.precision, max_epochs=max_epochs, max_steps=trainer_cfg.max_steps,
+                     logger=logger, callbacks=[ckpt, *callbacks], enable_progress_bar=progress,
+                     log_every_n_steps=trainer_cfg.log_every_n_steps, default_root_dir=str(ckpt_dir),
+                     gradient_clip_val=gradient_clip_val, enable_model_summary=False, deterministic=False)
+
+
+def resume_path(ckpt_dir: Path) -> str | None:
+    """'last.ckpt' of an interrupted fit in this work area, if any (Lightning resumes from it)."""
+    last = Path(ckpt_dir) / "last.ckpt"
+    return str(last) if last.exists() else None
+
+
+def split_episodes(objects: list[str], val_fraction: float, seed: int, held_out=()) -> dict[str, list[int]]:
+    """Episode indices per split: train/val among seen objects, 'unseen' for held-out objects."""
+    unseen = [e for e, o in enumerate(objects) if o in held_out]
+    seen = np.array([e for e, o in enumerate(objects) if o not in held_out], dtype=np.int64)
+    np.random.default_rng(seed).shuffle(seen)
+    n_val = int(round(val_fraction * len(seen)))
+    if val_fraction > 0 and len(seen) > 1:
+        n_val = max(n_val, 1)
+    n_val = min(n_val, max(len(seen) - 1, 0))
+    return {"train": sorted(seen[n_val:].tolist()), "val": sorted(seen[:n_val].tolist()), "unseen": unseen}
