@@ -147,7 +147,7 @@ def exact_joint_model(graph, p0_joint):
     return model_fn
 
 
-@pytest.mark.parametrize("predictor,steps", [("analytic", 32), ("euler", 256)])
+@pytest.mark.parametrize("predictor,steps", [("analytic", 32), ("euler", 128)])
 @pytest.mark.parametrize("graph,noise", [(Uniform(2), LogLinearNoise(1e-3)), (Uniform(2), GeometricNoise(1e-4, 12.0)),
                                          (Absorbing(2), LogLinearNoise(1e-3))],
                          ids=["uniform-loglinear", "uniform-geometric", "absorbing-loglinear"])

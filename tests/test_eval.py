@@ -167,6 +167,18 @@ def test_episode_max_cuts_and_divergence():
     assert res.final_reward == 0.5  # the last simulated state's reward
     res = evaluate_episode(spec, PlanePolicy(), BoxEnv(diverge_at=1), slice_task(), **FAKES)
     assert res.status == "failed" and res.final_reward == res.initial_reward == 0.0 and res.final_cut_count == 0
+    # a scoring error (e.g. in topology discovery) ends the episode as "error", keeping earlier cuts
+    calls = []
+
+    def flaky_discover(*a):
+        calls.append(1)
+        if len(calls) == 3:
+            raise IndexError("boom")
+        return fake_discover(*a)
+
+    with pytest.warns(UserWarning, match="scoring cut 2: IndexError: boom"):
+        res = evaluate_episode(spec, PlanePolicy(), BoxEnv(), slice_task(), **dict(FAKES, discover_fn=flaky_discover))
+    assert res.status == "error" and res.cut_counts == [1] and res.final_reward == 0.25
 
 
 # -- whole evaluation: same episodes across policies, resume ------------------------------------------------

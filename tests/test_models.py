@@ -244,3 +244,12 @@ def test_load_encoder_round_trip_and_bad_checkpoints(tmp_path):
         load_encoder(tmp_path / "other.ckpt")
     with pytest.raises(FileNotFoundError, match="missing.ckpt"):
         load_encoder(tmp_path / "missing.ckpt")
+
+
+def test_config_errors_name_key_and_valid_values():
+    with pytest.raises(ValueError, match="model.model='gnn'.*graph_transformer, pointnet"):
+        DynamicsConfig(model="gnn").validate()
+    with pytest.raises(ValueError, match="model.hidden=30.*num_heads=4"):
+        DynamicsConfig(hidden=30).validate()
+    with pytest.raises(KeyError, match="'hiden'.*hidden"):
+        DynamicsModule({"hiden": 32})

@@ -19,6 +19,7 @@ import functools
 import json
 import os
 import time
+import warnings
 import zlib
 from collections import deque
 from collections.abc import Callable
@@ -56,7 +57,7 @@ class EpisodeSpec:
 class EpisodeResult:
     spec: dict  # EpisodeSpec.asdict()
     policy: str
-    status: str = "ok"  # ok | failed (simulation diverged) | error (the policy raised)
+    status: str = "ok"  # ok | failed (simulation diverged) | error (the policy or the scoring raised)
     error: str | None = None
     initial_reward: float = 0.0  # reward of the uncut object against the goal
     rewards: list[float] = field(default_factory=list)  # after each executed cut
@@ -202,7 +203,7 @@ def evaluate_episode(spec: EpisodeSpec, policy, env, task_cfg, reward_cfg=None, 
     """Deterministic rollout of up to ``max_cuts`` sequential cuts of ``policy`` on ``spec``.
 
     ``policy.act`` returning None ends the episode early.  SimulationDiverged marks it ``failed``; an
-    exception from the policy marks it ``error`` (both keep the steps completed before).
+    exception from the policy or from scoring a cut marks it ``error`` (all keep the steps completed before).
     """
     board_z = _board_z(env)
     goal_fn, discover_fn, reward_fn = (goal_fn or functools.partial(_default_goal_fn, board_z=board_z),
@@ -250,9 +251,14 @@ def evaluate_episode(spec: EpisodeSpec, policy, env, task_cfg, reward_cfg=None, 
             break
         st = env.state()
         x = np.asarray(st.x[0])
-        labels = discover_fn(x, np.asarray(st.damage[0], bool), st.sweeps[0], labels, topo_cfg)
-        frags = _fragments(x, labels, min_fragment_points)
-        res = reward_fn(frags, goal_frags, reward_cfg)
+        try:
+            labels = discover_fn(x, np.asarray(st.damage[0], bool), st.sweeps[0], labels, topo_cfg)
+            frags = _fragments(x, labels, min_fragment_points)
+            res = reward_fn(frags, goal_frags, reward_cfg)
+        except Exception as e:  # noqa: BLE001 - recorded in the episode JSON and counted by the report
+            result.status, result.error = "error", f"scoring cut {len(result.actions) + 1}: {type(e).__name__}: {e}"
+            warnings.warn(f"{policy_name} {spec.key}: {result.error}", stacklevel=2)
+            break
         result.rewards.append(float(res.total))
         result.cut_counts.append(int(res.cut_count))
         result.num_pieces.append(len(frags))

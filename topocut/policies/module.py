@@ -36,7 +36,7 @@ def subsample(n_total: int, points, n: int, seed: int) -> np.ndarray:
         return np.concatenate([np.arange(n_total), rng.integers(0, n_total, n - n_total)])
     from topocut.metrics import fps  # lazy: the metrics package
 
-    return np.asarray(fps(points, n, seed=seed))
+    return np.asarray(fps(points, n, seed=seed, start="random"))  # random start: a fresh subset per draw
 
 
 class PolicyDataset(torch.utils.data.Dataset):
