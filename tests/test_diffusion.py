@@ -8,7 +8,14 @@ import scipy.linalg
 import torch
 
 from topocut.policies.diffusion import (
-    Absorbing, GeometricNoise, LogLinearNoise, Uniform, dse_loss, get_loss, sample, sq_score_loss,
+    Absorbing,
+    GeometricNoise,
+    LogLinearNoise,
+    Uniform,
+    dse_loss,
+    get_loss,
+    sample,
+    sq_score_loss,
 )
 
 

@@ -134,6 +134,10 @@ def test_bad_eval_config_names_key():
         episode_specs(EvalConfig(tasks=["pyramidal"]))
     with pytest.raises(ValueError, match="eval.observation"):
         EvalConfig(observation="rgb").validate()
+    with pytest.raises(ValueError, match="eval.policies: unknown policy 'dp4'.*dp3"):
+        EvalConfig(policies=["oracle", "dp4"]).validate()
+    with pytest.raises(ValueError, match="eval.reference='heuristic'"):
+        EvalConfig(reference="heuristic").validate()
 
 
 # -- one episode ---------------------------------------------------------------------------------------------

@@ -194,7 +194,7 @@ def test_run_episode_marks_divergence_failed():
 
     def cut_then_diverge(action):
         if pol.t == 2:
-            raise SimulationDiverged("step 17: |v| > 100")
+            raise SimulationDiverged(17, 0)
         orig(action)
 
     env.cut = cut_then_diverge

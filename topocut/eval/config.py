@@ -55,6 +55,12 @@ class EvalConfig:
                              "must be >= 1")
         if self.scale_min > self.scale_max:
             raise ValueError(f"eval.scale_min={self.scale_min} exceeds eval.scale_max={self.scale_max}")
+        bad = [p for p in self.policies if p not in POLICY_NAMES]
+        if bad:
+            raise ValueError(f"eval.policies: unknown policy {bad[0]!r}; valid: {', '.join(POLICY_NAMES)}")
+        if self.reference not in self.policies and self.reference != "teleop":
+            raise ValueError(f"eval.reference={self.reference!r} must be one of eval.policies "
+                             f"({', '.join(self.policies)}) or 'teleop' (replayed human logs)")
         overlap = set(self.seen) & set(self.unseen)
         if overlap:
             raise ValueError(f"eval.seen and eval.unseen share objects {sorted(overlap)}")

@@ -18,6 +18,7 @@ import numpy as np
 from topocut.eval.config import TASKS
 
 SPLIT_TITLES = {"in": "In-distribution", "out": "Out-of-distribution"}
+SPLIT_SHORT = {"in": "ID", "out": "OOD"}
 DISPLAY = {"oracle": "Oracle (goal planes)", "heuristic": "Heuristic", "teleop": "Human Tele-Op", "dp3": "DP3",
            "3dda": "3D Diffuser Actor", "pddp_noperc": "Ours w/o Perception", "pddp_graphconv": "Ours (GraphConv)",
            "pddp": "PDDP (Ours)"}
@@ -98,9 +99,10 @@ def _fmt(v: float, digits: int = 2) -> str:
 def table1_markdown(table: dict, reference: str | None = None, title: str = "", note: str = "") -> str:
     """Paper layout from {policy: {(split, task): (R̂, N_C)}}; the reference row shows raw R; best in bold."""
     cols = [(s, t) for s in ("in", "out") for t in TASKS]
-    head = "| Algorithm | " + " | ".join(f"{SPLIT_TITLES[s][:3]}. {t} R̂ | {SPLIT_TITLES[s][:3]}. {t} N_C"
+    head = "| Algorithm | " + " | ".join(f"{SPLIT_SHORT[s]} {t} R̂ | {SPLIT_SHORT[s]} {t} N_C"
                                           for s, t in cols) + " |"
-    lines = [f"### {title}" if title else "", note, "", head, "|---" * (1 + 2 * len(cols)) + "|"]
+    lines = [f"### {title}" if title else "", note, "(ID: in-distribution / seen objects; OOD: out-of-distribution)",
+             "", head, "|---" * (1 + 2 * len(cols)) + "|"]
     others = [p for p in table if p != reference]
     best = {}
     for c in cols:

@@ -13,11 +13,11 @@ class TaskConfig:
     width: float = 0.03  # stick width, along the other horizontal axis
     size: float = 0.03  # dice side; pyramid: leg length of the corner tetrahedron
     max_cuts: int = 5  # cuts per episode; also bounds the number of goal pieces
-    success_threshold: float = 0.8  # episode success when the total spectral reward (in [0, r_max]) reaches this
+    success_threshold: float = 0.95  # episode success when the total spectral reward (in [0, r_max]) reaches this
     push: bool = False  # gentle downward push after each cut (stick and dice in the paper)
     num_goal_points: int = 2048  # Goal.points/labels are FPS-downsampled to this many points (0: keep all)
 
-    def validate(self) -> "TaskConfig":
+    def validate(self) -> TaskConfig:
         if self.name not in TASKS:
             raise ValueError(f"task.name={self.name!r}; valid: {', '.join(TASKS)}")
         for k in ("thickness", "width", "size"):

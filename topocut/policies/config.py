@@ -48,7 +48,7 @@ class PDDPConfig:
     goal_mode: str = "pool"  # "pool": max+mean pooled goal vector joins the conditioning; "cross": cross-attention
     center_points: bool = False  # subtract the observation centroid from observation and goal points
 
-    def validate(self) -> "PDDPConfig":
+    def validate(self) -> PDDPConfig:
         _check("policy.graph", self.graph, GRAPHS)
         _check("policy.noise", self.noise, NOISES)
         _check("policy.goal_mode", self.goal_mode, GOAL_MODES)
@@ -79,7 +79,7 @@ class PolicyTrainConfig:
     num_workers: int = 0
     seed: int = 0
 
-    def validate(self) -> "PolicyTrainConfig":
+    def validate(self) -> PolicyTrainConfig:
         _check("policy_train.encoder", self.encoder, ENCODERS)
         _check("policy_train.loss", self.loss, LOSSES)
         if self.encoder == "pretrained" and not self.encoder_ckpt:
@@ -96,7 +96,7 @@ class SamplerConfig:
     plane: str = "svm"  # svm | lsq (action reconstruction)
     retries: int = 3  # resample when a mask has one class only
 
-    def validate(self) -> "SamplerConfig":
+    def validate(self) -> SamplerConfig:
         _check("sampler.predictor", self.predictor, PREDICTORS)
         _check("sampler.plane", self.plane, PLANE_METHODS)
         if self.steps < 1:

@@ -105,7 +105,7 @@ class PDDPModule(L.LightningModule):
         self.loss_fn = get_loss(train.loss)
 
     @classmethod
-    def from_config(cls, cfg: PDDPConfig | None, train: PolicyTrainConfig) -> "PDDPModule":
+    def from_config(cls, cfg: PDDPConfig | None, train: PolicyTrainConfig) -> PDDPModule:
         return cls(cfg, train.encoder, train.encoder_ckpt, train)
 
     # -- training -------------------------------------------------------------
@@ -213,7 +213,7 @@ class PDDPPolicy:
             raise ValueError("PDDPPolicy.sample needs a goal: pass goal= or call reset(goal) first")
         history = np.zeros((3, 7), np.float32) if history is None else history
         action, full = None, np.zeros(len(points), np.uint8)
-        for attempt in range(self.scfg.retries + 1):
+        for _ in range(self.scfg.retries + 1):
             seed = int(torch.randint(0, 2**31 - 1, (1,), generator=self.generator, device=self.device))
             batch, idx = self._batch(points, labels, goal, history, seed)
             mask = self.module.sample_masks(batch, steps=self.scfg.steps, predictor=self.scfg.predictor,

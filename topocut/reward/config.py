@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Optional
 
 
 @dataclass
@@ -13,7 +12,7 @@ class RewardConfig:
     num_eig: int = 20  # non-trivial eigenpairs kept (the constant mode is dropped)
     # Gaussian width in scene units; None: sigma_scale x the mean kNN distance of the *goal* pieces
     # (the reference sets the resolution; fragments are graphed with the same sigma, so size is not normalised away)
-    sigma: Optional[float] = None
+    sigma: float | None = None
     sigma_scale: float = 1.0
     eig_floor: float = 1e-4  # added before log(eigenvalue) (disconnected graphs have zero eigenvalues)
     # eigenvector term: quantiles of the normalised heat kernel signature at t = c / lambda_K
@@ -25,14 +24,14 @@ class RewardConfig:
     # piecewise-linear reward R(d) (paper appendix): R_max - gamma d for d <= tau, then slope delta > gamma; clipped at 0
     r_max: float = 1.0
     gamma: float = 1.0
-    tau: float = 0.03
-    delta: float = 3.0
-    kappa: Optional[float] = None  # total = kappa * sum_i R(d_i); None: 1 / (number of goal pieces)
-    success_distance: Optional[float] = None  # a matched piece counts as a correct cut if d <= this (None: tau)
+    tau: float = 0.01
+    delta: float = 5.0
+    kappa: float | None = None  # total = kappa * sum_i R(d_i); None: 1 / (number of goal pieces)
+    success_distance: float | None = None  # a matched piece counts as a correct cut if d <= this (None: tau)
     backend: str = "scipy"  # "scipy" (sparse shift-invert eigsh, CPU) or "torch" (batched dense eigh)
     device: str = "cpu"  # torch backend only
 
-    def validate(self) -> "RewardConfig":
+    def validate(self) -> RewardConfig:
         if self.delta <= self.gamma:
             raise ValueError(f"reward.delta={self.delta} must exceed reward.gamma={self.gamma} (paper: delta > gamma)")
         if self.backend not in ("scipy", "torch"):

@@ -52,7 +52,7 @@ class RewardResult:
     distances: np.ndarray = None  # F,G spectral distances (inf: fragment too small)
 
 
-_CACHE: "OrderedDict[tuple, object]" = OrderedDict()  # goal resamplings / descriptors reused across MPPI rollouts
+_CACHE: OrderedDict[tuple, object] = OrderedDict()  # goal resamplings / descriptors reused across MPPI rollouts
 _CACHE_SIZE = 256
 
 

@@ -246,6 +246,8 @@ def discover(positions, damage, knife_sweep, previous_labels=None, cfg: Topology
 
         fraw = vraw[faces[:, 0]]
         for k in range(len(keep)):
+            if k >= len(id_of) or id_of[k] < 0 or not (raw == k).any():
+                continue  # a surface with no particles assigned to it (e.g. a thin shell) is no piece
             f = faces[fraw == k]
             used, inv = np.unique(f, return_inverse=True)
             meshes[int(id_of[k])] = trimesh.Trimesh(verts_s[used], inv.reshape(-1, 3), process=False)
