@@ -6,7 +6,7 @@ set -uo pipefail
 phase=${1:-wheels}
 W=/tmp/w
 mkdir -p "$W" /tmp/site
-for f in .whl/*/*; do [ -f "$f" ] && cp -n "$f" "$W/"; done
+for f in .whl/*/*; do [ -f "$f" ] && cp --update=none "$f" "$W/"; done
 if ls "$W"/warp.part0{0,1,2} >/dev/null 2>&1 && [ ! -f "$W/warp_lang-1.19.0-py3-none-manylinux_2_28_x86_64.whl" ]; then
   cat "$W"/warp.part00 "$W"/warp.part01 "$W"/warp.part02 > "$W/warp_lang-1.19.0-py3-none-manylinux_2_28_x86_64.whl"
 fi
@@ -28,5 +28,25 @@ case "$phase" in
       [ -f benchmarks/$b.py ] && timeout 150 python3 benchmarks/$b.py --device cuda 2>&1 | tee "$OUT/bench_$b.txt"
     done
     timeout 120 python3 benchmarks/mppi.py --device cuda --K 16 --n-grid 128 2>&1 | tee "$OUT/bench_mppi.txt" ;;
+  data)  # MPPI demonstrations on the GPU: 3 tasks x 4 objects x 2 episodes, merged into dataset/demos
+    G="scale=smoke device=cuda sim.n_grid=64 sim.batch_size=8 planner.num_samples=8 planner.iterations=2
+       topology.resolution=64 task.max_cuts=3 data.episodes=2 data.points_per_step=2048 outputs_root=/tmp/o
+       logger=none progress=false"
+    timeout 480 python3 -m topocut.run -m stage=mppi task=slice,stick,dice object=cake,cube,ham,donut $G 2>&1 \
+      | grep -E "summary|Error|error" | tee "$OUT/data.txt"
+    python3 -m topocut.run stage=merge $G 2>&1 | grep -E "summary|Error" | tee -a "$OUT/data.txt" ;;
+  train)  # pretrain F, then PDDP / w/o perception / DP3 / 3DDA on the merged dataset
+    G="scale=smoke device=cuda trainer=gpu outputs_root=/tmp/o logger=none progress=false"
+    timeout 250 python3 -m topocut.run stage=pretrain $G trainer.max_epochs=60 model.num_layers=4 2>&1 \
+      | grep -E "summary|Error" | tee "$OUT/train.txt"
+    timeout 300 python3 -m topocut.run stage=bc $G policy.train.max_epochs=60 policy.net.n_blocks=12 \
+      policy.train.batch_size=16 policy.train.lr=1e-3 2>&1 | grep -E "summary|Error" | tee -a "$OUT/train.txt"
+    cp /tmp/o/checkpoint/perception/v*/metrics.json "$OUT/perception_metrics.json" ;;
+  eval)
+    G="scale=smoke device=cuda sim.n_grid=64 sim.batch_size=8 planner.num_samples=8 topology.resolution=64
+       outputs_root=/tmp/o logger=none progress=false eval.seen=[cake,cube] eval.unseen=[donut]
+       eval.tasks=[slice,stick,dice] eval.max_cuts=3 eval.num_points=2048"
+    timeout 560 python3 -m topocut.run stage=eval $G 2>&1 | tail -30 | tee "$OUT/eval.txt"
+    cp /tmp/o/eval/table1/v*/results.md /tmp/o/eval/table1/v*/results.csv /tmp/o/eval/table1/v*/results.png "$OUT/" ;;
   *) echo "unknown phase $phase"; exit 2 ;;
 esac

@@ -130,7 +130,8 @@ def validate(cfg: DictConfig) -> None:
     except ValueError as e:
         msg = str(e)
         raise ConfigError(msg if msg.startswith("sim.") else f"sim: {msg}") from e
-    for group, node in (("planner", cfg.planner), ("observation", cfg.observation), ("policy.net", cfg.policy.net)):
+    for group, node in (("planner", cfg.planner), ("observation", cfg.observation), ("policy.net", cfg.policy.net),
+                        ("eval", cfg.eval), ("reward", cfg.reward), ("task", cfg.task), ("topology", cfg.topology)):
         obj = OmegaConf.to_object(node)
         try:
             obj.validate()

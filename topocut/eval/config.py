@@ -13,7 +13,7 @@ SPLITS = ("in", "out")  # in-distribution (seen objects) / out-of-distribution (
 TASKS = ("slice", "stick", "dice")
 OBSERVATIONS = ("particles", "depth")
 NORMALIZE_BY = ("task", "task_split")
-POLICY_NAMES = ("oracle", "heuristic", "teleop", "dp3", "3dda", "pddp_noperc", "pddp_graphconv", "pddp")
+POLICY_NAMES = ("oracle", "heuristic", "mppi", "teleop", "dp3", "3dda", "pddp_noperc", "pddp_graphconv", "pddp")
 
 
 @dataclass

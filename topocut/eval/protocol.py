@@ -239,6 +239,8 @@ def evaluate_episode(spec: EpisodeSpec, policy, env, task_cfg, reward_cfg=None, 
             result.status, result.error = "error", f"{type(e).__name__}: {e}"
             break
         result.act_time_s.append(time.perf_counter() - ta)
+        if "sim_state" in obs and hasattr(env, "set_state"):
+            env.set_state(obs["sim_state"], b=None)  # a planner's rollouts may have moved the scenes
         if action is None:
             break
         action = action.canonical()

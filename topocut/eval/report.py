@@ -19,7 +19,7 @@ from topocut.eval.config import TASKS
 
 SPLIT_TITLES = {"in": "In-distribution", "out": "Out-of-distribution"}
 SPLIT_SHORT = {"in": "ID", "out": "OOD"}
-DISPLAY = {"oracle": "Oracle (goal planes)", "heuristic": "Heuristic", "teleop": "Human Tele-Op", "dp3": "DP3",
+DISPLAY = {"oracle": "Oracle (goal planes)", "heuristic": "Heuristic", "mppi": "MPPI (expert)", "teleop": "Human Tele-Op", "dp3": "DP3",
            "3dda": "3D Diffuser Actor", "pddp_noperc": "Ours w/o Perception", "pddp_graphconv": "Ours (GraphConv)",
            "pddp": "PDDP (Ours)"}
 CSV_COLUMNS = ["policy", "task", "split", "episodes", "failures", "R_hat_mean", "R_hat_std", "N_C_mean", "N_C_std",

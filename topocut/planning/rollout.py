@@ -171,6 +171,7 @@ def run_episode(env, goal, planner, reward_cfg=None, topo_cfg=None, max_cuts: in
                "goal": goal.points, "goal_labels": goal.labels,
                "sim_state": env.get_state(0), "particle_labels": labels}
         action = planner.act(obs).canonical()
+        env.set_state(obs["sim_state"], b=None)  # MPPI's rollouts moved the scenes: execute from the real state
         try:
             env.cut([action] * B if B > 1 else action)
             if push:
