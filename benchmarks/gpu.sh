@@ -37,9 +37,10 @@ case "$phase" in
     python3 -m topocut.run stage=merge $G 2>&1 | grep -E "summary|Error" | tee -a "$OUT/data.txt" ;;
   train)  # pretrain F, then PDDP / w/o perception / DP3 / 3DDA on the merged dataset
     G="scale=smoke device=cuda trainer=gpu outputs_root=/tmp/o logger=none progress=false"
-    timeout 250 python3 -m topocut.run stage=pretrain $G trainer.max_epochs=60 model.num_layers=4 2>&1 \
+    python3 -m topocut.run stage=merge $G 2>&1 | grep -E "summary|Error" | tee "$OUT/merge.txt"
+    timeout 200 python3 -m topocut.run stage=pretrain $G trainer.max_epochs=40 model.num_layers=4 2>&1 \
       | grep -E "summary|Error" | tee "$OUT/train.txt"
-    timeout 300 python3 -m topocut.run stage=bc $G policy.train.max_epochs=60 policy.net.n_blocks=12 \
+    timeout 270 python3 -m topocut.run stage=bc $G policy.train.max_epochs=40 policy.net.n_blocks=12 \
       policy.train.batch_size=16 policy.train.lr=1e-3 2>&1 | grep -E "summary|Error" | tee -a "$OUT/train.txt"
     cp /tmp/o/checkpoint/perception/v*/metrics.json "$OUT/perception_metrics.json" ;;
   eval)

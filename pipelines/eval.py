@@ -7,6 +7,8 @@ Episodes are committed one by one; an interrupted evaluation resumes.
 """
 from __future__ import annotations
 
+import dataclasses
+
 from pathlib import Path
 
 from omegaconf import OmegaConf
@@ -75,6 +77,7 @@ def run(ctx: RunContext, eval, sim, topology, reward, planner, observation, data
 
     specs = episode_specs(eval)
     task_cfgs = task_configs(eval.tasks, eval.max_cuts)
+    sim = dataclasses.replace(sim, arch=ctx.device)  # one backend for Taichi, Warp and torch
     init_taichi(arch=ctx.device, seed=ctx.seed)
     env = CuttingEnv(sim, batch_size=max(1, sim.batch_size) if "mppi" in eval.policies else 1)
     policies, inputs = build_policies(ctx, eval.policies, env, sim, planner, reward, topology, task_cfgs, sampler)

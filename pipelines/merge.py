@@ -9,7 +9,8 @@ def run(ctx: RunContext, data) -> dict:
     from topocut.data.episodes import EpisodeDataset, merge
 
     prefix = f"{data.dataset}-"
-    shard_names = [n for n in ctx.store.names("dataset") if n.startswith(prefix)]
+    shard_names = [n for n in ctx.store.names("dataset")  # shards with a committed version (not partial ones)
+                   if n.startswith(prefix) and ctx.store.versions("dataset", n)]
     if not shard_names:
         raise MissingArtifact(f"no dataset shards named '{prefix}*' under {ctx.store.root / 'dataset'}; "
                               f"run a multirun first, e.g. `python -m topocut.run -m stage=mppi task=slice,stick`")

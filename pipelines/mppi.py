@@ -7,6 +7,8 @@ Episodes are committed one by one: a killed run resumes where it stopped.
 """
 from __future__ import annotations
 
+import dataclasses
+
 import json
 
 import numpy as np
@@ -43,6 +45,7 @@ def run(ctx: RunContext, sim, object, task, topology, reward, planner, data, com
     writer, existing = ctx.store.begin("dataset", name, config, extra={"seed": ctx.seed, "device": ctx.device})
     if existing is not None:
         return {"dataset": str(existing), "reused": True}
+    sim = dataclasses.replace(sim, arch=ctx.device)  # one backend for Taichi, Warp and torch
     init_taichi(arch=ctx.device, seed=ctx.seed)
     zpath = writer.path / "data.zarr"
     ew = EpisodeWriter(zpath, points_per_step=data.points_per_step, board_z=sim.board_z)

@@ -5,6 +5,8 @@ as a versioned ``sim`` artifact and renders PNG frames coloured by cluster id an
 """
 from __future__ import annotations
 
+import dataclasses
+
 import json
 
 import numpy as np
@@ -25,6 +27,7 @@ def run(ctx: RunContext, sim, object, task, topology, frames_per_cut: int = 6) -
                                        extra={"seed": ctx.seed, "device": ctx.device})
     if existing is not None:
         return {"artifact": str(existing), "reused": True}
+    sim = dataclasses.replace(sim, arch=ctx.device)  # one backend for Taichi, Warp and torch
     init_taichi(arch=ctx.device, seed=ctx.seed)
     pose = object_pose(object, ctx.seed)
     goal = make_goal(task, object.name, pose, spacing=sim.spacing, board_z=sim.board_z, seed=ctx.seed)

@@ -7,6 +7,8 @@ simulator and writes the same dataset records as MPPI (labels and rewards recomp
 """
 from __future__ import annotations
 
+import dataclasses
+
 import shutil
 from pathlib import Path
 
@@ -23,6 +25,7 @@ def run(ctx: RunContext, sim, object, task, topology, reward, data, replay: str 
     from topocut.sim import CuttingEnv, init_taichi
     from topocut.sim.objects import ObjectPose
 
+    sim = dataclasses.replace(sim, arch=ctx.device)  # one backend for Taichi, Warp and torch
     init_taichi(arch=ctx.device, seed=ctx.seed)
     env = CuttingEnv(sim, batch_size=1)
     if replay is None:
