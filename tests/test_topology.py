@@ -240,3 +240,17 @@ def test_device_names():
     assert resolve_device("cpu") == "cpu" and resolve_device("auto") in ("cpu", "cuda")
     with pytest.raises(ValueError, match="cpu, cuda"):
         resolve_device("tpu")
+
+
+def test_chips_of_debris_join_the_nearest_piece():
+    # two boxes, and a chip of 18 particles 5 cm from box b: pieces, not chips, are counted
+    a = lattice((0.30, 0.45, 0.055), (0.40, 0.55, 0.145))
+    b = lattice((0.55, 0.45, 0.055), (0.65, 0.55, 0.145), seed=1)
+    chip = lattice((0.70, 0.49, 0.09), (0.72, 0.51, 0.10), seed=2)
+    assert len(chip) == 18
+    x = np.concatenate([a, b, chip])
+    res = discover(x, np.zeros(len(x), bool), None, cfg=CFG)
+    assert res.num_clusters == 2
+    assert (res.labels[-len(chip):] == res.labels[len(a)]).all()  # the chip is counted with box b
+    alone = discover(x, np.zeros(len(x), bool), None, cfg=TopologyConfig(resolution=64, min_piece_particles=1))
+    assert alone.num_clusters == 3  # without the rule the chip is a piece of its own

@@ -30,6 +30,7 @@ class TopologyConfig:
     smoothing_iterations: int = 5
     smoothing_alpha: float = 0.5  # v_i += alpha * (mean_j v_j - v_i)
     min_component_voxels: int = 8  # pieces with fewer inside nodes are dropped (debris)
+    min_piece_particles: int = 20  # smaller pieces are chips of debris: they join the nearest larger piece
     max_void_voxels: int = 64  # enclosed empty regions up to this size are filled (gaps between particles)
     # --- particle assignment ------------------------------------------------
     tau: float | None = None  # proximity threshold to a piece's surface; None: 2 r_p + half the gap

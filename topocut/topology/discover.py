@@ -237,6 +237,7 @@ def discover(positions, damage, knife_sweep, previous_labels=None, cfg: Topology
             first = np.zeros(len(todo), np.int64)
         pick = cand[np.arange(len(todo)), first]
         raw[todo[pick >= 0]] = pick[pick >= 0]
+    raw = _absorb_debris(raw, x, cfg.min_piece_particles)
     lap("assignment")
 
     labels, id_of, nxt = match_labels(raw, previous_labels, next_id, x)
@@ -255,3 +256,21 @@ def discover(positions, damage, knife_sweep, previous_labels=None, cfg: Topology
     timings["total"] = time.perf_counter() - t_all
     present = np.unique(labels[labels >= 0])
     return TopologyResult(labels, meshes, int(len(present)), timings, int(nxt))
+
+
+def _absorb_debris(raw: np.ndarray, x: np.ndarray, min_particles: int) -> np.ndarray:
+    """Particles of pieces smaller than ``min_particles`` join the piece of their nearest particle in a
+    larger piece: MPM sheds chips of a few particles at a cut that are no piece a robot could pick up."""
+    counts = np.bincount(raw[raw >= 0], minlength=1)
+    small = np.flatnonzero((counts > 0) & (counts < min_particles))
+    if len(small) == 0 or not (counts >= min_particles).any():
+        return raw
+    from scipy.spatial import cKDTree
+
+    big = np.flatnonzero((raw >= 0) & ~np.isin(raw, small))
+    move = np.flatnonzero(np.isin(raw, small))
+    _, j = cKDTree(x[big]).query(x[move])
+    out = raw.copy()
+    out[move] = raw[big[j]]
+    return out
+
