@@ -27,7 +27,9 @@ class RewardConfig:
     tau: float = 0.01
     delta: float = 5.0
     kappa: float | None = None  # total = kappa * sum_i R(d_i); None: 1 / (number of goal pieces)
-    success_distance: float | None = None  # a matched piece counts as a correct cut if d <= this (None: tau)
+    # a matched piece counts as a correct cut (N_C) if d <= this, i.e. R(d) >= 0.79 with the defaults;
+    # None: tau (R >= 0.99), which no simulated cut reaches (see docs/reward.md)
+    success_distance: float | None = 0.05
     backend: str = "scipy"  # "scipy" (sparse shift-invert eigsh, CPU) or "torch" (batched dense eigh)
     device: str = "cpu"  # torch backend only
 
