@@ -32,10 +32,10 @@ lint: setup
 bench: setup
 	$(BIN)/python benchmarks/sim_throughput.py --quick
 	$(BIN)/python benchmarks/topology.py --quick
-	$(BIN)/python benchmarks/reward.py
-	$(BIN)/python benchmarks/mppi.py --quick
-	$(BIN)/python benchmarks/train.py --quick
-	$(BIN)/python benchmarks/train_policy.py --quick
+	$(BIN)/python benchmarks/reward.py --batch 16
+	$(BIN)/python benchmarks/mppi.py --K 4 --n-grid 32
+	$(BIN)/python benchmarks/train.py --steps 3
+	$(BIN)/python benchmarks/train_policy.py --blocks 2 --batch 8 --steps 8 32
 
 simulate mppi pretrain bc eval: setup
 	$(RUN) stage=$@ $(ARGS)

@@ -8,7 +8,6 @@ Episodes are committed one by one; an interrupted evaluation resumes.
 from __future__ import annotations
 
 import dataclasses
-
 from pathlib import Path
 
 from omegaconf import OmegaConf

@@ -8,7 +8,6 @@ Episodes are committed one by one: a killed run resumes where it stopped.
 from __future__ import annotations
 
 import dataclasses
-
 import json
 
 import numpy as np

@@ -6,7 +6,6 @@ as a versioned ``sim`` artifact and renders PNG frames coloured by cluster id an
 from __future__ import annotations
 
 import dataclasses
-
 import json
 
 import numpy as np

@@ -8,7 +8,6 @@ simulator and writes the same dataset records as MPPI (labels and rewards recomp
 from __future__ import annotations
 
 import dataclasses
-
 import shutil
 from pathlib import Path
 

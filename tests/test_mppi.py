@@ -147,7 +147,6 @@ def _sim_modules():
         from topocut.sim.config import SimConfig
         from topocut.sim.env import CuttingEnv
         from topocut.sim.objects import ObjectPose
-
         from topocut.topology import discover  # noqa: F401
     except ImportError as e:
         pytest.skip(f"simulator/topology/reward/goals not importable yet: {e}")

@@ -207,9 +207,8 @@ def test_teleop_replay_in_simulator_matches_live(tmp_path):
         from topocut.goals import make_goal
         from topocut.goals.config import TaskConfig
         from topocut.reward import spectral_reward  # noqa: F401
-        from topocut.sim.env import CuttingEnv
-
         from topocut.sim.config import SimConfig
+        from topocut.sim.env import CuttingEnv
         from topocut.sim.objects import ObjectPose
         from topocut.topology import discover  # noqa: F401
     except ImportError as e:

@@ -23,9 +23,10 @@ import shutil
 import subprocess
 import sys
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 SCHEMA_VERSION = 1
 KINDS = ("dataset", "checkpoint", "eval", "sim")
@@ -47,7 +48,7 @@ class ArtifactRef:
     version: str = "latest"
 
     @classmethod
-    def parse(cls, text: str, default_kind: str | None = None) -> "ArtifactRef":
+    def parse(cls, text: str, default_kind: str | None = None) -> ArtifactRef:
         """``kind/name[:version]`` or ``name[:version]`` with ``default_kind``."""
         body, _, version = text.partition(":")
         kind, _, name = body.rpartition("/")
@@ -113,7 +114,7 @@ def provenance() -> dict:
 class VersionWriter:
     """Work area for one new version; ``commit()`` hashes, writes the manifest and renames."""
 
-    def __init__(self, store: "ArtifactStore", kind: str, name: str, key: str, config: Any,
+    def __init__(self, store: ArtifactStore, kind: str, name: str, key: str, config: Any,
                  inputs: dict[str, str], extra: dict | None = None):
         self.store, self.kind, self.name, self.key = store, kind, name, key
         self.config, self.inputs, self.extra = config, inputs, dict(extra or {})

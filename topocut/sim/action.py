@@ -25,7 +25,7 @@ classifier fitted to a mask therefore recovers the plane, and hence the action.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, asdict
+from dataclasses import asdict, dataclass
 
 import numpy as np
 
@@ -61,7 +61,7 @@ class KnifeAction:
     depth: float | None = None
 
     # -- geometry -----------------------------------------------------------
-    def canonical(self) -> "KnifeAction":
+    def canonical(self) -> KnifeAction:
         yaw, tilt, _ = _wrap_half_pi(self.yaw, self.tilt)
         return KnifeAction(self.x, self.y, yaw, tilt, self.z_start, self.depth)
 
@@ -96,14 +96,14 @@ class KnifeAction:
         return np.array([self.x, self.y, self.yaw, self.tilt], dtype=np.float32)
 
     @classmethod
-    def from_vector(cls, v) -> "KnifeAction":
+    def from_vector(cls, v) -> KnifeAction:
         v = np.asarray(v, dtype=np.float64).reshape(-1)
         if v.shape[0] != ACTION_DIM:
             raise ValueError(f"action vector must have {ACTION_DIM} entries (x, y, yaw, tilt), got {v.shape[0]}")
         return cls(float(v[0]), float(v[1]), float(v[2]), float(v[3])).canonical()
 
     @classmethod
-    def from_plane(cls, normal, point, board_z: float = 0.05) -> "KnifeAction":
+    def from_plane(cls, normal, point, board_z: float = 0.05) -> KnifeAction:
         """The canonical action whose plane is {x : normal . (x - point) = 0}.
 
         Raises ValueError for a horizontal plane, which no downward cut can make.
@@ -190,5 +190,5 @@ class KnifeSweep:
         return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self).items()}
 
     @classmethod
-    def fromdict(cls, d: dict) -> "KnifeSweep":
+    def fromdict(cls, d: dict) -> KnifeSweep:
         return cls(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items()})
