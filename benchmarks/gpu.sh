@@ -28,11 +28,11 @@ case "$phase" in
       [ -f benchmarks/$b.py ] && timeout 150 python3 benchmarks/$b.py --device cuda 2>&1 | tee "$OUT/bench_$b.txt"
     done
     timeout 120 python3 benchmarks/mppi.py --device cuda --K 16 --n-grid 128 2>&1 | tee "$OUT/bench_mppi.txt" ;;
-  data)  # MPPI demonstrations on the GPU: 3 tasks x 4 objects x 2 episodes, merged into dataset/demos
+  data)  # MPPI demonstrations on the GPU: 3 tasks x 2 objects x 2 episodes, merged into dataset/demos
     G="scale=smoke device=cuda sim.n_grid=64 sim.batch_size=8 planner.num_samples=8 planner.iterations=2
        topology.resolution=64 task.max_cuts=3 data.episodes=2 data.points_per_step=2048 outputs_root=/tmp/o
        logger=none progress=false"
-    timeout 480 python3 -m topocut.run -m stage=mppi task=slice,stick,dice object=cake,cube,ham,donut $G 2>&1 \
+    timeout 470 python3 -m topocut.run -m stage=mppi task=slice,stick,dice object=cake,donut $G 2>&1 \
       | grep -E "summary|Error|error" | tee "$OUT/data.txt"
     python3 -m topocut.run stage=merge $G 2>&1 | grep -E "summary|Error" | tee -a "$OUT/data.txt" ;;
   train)  # pretrain F, then PDDP / w/o perception / DP3 / 3DDA on the merged dataset
@@ -40,8 +40,8 @@ case "$phase" in
     python3 -m topocut.run stage=merge $G 2>&1 | grep -E "summary|Error" | tee "$OUT/merge.txt"
     timeout 200 python3 -m topocut.run stage=pretrain $G trainer.max_epochs=40 model.num_layers=4 2>&1 \
       | grep -E "summary|Error" | tee "$OUT/train.txt"
-    timeout 270 python3 -m topocut.run stage=bc $G policy.train.max_epochs=40 policy.net.n_blocks=12 \
-      policy.train.batch_size=16 policy.train.lr=1e-3 2>&1 | grep -E "summary|Error" | tee -a "$OUT/train.txt"
+    timeout 270 python3 -m topocut.run stage=bc $G policy.train.max_epochs=150 policy.net.n_blocks=12 \
+      policy.train.batch_size=8 policy.train.lr=1e-3 2>&1 | grep -E "summary|Error" | tee -a "$OUT/train.txt"
     cp /tmp/o/checkpoint/perception/v*/metrics.json "$OUT/perception_metrics.json" ;;
   eval)
     G="scale=smoke device=cuda sim.n_grid=64 sim.batch_size=8 planner.num_samples=8 topology.resolution=64

@@ -200,3 +200,15 @@ def test_config_errors():
         PolicyTrainConfig(encoder="pretrained").validate()
     with pytest.raises(KeyError, match="goal"):
         make_obs(np.zeros((3, 3)), np.zeros(3), None)
+
+
+def test_ema_warms_up_then_reaches_its_decay():
+    import torch
+
+    from topocut.policies.module import ema_decay_at, ema_with_warmup
+
+    assert ema_decay_at(0.999, 0) == 0.1 and ema_decay_at(0.999, 10) == 11 / 20
+    assert ema_decay_at(0.999, 10**6) == 0.999
+    ema, cur = [torch.zeros(3)], [torch.ones(3)]
+    ema_with_warmup(0.999)(ema, cur, torch.tensor(0))  # first update: 0.1 * 0 + 0.9 * 1
+    assert torch.allclose(ema[0], torch.full((3,), 0.9))

@@ -11,7 +11,7 @@ import lightning as L
 import numpy as np
 import torch
 import torch.nn as nn
-from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
+from torch.optim.swa_utils import AveragedModel
 
 from topocut.policies.base import check_obs
 from topocut.policies.config import PDDPConfig, PolicyTrainConfig, SamplerConfig
@@ -27,6 +27,23 @@ def _as(cls, value):
     if isinstance(value, dict):
         return cls(**value)
     return value
+
+
+def ema_decay_at(decay: float, n: int) -> float:
+    """EMA decay after n updates: min(decay, (1 + n) / (10 + n)).
+
+    A fixed 0.999 keeps the average at the initial weights for the first thousand steps, so a short
+    fit (small datasets, smoke runs) would evaluate an untrained network; the warm-up follows the
+    usual diffusion-policy EMA schedule."""
+    return min(decay, (1.0 + n) / (10.0 + n))
+
+
+def ema_with_warmup(decay: float):
+    def update(ema_params, params, num_averaged):
+        d = ema_decay_at(decay, int(num_averaged))
+        torch._foreach_lerp_(ema_params, params, 1.0 - d)
+
+    return update
 
 
 def subsample(n_total: int, points, n: int, seed: int) -> np.ndarray:
@@ -98,7 +115,7 @@ class PDDPModule(L.LightningModule):
         self.save_hyperparameters({"cfg": dataclasses.asdict(cfg), "encoder": encoder, "encoder_ckpt": encoder_ckpt,
                                    "train": dataclasses.asdict(train)})
         self.model = PolicyModel(cfg, enc)
-        self.ema = AveragedModel(self.model, multi_avg_fn=get_ema_multi_avg_fn(train.ema_decay), use_buffers=True)
+        self.ema = AveragedModel(self.model, multi_avg_fn=ema_with_warmup(train.ema_decay), use_buffers=True)
         self.ema.requires_grad_(False)
         self.graph = self.model.net.graph
         self.noise = build_noise(cfg.noise, cfg.noise_eps, cfg.sigma_min, cfg.sigma_max)
