@@ -37,7 +37,7 @@ def run(ctx: RunContext, sim, object, task, topology, frames_per_cut: int = 6) -
     topo = discover(x0, st.damage[0], None, cfg=topology, device=ctx.device)
     labels = topo.labels
     frames_dir = writer.path / "frames"
-    frames = [render_particles(x0, labels, frames_dir / "cut0.png", title=f"{object.name}: start", limits=limits)]
+    frames = [render_particles(x0, labels, frames_dir / "cut0.png", title=f"{object.name}: start", limits=limits, size=6)]
     arrays = {"x_0": x0, "damage_0": st.damage[0], "labels_0": labels, "material": st.material}
     records = []
     planes = goal.planes[: task.max_cuts]
@@ -53,9 +53,9 @@ def run(ctx: RunContext, sim, object, task, topology, frames_per_cut: int = 6) -
             arrays.update({f"x_{i}": st.x[0], f"damage_{i}": st.damage[0], f"labels_{i}": labels})
             dmg = np.where(st.damage[0], 1, 0)
             frames.append(render_particles(st.x[0], np.where(dmg > 0, 7, 0), frames_dir / f"cut{i}_damage.png",
-                                           title=f"cut {i}: damaged particles", limits=limits))
+                                           title=f"cut {i}: damaged particles", limits=limits, size=6))
             frames.append(render_particles(st.x[0], labels, frames_dir / f"cut{i}.png",
-                                           title=f"cut {i}: {topo.num_clusters} pieces", limits=limits))
+                                           title=f"cut {i}: {topo.num_clusters} pieces", limits=limits, size=6))
             records.append({"cut": i, "action": action.asdict(), "sweep": info.sweeps[0].asdict(),
                             "pieces": int(topo.num_clusters), "damaged": int(st.damage[0].sum()),
                             "force": float(np.linalg.norm(info.force[0])), "work": float(info.work[0]),
