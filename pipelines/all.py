@@ -28,4 +28,7 @@ def run(ctx: RunContext, sequence: list[str]) -> dict:
         cfg = _compose(base + [f"stage={name}"])
         summaries[name] = run_stage(cfg, ctx.run_dir / name, base + [f"stage={name}"])
     print_summary("pipeline: " + " -> ".join(sequence), summaries)
+    table = summaries.get("eval", {}).get("table")
+    if table:  # the run ends on the results table
+        print(Path(table).read_text().split("### Paper")[0])
     return summaries
