@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import functools
 import json
-import os
 import time
 import warnings
 import zlib
@@ -28,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from topocut.data.store import write_json_atomic
 from topocut.eval.config import EvalConfig
 from topocut.sim.action import POSE_FEATURE_DIM
 
@@ -162,19 +162,10 @@ def _default_reward(fragments, goal_fragments, reward_cfg):
     return spectral_reward(fragments, goal_fragments, reward_cfg)
 
 
-class _NeverRaised(RuntimeError):
-    """Stands in for SimulationDiverged when the simulator package cannot be imported."""
-
-
 def _diverged_type() -> type:
-    try:
-        from topocut.sim import SimulationDiverged
-    except ImportError:
-        try:
-            from topocut.sim.env import SimulationDiverged
-        except ImportError:
-            return _NeverRaised
-    return SimulationDiverged
+    from topocut.planning.rollout import simulation_diverged_error
+
+    return simulation_diverged_error()
 
 
 def _fragments(x, labels, min_points: int) -> list[np.ndarray]:
@@ -275,17 +266,6 @@ def evaluate_episode(spec: EpisodeSpec, policy, env, task_cfg, reward_cfg=None, 
 # -- the whole evaluation ---------------------------------------------------------------------------
 def episode_path(out_dir, policy_name: str, spec: EpisodeSpec) -> Path:
     return Path(out_dir) / "episodes" / policy_name / f"{spec.key}.json"
-
-
-def write_json_atomic(path: Path, obj) -> None:
-    """Write to a temp file in the same directory, then os.replace: readers never see half a file."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    with open(tmp, "w") as f:
-        json.dump(obj, f, indent=1)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
 
 
 def run_evaluation(specs: list[EpisodeSpec], policies: dict, env, task_cfgs: dict, out_dir, reward_cfg=None,

@@ -18,12 +18,12 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from topocut.data.store import write_json_atomic
 from topocut.planning.rollout import Scorer, empty_history, env_board_z, make_step
 from topocut.sim.action import KnifeAction
 
@@ -61,18 +61,6 @@ def _pose_dict(pose) -> dict | None:
     from topocut.data.episodes import _jsonable
 
     return _jsonable(pose)
-
-
-def save_json_atomic(path, obj) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    with open(tmp, "w") as f:
-        json.dump(obj, f, indent=1)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)  # readers see the old or the new log, never half of one
-    return path
 
 
 class TeleopSession:
@@ -156,7 +144,7 @@ class TeleopSession:
         return True
 
     def save(self, path=None) -> Path:
-        path = save_json_atomic(path or self.cfg.log_path, self.log)
+        path = write_json_atomic(path or self.cfg.log_path, self.log)
         self.message = f"saved {path}"
         return path
 
