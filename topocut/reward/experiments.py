@@ -2,7 +2,8 @@
 
 python -m topocut.reward.experiments pose_invariance --out docs/img/reward_pose_invariance.png
 python -m topocut.reward.experiments loss_matrix --out docs/img/reward_loss_matrix.png
-``metric_table(states, goal)`` is reused by the simulator experiment (paper Q1).
+python -m topocut.reward.experiments q1 --out docs/img/reward_q1.png   (simulator; paper Q1, ~2 min on CPU)
+``metric_table(states, goal)`` scores each step of the simulated sequence.
 """
 from __future__ import annotations
 
@@ -103,6 +104,118 @@ def metric_table(states, goal, cfg: RewardConfig | None = None) -> dict:
     return table
 
 
+def _fragments(x: np.ndarray, labels: np.ndarray) -> list[np.ndarray]:
+    return [x[labels == c] for c in np.unique(labels) if c >= 0]
+
+
+def _face_cut(x: np.ndarray, labels: np.ndarray, normal: np.ndarray, thickness: float, board_z: float):
+    """A cut `thickness` inside the +normal face of the largest piece (the uncut block), as a teleoperator
+    would place it: cuts push the block, so the ideal planes' fixed world positions drift off the face."""
+    from topocut.sim.action import KnifeAction
+
+    frags = _fragments(x, labels)
+    block = max(frags, key=len).astype(np.float64)
+    s = block @ normal
+    face = np.percentile(s, 99)  # robust to a few particles dragged out by the previous cut
+    point = block.mean(0) + (face - thickness - s.mean()) * normal
+    return KnifeAction.from_plane(normal, point, board_z)
+
+
+def q1_sequence(n_grid: int = 64, thickness: float = 0.03, error: float = 0.02, push: bool = False,
+                object: str = "cube", seed: int = 0, cfg: RewardConfig | None = None, log=print) -> dict:
+    """Paper Q1 in the simulator: slice `object` with three good cuts, a wrong 4th cut, then a correction.
+
+    Cuts i = 1..3 take a slab of `thickness` off the block's +a1 face (the goal: slice, max_cuts=4).  Cut 4
+    (wrong) takes `thickness + error`; cut 5 (correction) trims that slab back to `thickness` from its outer
+    face.  A branch from the state after cut 3 makes the right 4th cut instead.  Each step's fragments come
+    from topocut.topology.discover (labels kept across cuts).  Returns metric_table over
+    [uncut, 1, 2, 3, 4 wrong, 5 corrected, 4 right] plus the cut planes, piece sizes and timings.
+    """
+    import time
+
+    from topocut.goals import TaskConfig, make_goal
+    from topocut.sim import CuttingEnv, init_taichi
+    from topocut.sim.config import SimConfig
+    from topocut.sim.objects import ObjectPose
+    from topocut.topology import discover
+
+    init_taichi("cpu")
+    env = CuttingEnv(SimConfig(n_grid=n_grid), batch_size=1)
+    st = env.reset(object, ObjectPose(), seed=seed)
+    board_z = env.cfg.board_z
+    goal = make_goal(TaskConfig(name="slice", thickness=thickness, max_cuts=4), object, ObjectPose(),
+                     spacing=env.cfg.spacing, board_z=board_z, seed=seed)
+    normal = goal.planes[0].normal  # a1: every ideal slice plane is normal to it
+    labels = np.zeros(len(st.x[0]), np.int32)  # one piece before any cut
+    states, names, planes, sizes, times = [_fragments(st.x[0], labels)], ["uncut"], [None], [[len(st.x[0])]], []
+
+    def cut(action, labels, name):
+        t = time.perf_counter()
+        env.cut(action)
+        if push:
+            env.push()
+        st = env.state()
+        labels = discover(st.x[0], st.damage[0], st.sweeps[0], previous_labels=labels).labels
+        frags = _fragments(st.x[0], labels)
+        states.append(frags), names.append(name), planes.append(action.to_vector().tolist())
+        sizes.append(sorted((len(f) for f in frags), reverse=True)), times.append(time.perf_counter() - t)
+        log(f"{name}: plane {np.round(action.to_vector(), 4)}  pieces {sizes[-1]}  {times[-1]:.1f} s")
+        return labels
+
+    for i in range(3):
+        labels = cut(_face_cut(env.state().x[0], labels, normal, thickness, board_z), labels, f"cut {i + 1}")
+    saved, labels3 = env.get_state(0), labels.copy()
+    labels = cut(_face_cut(env.state().x[0], labels, normal, thickness + error, board_z), labels, "cut 4 wrong")
+    # the wrong slab is now the piece whose centroid lies farthest along -a1 among the cut-off pieces
+    x = env.state().x[0].astype(np.float64)
+    pieces = [c for c in np.unique(labels) if c >= 0]
+    block = max(pieces, key=lambda c: (labels == c).sum())
+    slab = min((c for c in pieces if c != block), key=lambda c: x[labels == c].mean(0) @ normal)
+    s = x[labels == slab] @ normal
+    point = x[labels == slab].mean(0) + (np.percentile(s, 99) - thickness - s.mean()) * normal
+    from topocut.sim.action import KnifeAction
+
+    labels = cut(KnifeAction.from_plane(normal, point, board_z), labels, "cut 5 corrected")
+    env.set_state(saved, b=0)
+    cut(_face_cut(env.state().x[0], labels3, normal, thickness, board_z), labels3, "cut 4 right")
+    table = metric_table(states, goal, cfg)
+    return {"steps": names, **{k: v.tolist() for k, v in table.items()}, "planes": planes, "piece_sizes": sizes,
+            "goal_piece_sizes": [len(f) for f in goal.fragments], "cut_seconds": times,
+            "config": {"n_grid": n_grid, "thickness": thickness, "error": error, "push": push, "object": object},
+            "_states": states}
+
+
+def _plot_q1(res: dict, out: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(11, 4), gridspec_kw={"width_ratios": [1.3, 1]})
+    main, right = list(range(6)), 6  # table rows: uncut, 1, 2, 3, 4 wrong, 5 corrected | 4 right
+    for key, label, style in (("cd_score", "CD", "C0"), ("emd_score", "EMD", "C1"), ("hd_score", "HD", "C2"),
+                              ("reward", "spectral reward", "C3")):
+        y = np.asarray(res[key])
+        ax.plot(main, y[main], marker="o", color=style, lw=2.5 if key == "reward" else 1.2, label=label)
+        ax.plot([3, 4], [y[3], y[right]], ls="--", marker="s", color=style, lw=1.2)
+    ax.axvspan(3.6, 4.4, color="r", alpha=0.08)
+    ax.set_xticks(main, ["uncut", "1", "2", "3", "4\n(wrong)", "5\n(corrected)"])
+    ax.set_xlabel("cut (dashed / squares: the right 4th cut instead)")
+    ax.set_ylabel("score (CD/EMD/HD: 1 - d / max d; reward: total)")
+    ax.set_title("slice cube, 3 cm slabs: per-step scores")
+    ax.legend(fontsize=8)
+    for i, (name, frags) in enumerate(zip(("cut 4 wrong", "cut 5 corrected", "cut 4 right"), (4, 5, 6))):
+        for j, f in enumerate(sorted(res["_states"][frags], key=lambda f: -f[:, 0].mean())):
+            ax2.scatter(f[:, 0], f[:, 2] + 0.2 * (2 - i), s=1, color=f"C{j}")
+        ax2.text(0.3, 0.2 * (2 - i) + 0.2, name, fontsize=8)
+    ax2.set_aspect("equal")
+    ax2.set_xlabel("x (a1)")
+    ax2.set_yticks([])
+    ax2.set_title("pieces, side view (x-z), one colour per fragment")
+    fig.tight_layout()
+    fig.savefig(out, dpi=120)
+
+
 def _plot_pose(res: dict, out: str) -> None:
     import matplotlib
 
@@ -145,7 +258,9 @@ def _plot_matrix(names, D, out: str) -> None:
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("experiment", choices=["pose_invariance", "loss_matrix"])
+    ap.add_argument("experiment", choices=["pose_invariance", "loss_matrix", "q1"])
+    ap.add_argument("--n-grid", type=int, default=64, help="q1: simulator grid")
+    ap.add_argument("--push", action="store_true", help="q1: push pieces apart after each cut")
     ap.add_argument("--out", required=True, help="figure path (.png); numbers go to the same path with .json")
     args = ap.parse_args(argv)
     if args.experiment == "pose_invariance":
@@ -157,6 +272,10 @@ def main(argv=None):
         summary["max_spread"] = {m: float(np.ptp(r[m], axis=0).max()) for r, m in
                                  ((res, "dense"), (res, "surface"))}
         summary["max_spread_exact_lattice"] = {m: float(np.ptp(exact[m], axis=0).max()) for m in ("dense", "surface")}
+    elif args.experiment == "q1":
+        res = q1_sequence(n_grid=args.n_grid, push=args.push)
+        _plot_q1(res, args.out)
+        summary = {k: v for k, v in res.items() if not k.startswith("_")}
     else:
         names, D = loss_matrix()
         _plot_matrix(names, D, args.out)

@@ -1,0 +1,194 @@
+"""The Hydra stages run end to end as real subprocesses (`python -m topocut.run ...`).
+
+Every run writes under a pytest tmp dir (``outputs_root=`` and TOPOCUT_OUTPUTS), never the repo's
+outputs/.  The simulation is shrunk to a few seconds per job: a coarse grid, 2 MPPI samples, 2 cuts,
+short knife travel / push / settle phases.  Expected numbers come from the stores themselves
+(each shard's zarr, the manifest's file list), not from the stages' printed summaries.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from topocut.data.episodes import EpisodeDataset
+from topocut.data.store import ArtifactStore
+
+REPO = Path(__file__).resolve().parents[1]
+
+# Tiny everything: ~2 s per episode on a 2-core CPU.  task.max_cuts=2 because `stick` needs a slab cut
+# and a width cut before it has a goal piece.
+FAST = ["logger=none", "progress=false", "sim.n_grid=20", "sim.cut_substeps=40", "sim.dwell_substeps=5",
+        "sim.push_substeps=20", "sim.settle_substeps=20", "sim.batch_size=2", "planner.num_samples=2",
+        "planner.horizon=1", "planner.iterations=1", "task.max_cuts=2", "data.points_per_step=128",
+        "topology.resolution=32", "+stage.run.compare_heuristic=false", "object.randomize_pose=false"]
+RESUME_SEED = 7
+RESUME_EPISODES = 3
+
+
+def _env(root: Path) -> dict:
+    env = dict(os.environ, WANDB_MODE="disabled", TOPOCUT_OUTPUTS=str(root), HYDRA_FULL_ERROR="0")
+    env.pop("CUDA_VISIBLE_DEVICES", None)
+    return env
+
+
+def _cmd(root: Path, *overrides: str) -> list[str]:
+    return [sys.executable, "-m", "topocut.run", *overrides, f"outputs_root={root}"]
+
+
+def topocut(root: Path, *overrides: str, timeout: float = 180) -> subprocess.CompletedProcess:
+    return subprocess.run(_cmd(root, *overrides), cwd=REPO, env=_env(root), capture_output=True, text=True,
+                          timeout=timeout)
+
+
+def _output(proc) -> str:
+    return proc.stdout + proc.stderr
+
+
+def _summary(proc) -> dict:
+    """The JSON summary topocut.run logs as its last line (`... - summary: {...}`)."""
+    lines = [ln for ln in _output(proc).splitlines() if " - summary: " in ln]
+    assert lines, f"no summary line in output:\n{_output(proc)[-3000:]}"
+    return json.loads(lines[-1].split(" - summary: ", 1)[1])
+
+
+def _ok(proc) -> subprocess.CompletedProcess:
+    assert proc.returncode == 0, f"{' '.join(proc.args)}\nexit {proc.returncode}\n{_output(proc)[-4000:]}"
+    return proc
+
+
+MPPI_ONE = ["stage=mppi", "task=slice", "object=cube", f"seed={RESUME_SEED}", f"data.episodes={RESUME_EPISODES}",
+            *FAST]
+
+
+@pytest.fixture(scope="module")
+def resumed(tmp_path_factory):
+    """A single mppi run killed after its first committed episode, then re-run to completion."""
+    root = tmp_path_factory.mktemp("resume")
+    store = ArtifactStore(root)
+    proc = subprocess.Popen(_cmd(root, *MPPI_ONE), cwd=REPO, env=_env(root), stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    first_x = None
+    deadline = time.time() + 150
+    try:
+        while time.time() < deadline and proc.poll() is None:
+            for z in (root / "dataset" / "demos").glob(".partial-*/data.zarr"):
+                try:
+                    ds = EpisodeDataset(z)
+                    if ds.num_episodes >= 1:
+                        first_x = np.array(ds[0]["x_t"], copy=True)  # a copy, read before the kill
+                except Exception:  # noqa: BLE001 - the buffer may not be laid out yet
+                    continue
+            if first_x is not None:
+                break
+            time.sleep(0.5)
+    finally:
+        proc.kill()
+        out = proc.communicate(timeout=30)[0]
+    assert first_x is not None, f"no episode committed to a partial dir before the kill/timeout:\n{out[-3000:]}"
+    versions_after_kill = store.versions("dataset", "demos")
+    partials_after_kill = sorted(p.name for p in (root / "dataset" / "demos").glob(".partial-*"))
+    t0 = time.time()
+    second = _ok(topocut(root, *MPPI_ONE))
+    return {"root": root, "store": store, "first_x": first_x, "versions_after_kill": versions_after_kill,
+            "partials_after_kill": partials_after_kill, "second": second, "second_seconds": time.time() - t0}
+
+
+def test_multirun_shards_merge_into_one_dataset(tmp_path):
+    sweep = _ok(topocut(tmp_path, "-m", "stage=mppi", "task=slice,stick", "object=cube,cake",
+                        "hydra/launcher=basic", "data.episodes=2", *FAST, timeout=240))
+    store = ArtifactStore(tmp_path)
+    expected = {f"demos-{t}-{o}-s0" for t in ("slice", "stick") for o in ("cube", "cake")}
+    assert {n for n in store.names("dataset") if n.startswith("demos-")} == expected, _output(sweep)[-2000:]
+    shard_eps, shard_steps, shard_latest = 0, 0, {}
+    for name in expected:
+        path = store.resolve("dataset", name)
+        shard_latest[name] = f"dataset/{name}:{path.name}"
+        ds = EpisodeDataset(path / "data.zarr")
+        shard_eps += ds.num_episodes
+        shard_steps += len(ds)
+    assert shard_eps == 2 * 4
+
+    _ok(topocut(tmp_path, "stage=merge", "logger=none", "progress=false"))
+    merged = tmp_path / "dataset" / "demos" / "v001"
+    assert merged.is_dir()
+    manifest = json.loads((merged / "manifest.json").read_text())
+    assert manifest["inputs"] == shard_latest
+    ds = EpisodeDataset(merged / "data.zarr")
+    assert ds.num_episodes == shard_eps
+    assert len(ds) == shard_steps
+    pairs = [(ds.meta(e)["task"], ds.meta(e)["object"]) for e in range(ds.num_episodes)]
+    assert sorted(pairs) == sorted((t, o) for t in ("slice", "stick") for o in ("cube", "cake") for _ in range(2))
+    store.verify(merged)  # the manifest's sha256 match the files as written
+
+
+def test_killed_mppi_resumes_without_redoing_episodes(resumed):
+    assert resumed["versions_after_kill"] == []  # nothing committed by the killed run...
+    assert len(resumed["partials_after_kill"]) == 1  # ...but its partial work is there to resume from
+    store = resumed["store"]
+    assert store.versions("dataset", "demos") == ["v001"]
+    path = store.resolve("dataset", "demos")
+    assert not list((resumed["root"] / "dataset" / "demos").glob(".partial-*"))  # renamed on commit
+    ds = EpisodeDataset(path / "data.zarr")
+    assert ds.num_episodes == RESUME_EPISODES
+    seeds = [ds.meta(e)["seed"] for e in range(ds.num_episodes)]
+    assert sorted(seeds) == [RESUME_SEED * 1000 + e for e in range(RESUME_EPISODES)]
+    # episode 0 was written by the killed run and kept, not recomputed (bytes identical)
+    x0 = ds[0]["x_t"]
+    assert x0.dtype == resumed["first_x"].dtype and x0.shape == resumed["first_x"].shape
+    assert x0.tobytes() == resumed["first_x"].tobytes()
+    assert len(ds) == sum(ds.meta(e)["num_steps"] for e in range(ds.num_episodes))
+
+
+def test_rerun_with_same_config_reuses_the_version(resumed):
+    root, store = resumed["root"], resumed["store"]
+    manifest_before = (store.resolve("dataset", "demos") / "manifest.json").read_text()
+    t0 = time.time()
+    again = _ok(topocut(root, *MPPI_ONE))
+    elapsed = time.time() - t0
+    summary = _summary(again)
+    assert summary.get("reused") is True
+    assert Path(summary["dataset"]) == root / "dataset" / "demos" / "v001"
+    assert "reused" in again.stdout
+    assert store.versions("dataset", "demos") == ["v001"]
+    assert (root / "dataset" / "demos" / "v001" / "manifest.json").read_text() == manifest_before
+    assert not list((root / "dataset" / "demos").glob(".partial-*"))
+    assert elapsed < resumed["second_seconds"] + 5  # no simulation: no slower than the resumed run
+
+
+@pytest.mark.parametrize("override,needles", [
+    ("object=carrot", ["carrot", "cake", "cube", "donut"]),
+    ("sim.dt=0.05", ["sim.dt"]),
+])
+def test_bad_override_fails_before_simulating(tmp_path, override, needles):
+    proc = topocut(tmp_path, "stage=mppi", *FAST, override, timeout=60)
+    assert proc.returncode != 0
+    out = _output(proc)
+    for needle in needles:
+        assert needle in out, f"{needle!r} not in output:\n{out[-3000:]}"
+    assert not (tmp_path / "dataset").exists()  # nothing simulated, nothing written
+    assert "Traceback" not in out or "HYDRA_FULL_ERROR" in out
+
+
+def test_tampered_dataset_is_refused_downstream(resumed, tmp_path):
+    root = tmp_path / "outputs"
+    shutil.copytree(resumed["root"] / "dataset", root / "dataset")  # tamper a copy: other tests keep theirs
+    version = root / "dataset" / "demos" / "v001"
+    files = json.loads((version / "manifest.json").read_text())["files"]
+    rel = sorted(f for f in files if f.startswith("data.zarr/data/x_t/") and not f.endswith("zarr.json"))[0]
+    target = version / rel
+    blob = bytearray(target.read_bytes())
+    blob[len(blob) // 2] ^= 0xFF
+    target.write_bytes(bytes(blob))
+    proc = topocut(root, "stage=pretrain", "logger=none", "progress=false", "trainer.max_epochs=1", timeout=120)
+    out = _output(proc)
+    assert proc.returncode != 0, out[-3000:]
+    assert str(target) in out and "sha256" in out, out[-3000:]
+    assert not (root / "checkpoint").exists() or not ArtifactStore(root).versions("checkpoint", "perception")
