@@ -80,3 +80,17 @@ def test_bad_device_value():
     cfg = _compose("device=tpu")
     with pytest.raises(ConfigError, match="device"):
         validate(cfg)
+
+
+def test_cuda_request_without_a_gpu_is_an_error_not_a_silent_cpu_run():
+    import torch
+
+    from topocut.utils.runtime import DeviceUnavailable, resolve_device
+
+    if torch.cuda.is_available():
+        pytest.skip("this machine has a GPU")
+    with pytest.raises(DeviceUnavailable, match="device=cuda"):
+        resolve_device("cuda")
+    assert resolve_device("auto") == "cpu"
+    with pytest.raises(ValueError, match="auto, cpu, cuda"):
+        resolve_device("tpu")
