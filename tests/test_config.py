@@ -94,3 +94,9 @@ def test_cuda_request_without_a_gpu_is_an_error_not_a_silent_cpu_run():
     assert resolve_device("auto") == "cpu"
     with pytest.raises(ValueError, match="auto, cpu, cuda"):
         resolve_device("tpu")
+
+
+def test_stick_with_one_cut_is_refused_naming_the_key():
+    cfg = _compose("task=stick", "task.max_cuts=1")
+    with pytest.raises(ConfigError, match=r"task\.max_cuts.*at least 2"):
+        validate(cfg)

@@ -135,3 +135,26 @@ def test_torch_batch_matches_scipy_path():
     a, b = box(0.016, 0.016, 0.04), box(0.016, 0.016, 0.016)
     r1, r2 = spectral_reward([a, b], [b], CFG), spectral_reward([a, b], [b], torch_cfg)
     np.testing.assert_allclose(r1.distances, r2.distances, rtol=1e-5, atol=1e-9)
+
+
+def test_metric_table_wrong_cut_scores_below_right_cut_and_pose_moves_only_hurt_distances():
+    from topocut.reward.experiments import metric_table
+
+    t = 3 * H  # goal: two slabs of 3 layers cut off a 9-layer block
+    slab = lambda x0, seed: box(t, 12 * H, 8 * H, seed) + [x0, 0, 0]  # noqa: E731
+    goal = [slab(0, 1), slab(t, 2)]
+    rest = box(3 * t, 12 * H, 8 * H, 3) + [2 * t, 0, 0]
+    wedge = box(2 * t, 12 * H, 8 * H, 4)
+    wedge = wedge[wedge[:, 0] < 2 * t * wedge[:, 1] / (12 * H)] + [t, 0, 0]  # a cut yawed across the slab
+    toppled = moved(slab(t, 5), 6)  # the right slab, fallen over somewhere else on the board
+    states = [[slab(0, 7), box(4 * t, 12 * H, 8 * H, 8) + [t, 0, 0]],  # one cut
+              [slab(0, 7), slab(t, 5), rest],  # right second cut
+              [slab(0, 7), wedge, rest],  # wrong second cut
+              [slab(0, 7), toppled, rest]]  # right cut, slab moved rigidly
+    tab = metric_table(states, goal, CFG)
+    r = tab["reward"]
+    assert r[1] > r[0] + 0.2 and r[1] > r[2] + 0.2  # the right cut raises the reward, the wrong one less
+    assert abs(r[3] - r[1]) < 1e-6  # a rigid move of a piece changes nothing
+    # CD sees the move: goal piece 2 now takes a neighbouring piece, one slab away, as its closest fragment
+    assert tab["cd"][3] > 2 * tab["cd"][1] and tab["cd_score"][3] < tab["cd_score"][1]
+    assert tab["cd_score"].min() == 0.0 and tab["cd_score"].max() < 1.0  # 1 - d / max d over the steps

@@ -28,7 +28,7 @@ REPO = Path(__file__).resolve().parents[1]
 FAST = ["logger=none", "progress=false", "sim.n_grid=20", "sim.cut_substeps=40", "sim.dwell_substeps=5",
         "sim.push_substeps=20", "sim.settle_substeps=20", "sim.batch_size=2", "planner.num_samples=2",
         "planner.horizon=1", "planner.iterations=1", "task.max_cuts=2", "data.points_per_step=128",
-        "topology.resolution=32", "+stage.run.compare_heuristic=false", "object.randomize_pose=false"]
+        "topology.resolution=32", "stage.run.compare_heuristic=false", "object.randomize_pose=false"]
 RESUME_SEED = 7
 RESUME_EPISODES = 3
 
@@ -92,12 +92,13 @@ def resumed(tmp_path_factory):
     finally:
         proc.kill()
         out = proc.communicate(timeout=30)[0]
+    killed_rc = proc.returncode  # -9: killed mid-run, not finished on its own
     assert first_x is not None, f"no episode committed to a partial dir before the kill/timeout:\n{out[-3000:]}"
     versions_after_kill = store.versions("dataset", "demos")
     partials_after_kill = sorted(p.name for p in (root / "dataset" / "demos").glob(".partial-*"))
     t0 = time.time()
     second = _ok(topocut(root, *MPPI_ONE))
-    return {"root": root, "store": store, "first_x": first_x, "versions_after_kill": versions_after_kill,
+    return {"root": root, "store": store, "first_x": first_x, "killed_rc": killed_rc, "versions_after_kill": versions_after_kill,
             "partials_after_kill": partials_after_kill, "second": second, "second_seconds": time.time() - t0}
 
 
@@ -130,6 +131,7 @@ def test_multirun_shards_merge_into_one_dataset(tmp_path):
 
 
 def test_killed_mppi_resumes_without_redoing_episodes(resumed):
+    assert resumed["killed_rc"] == -9
     assert resumed["versions_after_kill"] == []  # nothing committed by the killed run...
     assert len(resumed["partials_after_kill"]) == 1  # ...but its partial work is there to resume from
     store = resumed["store"]

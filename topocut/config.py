@@ -124,6 +124,8 @@ def validate(cfg: DictConfig) -> None:
     _check(cfg.object.scale_min <= cfg.object.scale_max, "object.scale_min",
            f"{cfg.object.scale_min} exceeds object.scale_max={cfg.object.scale_max}")
     _check(0.0 <= cfg.trainer.val_fraction < 1.0, "trainer.val_fraction", "must lie in [0, 1)")
+    _check(cfg.task.name not in ("stick", "dice") or cfg.task.max_cuts >= 2, "task.max_cuts",
+           f"task={cfg.task.name} needs at least 2 cuts (the slab, then its width); got {cfg.task.max_cuts}")
     sim = OmegaConf.to_object(cfg.sim)
     try:
         sim.validate()

@@ -114,20 +114,21 @@ def _face_cut(x: np.ndarray, labels: np.ndarray, normal: np.ndarray, thickness: 
     from topocut.sim.action import KnifeAction
 
     frags = _fragments(x, labels)
-    block = max(frags, key=len).astype(np.float64)
+    block = min(frags, key=lambda f: f.mean(0) @ normal).astype(np.float64)  # the -a1-most piece
     s = block @ normal
     face = np.percentile(s, 99)  # robust to a few particles dragged out by the previous cut
     point = block.mean(0) + (face - thickness - s.mean()) * normal
     return KnifeAction.from_plane(normal, point, board_z)
 
 
-def q1_sequence(n_grid: int = 64, thickness: float = 0.03, error: float = 0.02, push: bool = False,
+def q1_sequence(n_grid: int = 64, thickness: float = 0.03, wrong: str = "yaw", error: float = 30.0, push: bool = False,
                 object: str = "cube", seed: int = 0, cfg: RewardConfig | None = None, log=print) -> dict:
     """Paper Q1 in the simulator: slice `object` with three good cuts, a wrong 4th cut, then a correction.
 
-    Cuts i = 1..3 take a slab of `thickness` off the block's +a1 face (the goal: slice, max_cuts=4).  Cut 4
-    (wrong) takes `thickness + error`; cut 5 (correction) trims that slab back to `thickness` from its outer
-    face.  A branch from the state after cut 3 makes the right 4th cut instead.  Each step's fragments come
+    Cuts i = 1..3 take a slab of `thickness` off the block's +a1 face (the goal: slice, max_cuts=4).  The
+    right 4th cut P4 is planned the same way; the wrong cut 4 is P4 yawed by `error` degrees about its
+    centre (wrong="yaw") or shifted by `error` metres along -a1 (wrong="shift": a thicker slab); cut 5
+    (correction) is the planned P4.  A branch from the state after cut 3 makes P4 as the 4th cut instead.  Each step's fragments come
     from topocut.topology.discover (labels kept across cuts).  Returns metric_table over
     [uncut, 1, 2, 3, 4 wrong, 5 corrected, 4 right] plus the cut planes, piece sizes and timings.
     """
@@ -135,6 +136,7 @@ def q1_sequence(n_grid: int = 64, thickness: float = 0.03, error: float = 0.02, 
 
     from topocut.goals import TaskConfig, make_goal
     from topocut.sim import CuttingEnv, init_taichi
+    from topocut.sim.action import KnifeAction
     from topocut.sim.config import SimConfig
     from topocut.sim.objects import ObjectPose
     from topocut.topology import discover
@@ -165,23 +167,21 @@ def q1_sequence(n_grid: int = 64, thickness: float = 0.03, error: float = 0.02, 
     for i in range(3):
         labels = cut(_face_cut(env.state().x[0], labels, normal, thickness, board_z), labels, f"cut {i + 1}")
     saved, labels3 = env.get_state(0), labels.copy()
-    labels = cut(_face_cut(env.state().x[0], labels, normal, thickness + error, board_z), labels, "cut 4 wrong")
-    # the wrong slab is now the piece whose centroid lies farthest along -a1 among the cut-off pieces
-    x = env.state().x[0].astype(np.float64)
-    pieces = [c for c in np.unique(labels) if c >= 0]
-    block = max(pieces, key=lambda c: (labels == c).sum())
-    slab = min((c for c in pieces if c != block), key=lambda c: x[labels == c].mean(0) @ normal)
-    s = x[labels == slab] @ normal
-    point = x[labels == slab].mean(0) + (np.percentile(s, 99) - thickness - s.mean()) * normal
-    from topocut.sim.action import KnifeAction
-
-    labels = cut(KnifeAction.from_plane(normal, point, board_z), labels, "cut 5 corrected")
+    right = _face_cut(env.state().x[0], labels, normal, thickness, board_z)
+    if wrong == "yaw":
+        bad = KnifeAction(right.x, right.y, right.yaw + np.deg2rad(error), right.tilt)
+    elif wrong == "shift":
+        bad = KnifeAction(right.x - error * normal[0], right.y - error * normal[1], right.yaw, right.tilt)
+    else:
+        raise ValueError(f"q1 wrong={wrong!r}: expected one of 'yaw', 'shift'")
+    labels = cut(bad, labels, "cut 4 wrong")
+    labels = cut(right, labels, "cut 5 corrected")
     env.set_state(saved, b=0)
-    cut(_face_cut(env.state().x[0], labels3, normal, thickness, board_z), labels3, "cut 4 right")
+    cut(right, labels3, "cut 4 right")
     table = metric_table(states, goal, cfg)
     return {"steps": names, **{k: v.tolist() for k, v in table.items()}, "planes": planes, "piece_sizes": sizes,
             "goal_piece_sizes": [len(f) for f in goal.fragments], "cut_seconds": times,
-            "config": {"n_grid": n_grid, "thickness": thickness, "error": error, "push": push, "object": object},
+            "config": {"n_grid": n_grid, "thickness": thickness, "wrong": wrong, "error": error, "push": push, "object": object},
             "_states": states}
 
 
@@ -206,12 +206,12 @@ def _plot_q1(res: dict, out: str) -> None:
     ax.legend(fontsize=8)
     for i, (name, frags) in enumerate(zip(("cut 4 wrong", "cut 5 corrected", "cut 4 right"), (4, 5, 6))):
         for j, f in enumerate(sorted(res["_states"][frags], key=lambda f: -f[:, 0].mean())):
-            ax2.scatter(f[:, 0], f[:, 2] + 0.2 * (2 - i), s=1, color=f"C{j}")
-        ax2.text(0.3, 0.2 * (2 - i) + 0.2, name, fontsize=8)
+            ax2.scatter(f[:, 0], f[:, 1] + 0.25 * (2 - i), s=1, color=f"C{j}")
+        ax2.text(0.3, 0.25 * (2 - i) + 0.6, name, fontsize=8)
     ax2.set_aspect("equal")
     ax2.set_xlabel("x (a1)")
     ax2.set_yticks([])
-    ax2.set_title("pieces, side view (x-z), one colour per fragment")
+    ax2.set_title("pieces seen from above (x-y), one colour per fragment")
     fig.tight_layout()
     fig.savefig(out, dpi=120)
 
@@ -261,6 +261,8 @@ def main(argv=None):
     ap.add_argument("experiment", choices=["pose_invariance", "loss_matrix", "q1"])
     ap.add_argument("--n-grid", type=int, default=64, help="q1: simulator grid")
     ap.add_argument("--push", action="store_true", help="q1: push pieces apart after each cut")
+    ap.add_argument("--wrong", default="yaw", choices=["yaw", "shift"], help="q1: kind of wrong 4th cut")
+    ap.add_argument("--error", type=float, default=30.0, help="q1: wrong cut's yaw (deg) or shift (m)")
     ap.add_argument("--out", required=True, help="figure path (.png); numbers go to the same path with .json")
     args = ap.parse_args(argv)
     if args.experiment == "pose_invariance":
@@ -273,7 +275,7 @@ def main(argv=None):
                                  ((res, "dense"), (res, "surface"))}
         summary["max_spread_exact_lattice"] = {m: float(np.ptp(exact[m], axis=0).max()) for m in ("dense", "surface")}
     elif args.experiment == "q1":
-        res = q1_sequence(n_grid=args.n_grid, push=args.push)
+        res = q1_sequence(n_grid=args.n_grid, push=args.push, wrong=args.wrong, error=args.error)
         _plot_q1(res, args.out)
         summary = {k: v for k, v in res.items() if not k.startswith("_")}
     else:
