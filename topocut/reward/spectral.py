@@ -78,10 +78,11 @@ def smallest_eigenpairs(L, m: int, method: str = "eigsh"):
     if method == "eigsh" and m < n - 1:
         try:
             w, v = sla.eigsh(L.tocsc(), k=m, sigma=-1e-3, which="LM")
+        except (sla.ArpackNoConvergence, RuntimeError):
+            w = None  # shift-invert failed (e.g. a singular factorisation): use the dense solver below
+        if w is not None:
             order = np.argsort(w)
             return w[order], v[:, order]
-        except (sla.ArpackNoConvergence, RuntimeError):
-            pass  # fall through to the dense solver
     elif method not in ("eigsh", "eigh"):
         raise ValueError(f"unknown eigen method {method!r}; valid: eigsh, eigh")
     import scipy.linalg
