@@ -10,3 +10,15 @@ def _taichi_single_threaded():
 
     init_taichi("cpu", seed=0, cpu_threads=1)
     yield
+
+
+@pytest.fixture(scope="module")
+def one_thread():
+    """One torch intra-op thread: for tiny models OpenMP's second thread only adds spin-wait, about 10x
+    slower on a loaded 2-core machine. Modules opt in with ``pytestmark = pytest.mark.usefixtures(...)``."""
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)

@@ -25,13 +25,7 @@ SMALL = {"dp3": dict(enc_dim=32, down_dims=(32, 64, 128), horizon=4),
          "3dda": dict(dim=48, heads=2, layers=1, context_layers=1)}
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Tiny models: intra-op threads only add contention on a shared CPU (10x slower under load)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 
 # -- diffusion maths -------------------------------------------------------------------------------------

@@ -14,14 +14,7 @@ from topocut.models.losses import cluster_accuracy, hungarian_cluster_loss, posi
 from topocut.models.module import DynamicsModule, load_encoder
 from topocut.models.pointnet import FeaturePropagation, PointNetDynamics, PointNetEncoder, SetAbstraction
 
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Tiny tensors: OpenMP's second thread only adds spin-wait (10x slower on a loaded 2-core box)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 
 TINY = dict(num_points=64, hidden=32, k=6, cross_k=6, num_layers=1, num_heads=2, query_hidden=16,

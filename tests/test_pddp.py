@@ -124,15 +124,6 @@ def synthetic_steps(n_steps, n_points=64, seed=0):
     return steps, action
 
 
-@pytest.fixture
-def one_thread():
-    """One intra-op thread: these tiny models run faster without threading overhead on a busy CPU."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def test_training_reduces_loss_and_policy_acts(one_thread):
     torch.manual_seed(0)
     steps, action = synthetic_steps(64)

@@ -103,15 +103,9 @@ class EpisodeDataModule(L.LightningDataModule):
 
     def split_episodes(self, objects: list[str]) -> dict[str, list[int]]:
         """Episode indices per split: ``train``, ``val`` (seen objects) and ``unseen`` (held-out objects)."""
-        unseen = [e for e, o in enumerate(objects) if o in self.held_out]
-        seen = np.array([e for e, o in enumerate(objects) if o not in self.held_out], dtype=np.int64)
-        np.random.default_rng(self.seed).shuffle(seen)
-        n_val = int(round(self.val_fraction * len(seen)))
-        if self.val_fraction > 0 and len(seen) > 1:
-            n_val = max(n_val, 1)
-        if n_val >= len(seen) and len(seen):
-            n_val = len(seen) - 1  # keep at least one training episode
-        return {"train": sorted(seen[n_val:].tolist()), "val": sorted(seen[:n_val].tolist()), "unseen": unseen}
+        from topocut.utils.training import split_episodes
+
+        return split_episodes(objects, self.val_fraction, self.seed, self.held_out)
 
     def setup(self, stage: str | None = None) -> None:
         if self.train_set is not None:
