@@ -15,6 +15,11 @@ for whl in "$W"/*.whl; do
   [ -f "$stamp" ] && continue
   python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site "$whl" && touch "$stamp"
 done
+# Run from a committed snapshot when one travels (.gpu/head.tar from `git archive HEAD`), so that
+# uncommitted edits in the working tree cannot leak into measured code.
+if [ -f .gpu/head.tar ]; then
+  rm -rf /tmp/head && mkdir -p /tmp/head && tar -xf .gpu/head.tar -C /tmp/head && cd /tmp/head
+fi
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 WANDB_MODE=disabled
 OUT=${OUT:-/tmp/out}
 mkdir -p "$OUT"
@@ -35,6 +40,23 @@ case "$phase" in
     timeout 470 python3 -m topocut.run -m stage=mppi task=slice,stick,dice object=cake,donut $G 2>&1 \
       | grep -E "summary|Error|error" | tee "$OUT/data.txt"
     python3 -m topocut.run stage=merge $G 2>&1 | grep -E "summary|Error" | tee -a "$OUT/data.txt" ;;
+  data2)  # larger MPPI set for Table 2: 3 tasks x 5 objects (donut unseen) x 3 episodes, 4 jobs at a time
+    G="scale=smoke device=cuda sim.n_grid=64 sim.batch_size=8 planner.num_samples=8 planner.iterations=2
+       topology.resolution=64 task.max_cuts=3 data.episodes=3 data.points_per_step=2048 outputs_root=/tmp/o
+       logger=none progress=false"
+    timeout 480 python3 -m topocut.run -m hydra/launcher=joblib hydra.launcher.n_jobs=4 stage=mppi \
+      task=slice,stick,dice object=cake,potato,ham,cube,donut $G 2>&1 | grep -E "summary|Error|error" | tee "$OUT/data.txt"
+    python3 -m topocut.run stage=merge $G 2>&1 | grep -E "summary|Error" | tee -a "$OUT/data.txt"
+    tar -C /tmp -cf /tmp/o_dataset.tar o/dataset && ls -la /tmp/o_dataset.tar ;;
+  table2)  # paper Table 2: graph model sort x noise x 128/256 points, PointNet 512/2048, on the merged set
+    G="scale=smoke device=cuda trainer=gpu outputs_root=/tmp/o logger=none progress=false trainer.max_epochs=30
+       model.num_layers=4 trainer.batch_size=16"
+    timeout 330 python3 -m topocut.run -m hydra/launcher=joblib hydra.launcher.n_jobs=4 stage=pretrain \
+      model.sort=false,true model.noise=false,true model.num_points=128,256 $G 2>&1 | grep -E "summary|Error" \
+      | tee "$OUT/table2.txt"
+    timeout 220 python3 -m topocut.run -m hydra/launcher=joblib hydra.launcher.n_jobs=2 stage=pretrain model=pointnet \
+      model.sort=false,true model.num_points=512 $G 2>&1 | grep -E "summary|Error" | tee -a "$OUT/table2.txt"
+    python3 -m topocut.models.table2 --root /tmp/o --out "$OUT/table2.md" ;;
   train)  # pretrain F, then PDDP / w/o perception / DP3 / 3DDA on the merged dataset
     G="scale=smoke device=cuda trainer=gpu outputs_root=/tmp/o logger=none progress=false"
     python3 -m topocut.run stage=merge $G 2>&1 | grep -E "summary|Error" | tee "$OUT/merge.txt"

@@ -77,3 +77,25 @@ def test_killed_writer_leaves_previous_version_intact_and_resumes(tmp_path):
     (writer.path / "episode_1.txt").write_text("done")
     p2 = writer.commit()
     assert sorted(json.loads((p2 / "manifest.json").read_text())["files"]) == ["episode_0.txt", "episode_1.txt"]
+
+
+def test_racing_commits_to_one_name_both_land_on_distinct_versions(tmp_path, monkeypatch):
+    """Two runs of a parallel sweep that both see v001 as free: the second rename fails and retries."""
+    store = ArtifactStore(tmp_path)
+    a, _ = store.begin("checkpoint", "perception", {"sort": True})
+    b, _ = store.begin("checkpoint", "perception", {"sort": False})
+    (a.path / "m.txt").write_text("a")
+    (b.path / "m.txt").write_text("b")
+    pa = a.commit()
+    real, calls = ArtifactStore._next_version, []
+
+    def stale_first(self, kind, name):  # b's first look predates a's rename
+        calls.append(name)
+        return "v001" if len(calls) == 1 else real(self, kind, name)
+
+    monkeypatch.setattr(ArtifactStore, "_next_version", stale_first)
+    pb = b.commit()
+    assert (pa.name, pb.name, len(calls)) == ("v001", "v002", 2)
+    assert (pa / "m.txt").read_text() == "a" and (pb / "m.txt").read_text() == "b"
+    assert json.loads((pb / "manifest.json").read_text())["version"] == "v002"
+    assert store.versions("checkpoint", "perception") == ["v001", "v002"]

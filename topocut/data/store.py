@@ -132,18 +132,26 @@ class VersionWriter:
         for p in sorted(self.path.rglob("*")):
             if p.is_file() and p.name != "manifest.json" and ".tmp-" not in p.name:
                 files[str(p.relative_to(self.path))] = sha256_file(p)
-        version = self.store._next_version(self.kind, self.name)
         manifest = {
-            "schema_version": SCHEMA_VERSION,
-            "kind": self.kind, "name": self.name, "version": version, "key": self.key,
+            "schema_version": SCHEMA_VERSION, "kind": self.kind, "name": self.name, "key": self.key,
             "files": files, "config": self.config, "inputs": self.inputs,
             "summary": summary or {}, "provenance": provenance(), **self.extra,
         }
-        write_json_atomic(self.path / "manifest.json", manifest)
-        final = self.store.root / self.kind / self.name / version
-        os.replace(self.path, final)
-        self.committed = final
-        return final
+        # Runs of a parallel sweep (joblib/submitit) may commit to the same name at once: the rename is
+        # the arbiter.  Renaming onto an existing (non-empty) version fails, and the loser takes the next.
+        for _ in range(1000):
+            version = self.store._next_version(self.kind, self.name)
+            write_json_atomic(self.path / "manifest.json", {**manifest, "version": version})
+            final = self.store.root / self.kind / self.name / version
+            try:
+                os.rename(self.path, final)
+            except OSError:
+                if final.exists():
+                    continue
+                raise
+            self.committed = final
+            return final
+        raise RuntimeError(f"could not commit {self.kind}/{self.name}: no free version after 1000 tries")
 
     def abandon(self) -> None:
         shutil.rmtree(self.path, ignore_errors=True)
