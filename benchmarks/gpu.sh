@@ -50,7 +50,7 @@ case "$phase" in
     tar -C /tmp -cf /tmp/o_dataset.tar o/dataset && ls -la /tmp/o_dataset.tar ;;
   table2)  # paper Table 2: graph model sort x noise x 128/256 points, PointNet 512/2048, on the merged set
     G="scale=smoke device=cuda trainer=gpu outputs_root=/tmp/o logger=none progress=false trainer.max_epochs=30
-       model.num_layers=4 trainer.batch_size=16"
+       model.num_layers=4 trainer.batch_size=16 trainer.num_workers=0"
     timeout 330 python3 -m topocut.run -m hydra/launcher=joblib hydra.launcher.n_jobs=4 stage=pretrain \
       model.sort=false,true model.noise=false,true model.num_points=128,256 $G 2>&1 | grep -E "summary|Error" \
       | tee "$OUT/table2.txt"

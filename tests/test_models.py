@@ -246,3 +246,22 @@ def test_config_errors_name_key_and_valid_values():
         DynamicsConfig(hidden=30).validate()
     with pytest.raises(KeyError, match="'hiden'.*hidden"):
         DynamicsModule({"hiden": 32})
+
+
+def test_validation_logs_the_mask_rule_floor():
+    """val/mask_rule_acc: split each input cluster by the cut mask. Truth = that split -> 1; truth = no split
+    of a half/half mask -> 1/2 (Hungarian keeps the better half); truth = a split at 3/4 of the points -> 3/4
+    (the cut-off half matches the big piece: 32 points, the rest matches the small one: 16 of 32)."""
+    module = DynamicsModule(tiny_cfg())
+    logged = {}
+    module.log = lambda name, value, **kw: logged.__setitem__(name, float(value))  # no Trainer needed
+    N = 64
+    x = torch.rand(2, N, 3)
+    mask = (torch.arange(N) < N // 2).long().expand(2, N)  # first half cut off
+    other = (torch.arange(N) < 3 * N // 4).long().expand(2, N)
+    for f_t1, want in ((mask, 1.0), (torch.zeros(2, N, dtype=torch.long), 0.5), (other, 0.75)):
+        batch = {"x_t": x, "f_t": torch.zeros(2, N, dtype=torch.long), "mask": mask, "x_t1": x, "f_t1": f_t1,
+                 "seen": torch.tensor([True, False])}
+        module.validation_step(batch, 0)
+        assert logged["val/mask_rule_acc"] == pytest.approx(want)
+        assert logged["val/mask_rule_acc_seen"] == logged["val/mask_rule_acc_unseen"] == pytest.approx(want)

@@ -94,6 +94,39 @@ def test_piecewise_reward_matches_the_paper_formula():
         spectral_distance(box(0.02, 0.02, 0.02), box(0.02, 0.02, 0.02), RewardConfig(gamma=2.0, delta=1.0))
 
 
+def test_delta_calibration_a_slab_half_again_too_thick_earns_nothing():
+    """docs/reward.md#calibration: with the default delta, R(d(slice6 | slice4)) ~ 0, R(slice4 | slice3) > 0.75."""
+    from topocut.reward.experiments import shape_gallery
+
+    g, cfg = shape_gallery(), RewardConfig()
+    R = {(a, b): piecewise_reward(spectral_distance(g[a], g[b], cfg), cfg)
+         for a, b in (("slice3", "slice3"), ("slice4", "slice3"), ("slice6", "slice4"), ("slice6", "slice3"))}
+    assert R["slice3", "slice3"] == pytest.approx(cfg.r_max - cfg.gamma * 0.0, abs=1e-3)
+    assert R["slice4", "slice3"] > 0.75  # 1.33x the goal thickness: most of the credit
+    assert R["slice6", "slice4"] < 0.2 and R["slice6", "slice3"] == 0.0  # 1.5x: almost none, 2x: none
+    assert cfg.tau + (cfg.r_max - cfg.gamma * cfg.tau) / cfg.delta < 0.12  # R reaches 0 before d = 0.12
+
+
+def test_wrong_cut_that_crosses_a_good_slab_lowers_the_total():
+    """Paper Q1 on hand-built slabs: a yawed 4th-plane cut that runs into slab 2 scores below the state
+    before it; the right cut scores above both."""
+    t, W, Z = 3 * H, 12 * H, 8 * H
+    block = box(8 * t, W, Z, 11)
+    x, y = block[:, 0], block[:, 1]
+
+    def pieces(*planes):  # each plane: x position as a function of y; a point lies past it if x >= that
+        lab = sum((x >= p(y)).astype(int) for p in planes)
+        return [block[lab == i] for i in np.unique(lab)]
+
+    at = lambda c: (lambda yy: np.full_like(yy, c))  # noqa: E731
+    yawed = lambda yy: 3 * t + (yy - W / 2) * np.tan(np.deg2rad(50))  # noqa: E731
+    goal = [box(t, W, Z, s) for s in (1, 2, 3)]
+    before, right, wrong = pieces(at(t), at(2 * t)), pieces(at(t), at(2 * t), at(3 * t)), pieces(at(t), at(2 * t), yawed)
+    assert len(wrong[1]) < len(right[1])  # the yawed plane took material off the second slab
+    r = {k: spectral_reward(v, goal, CFG).total for k, v in (("before", before), ("right", right), ("wrong", wrong))}
+    assert r["right"] > r["before"] + 0.2 and r["wrong"] < r["before"] - 0.05
+
+
 def test_matching_is_order_invariant_and_bounded():
     D = np.array([[0.5, 0.1, 3.0], [0.2, 0.9, 0.4], [np.inf, np.inf, np.inf], [0.3, 0.2, 0.1]])
     pairs = match(D)

@@ -29,4 +29,4 @@ def test_rows_follow_configs_and_reruns_keep_the_newest(tmp_path):
     assert rows[1]["seen"] == 0.9 and rows[1]["version"] == "perception/v003" and rows[1]["unseen"] is None
     assert rows[2]["parameters"] == 99 and rows[0]["chamfer"] == 0.004
     text = markdown(rows)
-    assert text.count("\n") == 2 + 3 and "| pointnet | yes | yes | 512 | 0.800 | 0.750 |" in text
+    assert text.count("\n") == 2 + 3 and "| pointnet | yes | yes | 512 | 0.800 | 0.750 | — | — |" in text

@@ -5,7 +5,9 @@ L = λ_pos (CD + EMD + HD) + λ_topo L_topo, AdamW and a linear-warmup cosine sc
 plain-typed fields of ``DynamicsConfig`` are saved as hyperparameters, so a checkpoint loads without
 unpickling project classes (``torch.load(weights_only=True)``).
 Logged: train/loss, train/loss_pos, train/loss_topo, val/loss, val/cluster_acc, val/chamfer and, when
-the batch holds them, val/cluster_acc_seen and val/cluster_acc_unseen (held-out objects).
+the batch holds them, val/cluster_acc_seen and val/cluster_acc_unseen (held-out objects).  Beside them,
+val/mask_rule_acc{,_seen,_unseen}: the accuracy of a rule with no learning, "each input cluster splits
+along the cut mask" (ids f_t * 2 + mask), the floor a learned F has to beat (docs/perception.md).
 """
 from __future__ import annotations
 
@@ -67,13 +69,16 @@ class DynamicsModule(L.LightningModule):
         pred_x, logits, losses = self._step(batch)
         bs = batch["x_t"].shape[0]
         acc = cluster_accuracy(logits.argmax(-1), batch["f_t1"].long()).float()  # B
+        rule = cluster_accuracy(batch["f_t"].long() * 2 + batch["mask"].long(), batch["f_t1"].long()).float()  # B
         self.log("val/loss", losses["loss"], batch_size=bs)
         self.log("val/cluster_acc", acc.nanmean(), prog_bar=True, batch_size=bs)
         self.log("val/chamfer", chamfer(pred_x, batch["x_t1"]).mean(), batch_size=bs)  # scene units
         seen = batch.get("seen", torch.ones(bs, dtype=torch.bool, device=acc.device)).bool()
+        self.log("val/mask_rule_acc", rule.nanmean(), batch_size=bs)
         for name, sel in (("seen", seen), ("unseen", ~seen)):
             if sel.any():
                 self.log(f"val/cluster_acc_{name}", acc[sel].nanmean(), batch_size=int(sel.sum()))
+                self.log(f"val/mask_rule_acc_{name}", rule[sel].nanmean(), batch_size=int(sel.sum()))
 
     def configure_optimizers(self):
         opt = torch.optim.AdamW(self.parameters(), lr=self.cfg.lr, weight_decay=self.cfg.weight_decay)

@@ -19,7 +19,8 @@ from pathlib import Path
 
 from topocut.data.store import ArtifactStore
 
-COLUMNS = ("model", "sort", "noise", "points", "seen", "unseen", "chamfer", "parameters", "dataset", "version")
+COLUMNS = ("model", "sort", "noise", "points", "seen", "unseen", "rule_seen", "rule_unseen", "chamfer", "parameters",
+           "dataset", "version")
 
 
 def collect(root: str | Path) -> list[dict]:
@@ -35,6 +36,8 @@ def collect(root: str | Path) -> list[dict]:
             row = {"model": model.get("model", "?"), "sort": bool(model.get("sort")),
                    "noise": bool(model.get("noise")), "points": int(model.get("num_points", 0)),
                    "seen": metrics.get("val/cluster_acc_seen"), "unseen": metrics.get("val/cluster_acc_unseen"),
+                   "rule_seen": metrics.get("val/mask_rule_acc_seen"),
+                   "rule_unseen": metrics.get("val/mask_rule_acc_unseen"),  # no-learning floor (module.py)
                    "chamfer": metrics.get("val/chamfer"),
                    "parameters": (manifest.get("summary") or {}).get("parameters"),
                    "dataset": ",".join(manifest.get("inputs", {}).values()) if isinstance(manifest.get("inputs"), dict)

@@ -25,9 +25,11 @@ class RewardConfig:
     r_max: float = 1.0
     gamma: float = 1.0
     tau: float = 0.01
-    delta: float = 5.0
+    # delta = 10 puts R = 0 at d = 0.11, the distance of a slab to one 1.5x as thick (docs/reward.md#calibration);
+    # with 5, a slab twice too thick still earned ~0.5 and a wrong cut could raise the total (Q1)
+    delta: float = 10.0
     kappa: float | None = None  # total = kappa * sum_i R(d_i); None: 1 / (number of goal pieces)
-    # a matched piece counts as a correct cut (N_C) if d <= this, i.e. R(d) >= 0.79 with the defaults;
+    # a matched piece counts as a correct cut (N_C) if d <= this, i.e. R(d) >= 0.59 with the defaults;
     # None: tau (R >= 0.99), which no simulated cut reaches (see docs/reward.md)
     success_distance: float | None = 0.05
     backend: str = "scipy"  # "scipy" (sparse shift-invert eigsh, CPU) or "torch" (batched dense eigh)
