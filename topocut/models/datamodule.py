@@ -131,13 +131,19 @@ class EpisodeDataModule(L.LightningDataModule):
         self.val_set = ConcatDataset([p for p in parts if len(p)]) if any(len(p) for p in parts) else None
 
     def train_dataloader(self) -> DataLoader:
+        from topocut.utils.training import worker_context
+
         return DataLoader(self.train_set, batch_size=self.batch_size, shuffle=True, num_workers=self.num_workers,
-                          drop_last=len(self.train_set) > self.batch_size, persistent_workers=self.num_workers > 0)
+                          drop_last=len(self.train_set) > self.batch_size, persistent_workers=self.num_workers > 0,
+                          multiprocessing_context=worker_context(self.num_workers))
 
     def val_dataloader(self):
         if self.val_set is None:
             return []
-        return DataLoader(self.val_set, batch_size=self.batch_size, shuffle=False, num_workers=self.num_workers)
+        from topocut.utils.training import worker_context
+
+        return DataLoader(self.val_set, batch_size=self.batch_size, shuffle=False, num_workers=self.num_workers,
+                          multiprocessing_context=worker_context(self.num_workers))
 
 
 def synthetic_steps(num_steps: int, num_points: int = 512, seed: int = 0, board_z: float = 0.05,

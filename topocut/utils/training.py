@@ -82,3 +82,18 @@ def split_episodes(objects: list[str], val_fraction: float, seed: int, held_out=
         n_val = max(n_val, 1)
     n_val = min(n_val, max(len(seen) - 1, 0))
     return {"train": sorted(seen[n_val:].tolist()), "val": sorted(seen[:n_val].tolist()), "unseen": unseen}
+
+
+def worker_context(num_workers: int):
+    """multiprocessing context for DataLoader workers (None: torch's default).
+
+    Inside a worker of Hydra's joblib launcher the default start method is loky's, whose Process torch's
+    DataLoader cannot start ("'Process' object has no attribute 'env'", then Lightning's "Please call
+    `iter(combined_loader)` first"); there we ask for the platform's standard method instead.
+    """
+    import multiprocessing as mp
+    import sys
+
+    if num_workers <= 0 or mp.get_start_method(allow_none=True) in (None, "fork", "spawn", "forkserver"):
+        return None
+    return mp.get_context("fork" if sys.platform.startswith("linux") else "spawn")
