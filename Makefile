@@ -8,7 +8,7 @@ TASK    ?= slice
 SCALE   ?= smoke
 RUN     := $(BIN)/python -m topocut.run scale=$(SCALE) task=$(TASK)
 
-.PHONY: setup run test lint bench simulate mppi teleop pretrain bc eval sweep paper-data clean-outputs
+.PHONY: setup run test lint bench simulate mppi teleop pretrain bc eval sweep paper-data table2 clean-outputs
 
 setup: $(STAMP)
 
@@ -53,6 +53,14 @@ paper-data: setup
 	$(BIN)/python -m topocut.run -m scale=paper stage=mppi task=slice,stick,dice \
 		object=cake,cube,ditto,ham,potato seed=0,1,2,3 hydra/launcher=joblib $(ARGS)
 	$(BIN)/python -m topocut.run scale=paper stage=merge $(ARGS)
+
+# Paper Table 2: graph model sort x noise x 128/256 points and PointNet, on the latest dataset, then the table.
+table2: setup
+	$(BIN)/python -m topocut.run -m stage=pretrain scale=$(SCALE) model.sort=false,true model.noise=false,true \
+		model.num_points=128,256 hydra/launcher=joblib $(ARGS)
+	$(BIN)/python -m topocut.run -m stage=pretrain scale=$(SCALE) model=pointnet model.sort=false,true \
+		model.num_points=512 hydra/launcher=joblib $(ARGS)
+	$(BIN)/python -m topocut.models.table2 --root outputs
 
 clean-outputs:
 	rm -rf outputs multirun
