@@ -3,12 +3,19 @@
 The full model is CuttingEnv cutting a cube (two materials, damage, von Mises
 skin, oscillating SDF knife, board friction).  The reference is mpm3d.py's
 shape in the same process, same particles, grid and batch: one fixed-corotated
-material (SVD every step), gravity, walls, no knife and no damage.
+material (SVD every step), gravity, walls, no knife and no damage.  It is timed
+two ways: as mpm3d.py runs it (one kernel of four loops per substep, "mpm3d")
+and as three kernels per substep ("ref3", the shape the full model's phases have).
 
     python benchmarks/sim_throughput.py --device cpu --quick
-    python benchmarks/sim_throughput.py --device cuda          # 64^3 and 128^3, B = 1 and 16
+    python benchmarks/sim_throughput.py --device cuda     # 64^3, 84^3 (~20k particles), 128^3; B = 1 and 16
 
-Prints particle-substeps/s, the ratio full/reference and the batching gain B_max/B_1.
+Prints per case the wall time per substep, particle-substeps/s, the ratios full/mpm3d
+and full/ref3, the first-run compile time (warm-up; the offline cache hides it on reruns)
+and per grid the batching gain B_max/B_1.  ``--fuse 1`` times the full model with one
+Python call per phase (the path before kernel graphs), ``--profile`` adds Taichi's
+kernel profiler (device time per offloaded task; it syncs after each launch, so the
+wall times of that run are not comparable).
 """
 import argparse
 import time
@@ -43,8 +50,8 @@ class ReferenceMPM:
         self.x.from_numpy(np.broadcast_to(x.astype(np.float32), (B, self.N, 3)).copy())
         self.F.from_numpy(np.broadcast_to(np.eye(3, dtype=np.float32), (B, self.N, 3, 3)).copy())
 
-    @ti.kernel
-    def p2g(self):
+    @ti.func
+    def scatter(self):
         for I in ti.grouped(self.grid_m):
             self.grid_v[I] = ti.Vector.zero(ti.f32, 3)
             self.grid_m[I] = 0.0
@@ -65,8 +72,8 @@ class ReferenceMPM:
                 self.grid_v[b, base + off] += weight * (self.mass * self.v[b, p] + affine @ dpos)
                 self.grid_m[b, base + off] += weight * self.mass
 
-    @ti.kernel
-    def grid_op(self):
+    @ti.func
+    def update_grid(self):
         for b, i, j, k in self.grid_m:
             if self.grid_m[b, i, j, k] > 0:
                 v = self.grid_v[b, i, j, k] / self.grid_m[b, i, j, k]
@@ -79,8 +86,8 @@ class ReferenceMPM:
                         v[d] = 0
                 self.grid_v[b, i, j, k] = v
 
-    @ti.kernel
-    def g2p(self):
+    @ti.func
+    def gather(self):
         for b, p in self.x:
             Xp = self.x[b, p] * self.inv_dx
             base = ti.cast(Xp - 0.5, ti.i32)
@@ -97,58 +104,100 @@ class ReferenceMPM:
             self.v[b, p], self.C[b, p] = new_v, new_C
             self.x[b, p] += self.dt * new_v
 
-    def run(self, steps: int) -> float:
+    @ti.kernel
+    def substep(self):  # mpm3d.py: the whole substep is one kernel
+        self.scatter()
+        self.update_grid()
+        self.gather()
+
+    @ti.kernel
+    def p2g(self):
+        self.scatter()
+
+    @ti.kernel
+    def grid_op(self):
+        self.update_grid()
+
+    @ti.kernel
+    def g2p(self):
+        self.gather()
+
+    def run(self, steps: int, one_kernel: bool) -> float:
+        phases = (self.substep,) if one_kernel else (self.p2g, self.grid_op, self.g2p)
         for _ in range(3):  # compile
-            self.p2g(), self.grid_op(), self.g2p()
+            for f in phases:
+                f()
         ti.sync()
         t = time.perf_counter()
         for _ in range(steps):
-            self.p2g()
-            self.grid_op()
-            self.g2p()
+            for f in phases:
+                f()
         ti.sync()
         return self.B * self.N * steps / (time.perf_counter() - t)
 
 
-def full_model(n_grid: int, B: int, arch: str) -> tuple[float, int, int]:
-    """(particle-substeps/s, particles per scene, substeps) of one batched cut through a cube."""
-    env = CuttingEnv(SimConfig(n_grid=n_grid, batch_size=B, arch=arch, dwell_substeps=0))
+def full_model(n_grid: int, B: int, arch: str, fuse: int | None, rotation: str, profile: bool = False) -> dict:
+    """Rate, wall time per substep, particles, substeps and warm-up time of one batched cut through a cube."""
+    kw = {} if fuse is None else {"fuse_substeps": fuse}
+    t = time.perf_counter()
+    env = CuttingEnv(SimConfig(n_grid=n_grid, batch_size=B, arch=arch, dwell_substeps=0, core_rotation=rotation,
+                               **kw))
     env.reset("cube")
-    env.simulate(3)  # compile
-    env.cut(KnifeAction(0.5, 0.5, depth=0.002))  # compile the knife path
+    env.simulate(3)  # compile the phases
+    env.cut(KnifeAction(0.5, 0.5, depth=0.002))  # knife path and the kernel graph
     env.reset("cube")
     ti.sync()
+    warmup = time.perf_counter() - t
+    if profile:
+        ti.profiler.clear_kernel_profiler_info()
     info = env.cut([KnifeAction(0.5 + 0.02 * b / max(B - 1, 1), 0.5, yaw=0.1 * b) for b in range(B)])
-    rate = B * env.n * info.substeps / info.wall_time
-    n, steps = env.n, info.substeps
+    out = dict(rate=B * env.n * info.substeps / info.wall_time, us=info.wall_time / info.substeps * 1e6, n=env.n,
+               steps=info.substeps, warmup=warmup)
     env.solver.destroy()
-    return rate, n, steps
+    return out
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
-    ap.add_argument("--quick", action="store_true", help="small grid and batch for a CPU smoke run")
+    ap.add_argument("--quick", action="store_true", help="small grids and batch for a CPU smoke run")
+    ap.add_argument("--grids", type=int, nargs="+", help="n_grid values (default 64 84 128; quick 24 32)")
+    ap.add_argument("--batches", type=int, nargs="+", help="batch sizes (default 1 16; quick 1 4)")
+    ap.add_argument("--fuse", type=int, default=None, help="sim.fuse_substeps (default: SimConfig's)")
+    ap.add_argument("--rotation", default="auto", help="sim.core_rotation: auto | polar | svd")
+    ap.add_argument("--profile", action="store_true", help="print Taichi's kernel profiler per case")
     args = ap.parse_args()
+    if args.profile:
+        ti.init(arch=ti.cuda if args.device == "cuda" else ti.cpu, kernel_profiler=True, offline_cache=True,
+                log_level=ti.WARN)
     init_taichi(args.device)
-    grids, batches = ((32,), (1, 4)) if args.quick else ((64, 128), (1, 16))
-    print(f"device={args.device}  grids={grids}  batches={batches}")
-    print(f"{'grid':>5} {'B':>3} {'N':>7} {'steps':>6} {'full p-steps/s':>15} {'ref p-steps/s':>14} {'full/ref':>9}")
+    grids = args.grids or ((24, 32) if args.quick else (64, 84, 128))
+    batches = args.batches or ((1, 4) if args.quick else (1, 16))
+    print(f"device={args.device}  grids={grids}  batches={batches}  fuse={args.fuse or SimConfig().fuse_substeps}"
+          f"  rotation={SimConfig(arch=args.device, core_rotation=args.rotation).core_rotation_method()}")
+    print(f"{'grid':>5} {'B':>3} {'N':>7} {'steps':>6} {'us/substep':>10} {'full p-st/s':>12} {'mpm3d p-st/s':>13} "
+          f"{'ref3 p-st/s':>12} {'full/mpm3d':>10} {'full/ref3':>9} {'warm-up s':>9}")
     rates = {}
     for g in grids:
         for B in batches:
-            full, n, steps = full_model(g, B, args.device)
+            f = full_model(g, B, args.device, args.fuse, args.rotation, args.profile)
+            if args.profile:
+                print(f"-- kernel profile of the timed cut, full model, grid {g}, B {B}")
+                ti.profiler.print_kernel_profiler_info()
             cfg = SimConfig(n_grid=g)
             x, _ = sample_object("cube", spacing=cfg.spacing)
             ref_model = ReferenceMPM(x, B, g, cfg.effective_dt(), cfg.spacing)
-            ref = ref_model.run(steps)
+            mpm3d = ref_model.run(f["steps"], one_kernel=True)
+            ref3 = ref_model.run(f["steps"], one_kernel=False)
             ref_model.tree.destroy()
-            rates[g, B] = (full, ref)
-            print(f"{g:>5} {B:>3} {n:>7} {steps:>6} {full:>15.3e} {ref:>14.3e} {full / ref:>9.3f}")
+            rates[g, B] = (f["rate"], mpm3d, ref3)
+            print(f"{g:>5} {B:>3} {f['n']:>7} {f['steps']:>6} {f['us']:>10.1f} {f['rate']:>12.3e} {mpm3d:>13.3e} "
+                  f"{ref3:>12.3e} {f['rate'] / mpm3d:>10.3f} {f['rate'] / ref3:>9.3f} {f['warmup']:>9.1f}", flush=True)
+    b0, b1 = batches[0], batches[-1]
     for g in grids:
-        (f1, r1), (fb, rb) = rates[g, batches[0]], rates[g, batches[-1]]
-        print(f"grid {g}: batching gain B{batches[-1]}/B{batches[0]} (per particle-substep): "
-              f"full {fb / f1:.2f}x, reference {rb / r1:.2f}x")
+        (f0, m0, r0), (f1, m1, r1) = rates[g, b0], rates[g, b1]
+        print(f"grid {g}: batching gain B{b1}/B{b0} (per particle-substep): full {f1 / f0:.2f}x, "
+              f"mpm3d {m1 / m0:.2f}x, ref3 {r1 / r0:.2f}x")
 
 
 if __name__ == "__main__":

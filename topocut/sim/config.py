@@ -7,6 +7,7 @@ from dataclasses import dataclass
 PUSH_MODES = ("separate", "press", "settle", "none")
 KNIFE_MODES = ("wedge", "sticky")
 ARCHS = ("cpu", "cuda")
+ROTATIONS = ("auto", "polar", "svd")
 
 
 @dataclass
@@ -18,6 +19,8 @@ class SimConfig:
     particle_spacing: float | None = None  # lattice spacing; None = half a grid cell
     batch_size: int = 1  # B independent scenes simulated together
     arch: str = "cpu"
+    fuse_substeps: int = 16  # substeps per Python call in simulate() (a kernel graph); 1 = a call per phase
+    core_rotation: str = "auto"  # healthy core's R: polar (Newton) | svd | auto = polar on cpu, svd on cuda
     # -- materials (0: plasto-elastic core, 1: von Mises skin) -------------------
     mu: float = 2083.33
     lam: float = 1388.89
@@ -85,6 +88,13 @@ class SimConfig:
         """Largest stable substep: dx / (wave speed + knife speed)."""
         return self.dx / (self.wave_speed() + self.max_knife_speed())
 
+    def core_rotation_method(self) -> str:
+        """'svd' on a GPU: skin and core particles share warps, which would otherwise run both the SVD
+        (skin, damaged) and the polar iteration (healthy core); on a CPU the cheaper polar iteration wins."""
+        if self.core_rotation != "auto":
+            return self.core_rotation
+        return "svd" if self.arch == "cuda" else "polar"
+
     def effective_dt(self) -> float:
         return self.dt if self.dt is not None else self.cfl * self.cfl_bound()
 
@@ -100,6 +110,10 @@ class SimConfig:
             bad("knife_mode", f"{self.knife_mode!r}; valid: {', '.join(KNIFE_MODES)}")
         if self.push_mode not in PUSH_MODES:
             bad("push_mode", f"{self.push_mode!r}; valid: {', '.join(PUSH_MODES)}")
+        if self.core_rotation not in ROTATIONS:
+            bad("core_rotation", f"{self.core_rotation!r}; valid: {', '.join(ROTATIONS)}")
+        if not 1 <= self.fuse_substeps <= 256:
+            bad("fuse_substeps", f"{self.fuse_substeps} must lie in [1, 256]")
         if self.batch_size < 1:
             bad("batch_size", f"{self.batch_size} must be >= 1")
         if not 0 < self.cfl <= 1:

@@ -2,8 +2,11 @@
 
 Written in the style of Taichi's mpm3d.py: fields x, v, C, F, Jp, grid_v,
 grid_m, each with a leading batch axis b (B independent scenes in one set of
-fields), one kernel launch per phase (p2g, grid_op, g2p); ``substep`` composes
-them in Python.  Jp holds J_p = det F_p, the quantity the damage rule reads.
+fields).  Each phase is a @ti.func holding one top-level loop; the kernels
+p2g, grid_op, g2p launch one phase each.  ``substep`` calls them from Python
+(tools can act on the grid in between); ``advance`` runs k substeps of them
+through a ti.graph, one Python call for all.  Jp holds J_p = det F_p, the
+quantity the damage rule reads.
 
 Per particle: material (0 core, 1 skin), damage (0/1, permanent) and the
 skin's current yield stress.  Per scene: the knife (an oriented box, one
@@ -12,6 +15,7 @@ SDF evaluation per grid node) and the push plane.
 
 
 import math
+import warnings
 
 import taichi as ti
 
@@ -55,6 +59,7 @@ class MPMSolver:
 
     def __init__(self, cfg: SimConfig, B: int, capacity: int):
         self.cfg, self.B, self.capacity = cfg, B, capacity
+        self.rotation = cfg.core_rotation_method()
         n = self.n_grid = cfg.n_grid
         self.dx, self.inv_dx, self.dt = 1.0 / n, float(n), cfg.effective_dt()
         self.vol = cfg.spacing ** 3
@@ -83,6 +88,8 @@ class MPMSolver:
                                 self.push_n, self.push_p, self.bad_step)
         self.tree = fb.finalize()
         self.bad_step.fill(2 ** 30)
+        self.p2g, self.grid_op, self.g2p = self._phase_kernels()
+        self._graphs = {}  # k -> compiled ti.graph of k substeps
 
     def destroy(self) -> None:
         self.tree.destroy()
@@ -128,27 +135,48 @@ class MPMSolver:
         base = ti.cast(xp * self.inv_dx - 0.5, ti.i32)
         return ti.max(ti.min(base, self.n_grid - 3), 0)  # keeps a NaN particle inside memory bounds
 
-    # -- the three phases ------------------------------------------------------------
-    @ti.kernel
-    def p2g(self, n: ti.i32, step: ti.i32, push_accel: ti.f32):
+    # -- the phases as funcs: each is one top-level loop (one offloaded task) wherever it is inlined ----
+    # Loops run over the constant capacity (not the particle count n) so no serial task computes their
+    # bounds at launch; scalar arguments are ti.template() so that no serial task stores them either.
+    @ti.func
+    def clear_grid(self):
         for I in ti.grouped(self.grid_m):
             self.grid_v[I] = ti.Vector.zero(ti.f32, 3)
             self.grid_m[I] = 0.0
-        for b, p in ti.ndrange(self.B, n):
-            base = self.base_node(self.x[b, p])
-            fx = self.x[b, p] * self.inv_dx - base.cast(ti.f32)
-            w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1) ** 2, 0.5 * (fx - 0.5) ** 2]
-            F = (ti.Matrix.identity(ti.f32, 3) + self.dt * self.C[b, p]) @ self.F[b, p]
-            J = F.determinant()
-            if J <= self.jc or J >= self.js:
-                self.damage[b, p] = 1
-            if not (self.cfg.j_min < J < self.cfg.j_max):  # also catches NaN
-                ti.atomic_min(self.bad_step[b], step)
-            mat = self.material[p]
-            scale = 1.0
-            R = ti.Matrix.identity(ti.f32, 3)
-            if self.damage[b, p] == 1:
-                scale = self.cfg.damaged_stiffness
+
+    @ti.func
+    def scatter(self, n: ti.template(), step: ti.template(), push_accel: ti.template()):
+        for b, p in ti.ndrange(self.B, self.capacity):
+            if p < n:
+                self.scatter_particle(b, p, step, push_accel)
+
+    @ti.func
+    def scatter_particle(self, b, p, step, push_accel):
+        base = self.base_node(self.x[b, p])
+        fx = self.x[b, p] * self.inv_dx - base.cast(ti.f32)
+        w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1) ** 2, 0.5 * (fx - 0.5) ** 2]
+        F = (ti.Matrix.identity(ti.f32, 3) + self.dt * self.C[b, p]) @ self.F[b, p]
+        J = F.determinant()
+        if J <= self.jc or J >= self.js:
+            self.damage[b, p] = 1
+        if not (self.cfg.j_min < J < self.cfg.j_max):  # also catches NaN
+            ti.atomic_min(self.bad_step[b], step)
+        mat = self.material[p]
+        scale = 1.0
+        R = ti.Matrix.identity(ti.f32, 3)
+        if self.damage[b, p] == 1:
+            scale = self.cfg.damaged_stiffness
+        if ti.static(self.rotation == "svd"):  # one SVD for every particle: a GPU warp runs one path
+            U, sig, V = ti.svd(F)
+            R = U @ V.transpose()
+            if mat == 1 or self.damage[b, p] == 1:
+                if mat == 1:
+                    sig = self.von_mises_return(sig, b, p, scale)
+                else:
+                    sig = self.damaged_flow(sig)
+                F = U @ sig @ V.transpose()
+                J = sig[0, 0] * sig[1, 1] * sig[2, 2]
+        else:
             if mat == 1 or self.damage[b, p] == 1:  # plastic: needs the singular values
                 U, sig, V = ti.svd(F)
                 if mat == 1:
@@ -160,23 +188,23 @@ class MPMSolver:
                 J = sig[0, 0] * sig[1, 1] * sig[2, 2]
             else:  # healthy core: elastic only
                 R = self.polar_rotation(F)
-            self.F[b, p] = F
-            self.Jp[b, p] = J
-            tau = self.fixed_corotated(F, R, J, scale)
-            mass = self.vol * (self.cfg.rho_skin if mat == 1 else self.cfg.rho_core)
-            stress = -self.dt * self.vol * 4 * self.inv_dx * self.inv_dx * tau
-            affine = stress + mass * self.C[b, p]
-            mom = mass * self.v[b, p]
-            if push_accel != 0:  # 'separate' push: each side of the last cut is pushed away from it
-                side = ti.math.sign((self.x[b, p] - self.push_p[b]).dot(self.push_n[b]))
-                nh = ti.Vector([self.push_n[b][0], self.push_n[b][1], 0.0])
-                if nh.norm() > 1e-6:  # scenes without a cut have a zero normal
-                    mom += mass * self.dt * push_accel * side * nh.normalized()
-            for off in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
-                dpos = (off.cast(ti.f32) - fx) * self.dx
-                weight = w[off[0]][0] * w[off[1]][1] * w[off[2]][2]
-                self.grid_v[b, base + off] += weight * (mom + affine @ dpos)
-                self.grid_m[b, base + off] += weight * mass
+        self.F[b, p] = F
+        self.Jp[b, p] = J
+        tau = self.fixed_corotated(F, R, J, scale)
+        mass = self.vol * (self.cfg.rho_skin if mat == 1 else self.cfg.rho_core)
+        stress = -self.dt * self.vol * 4 * self.inv_dx * self.inv_dx * tau
+        affine = stress + mass * self.C[b, p]
+        mom = mass * self.v[b, p]
+        if push_accel != 0:  # 'separate' push: each side of the last cut is pushed away from it
+            side = ti.math.sign((self.x[b, p] - self.push_p[b]).dot(self.push_n[b]))
+            nh = ti.Vector([self.push_n[b][0], self.push_n[b][1], 0.0])
+            if nh.norm() > 1e-6:  # scenes without a cut have a zero normal
+                mom += mass * self.dt * push_accel * side * nh.normalized()
+        for off in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
+            dpos = (off.cast(ti.f32) - fx) * self.dx
+            weight = w[off[0]][0] * w[off[1]][1] * w[off[2]][2]
+            self.grid_v[b, base + off] += weight * (mom + affine @ dpos)
+            self.grid_m[b, base + off] += weight * mass
 
     @ti.func
     def knife_motion(self, b, t):
@@ -224,8 +252,8 @@ class MPMSolver:
             out = vk + vt + target * nrm
         return out
 
-    @ti.kernel
-    def grid_op(self, t: ti.f32, contact: ti.i32):
+    @ti.func
+    def update_grid(self, t: ti.template(), contact: ti.template()):
         for b, i, j, k in self.grid_m:
             m = self.grid_m[b, i, j, k]
             if m > 0:
@@ -236,17 +264,22 @@ class MPMSolver:
                     edge, vk = self.knife_motion(b, t)
                     sd, nrm = self.knife_sdf(b, pos, edge)
                     v_old = v
+                    touched = False
                     if contact == 0:  # wedge: a sharp blade splits material to either side, never pushes it ahead
                         side = self.k_n[b] * ti.math.sign((pos - edge).dot(self.k_n[b]) + 1e-12)
                         if sd < 0 or (sd < self.dx and ti.abs(nrm.dot(self.k_n[b])) > 0.5):
                             target = self.k_speed[b] * self.cfg.knife_wedge if sd < 0 else 0.0
                             v = self.collide(v, vk, side, target, self.cfg.knife_friction)
+                            touched = True
                     else:  # solid: nodes inside move with the body, a contact band around it slides with friction
                         if sd < 0:
                             v = vk
+                            touched = True
                         elif sd < self.dx:
                             v = self.collide(v, vk, nrm, 0.0, self.cfg.knife_friction)
-                    self.k_imp_step[b] += m * (v - v_old)
+                            touched = True
+                    if touched:  # only where the blade acted: atomics on one address contend on a GPU
+                        self.k_imp_step[b] += m * (v - v_old)
                 if ti.static(self.cfg.board):
                     if pos[2] <= self.cfg.board_z and v[2] < 0:
                         vt = ti.Vector([v[0], v[1], 0.0])
@@ -261,38 +294,102 @@ class MPMSolver:
                             v[d] = 0
                 self.grid_v[b, i, j, k] = v
 
-    @ti.kernel
-    def g2p(self, n: ti.i32, step: ti.i32, t: ti.f32):
-        for b in range(self.B):  # knife bookkeeping for the substep that grid_op just ran
-            if self.k_on[b] == 1:
-                imp = self.k_imp_step[b]
-                _, vk = self.knife_motion(b, t)
-                self.k_imp[b] += imp
-                self.k_work[b] += imp.dot(vk)
-                self.k_peak[b] = ti.max(self.k_peak[b], imp.norm() / self.dt)
-                self.k_imp_step[b] = ti.Vector.zero(ti.f32, 3)
-        for b, p in ti.ndrange(self.B, n):
-            base = self.base_node(self.x[b, p])
-            fx = self.x[b, p] * self.inv_dx - base.cast(ti.f32)
-            w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1) ** 2, 0.5 * (fx - 0.5) ** 2]
-            new_v = ti.Vector.zero(ti.f32, 3)
-            new_C = ti.Matrix.zero(ti.f32, 3, 3)
-            for off in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
-                dpos = (off.cast(ti.f32) - fx) * self.dx
-                weight = w[off[0]][0] * w[off[1]][1] * w[off[2]][2]
-                g_v = self.grid_v[b, base + off]
-                new_v += weight * g_v
-                new_C += 4 * self.inv_dx * self.inv_dx * weight * g_v.outer_product(dpos)
-            self.v[b, p], self.C[b, p] = new_v, new_C
-            xn = self.x[b, p] + self.dt * new_v
-            if not (xn.norm() < 10.0):  # NaN or escaped
-                ti.atomic_min(self.bad_step[b], step)
-            self.x[b, p] = xn
+    @ti.func
+    def gather(self, n: ti.template(), step: ti.template(), t: ti.template()):
+        for b, p in ti.ndrange(self.B, self.capacity):
+            if p == 0 and self.k_on[b] == 1:  # one thread per scene books the knife's impulse of this substep
+                self.record_knife(b, t)
+            if p < n:
+                self.gather_particle(b, p, step)
+
+    @ti.func
+    def record_knife(self, b, t):
+        imp = self.k_imp_step[b]
+        _, vk = self.knife_motion(b, t)
+        self.k_imp[b] += imp
+        self.k_work[b] += imp.dot(vk)
+        self.k_peak[b] = ti.max(self.k_peak[b], imp.norm() / self.dt)
+        self.k_imp_step[b] = ti.Vector.zero(ti.f32, 3)
+
+    @ti.func
+    def gather_particle(self, b, p, step):
+        base = self.base_node(self.x[b, p])
+        fx = self.x[b, p] * self.inv_dx - base.cast(ti.f32)
+        w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1) ** 2, 0.5 * (fx - 0.5) ** 2]
+        new_v = ti.Vector.zero(ti.f32, 3)
+        new_C = ti.Matrix.zero(ti.f32, 3, 3)
+        for off in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
+            dpos = (off.cast(ti.f32) - fx) * self.dx
+            weight = w[off[0]][0] * w[off[1]][1] * w[off[2]][2]
+            g_v = self.grid_v[b, base + off]
+            new_v += weight * g_v
+            new_C += 4 * self.inv_dx * self.inv_dx * weight * g_v.outer_product(dpos)
+        self.v[b, p], self.C[b, p] = new_v, new_C
+        xn = self.x[b, p] + self.dt * new_v
+        if not (xn.norm() < 10.0):  # NaN or escaped
+            ti.atomic_min(self.bad_step[b], step)
+        self.x[b, p] = xn
+
+    # -- kernels: one per phase (tools may act on the grid between grid_op and g2p) -------------------
+    def _phase_kernels(self):
+        """p2g, grid_op, g2p of this solver.  Free kernels, not methods: ti.graph dispatches only those."""
+        s = self
+
+        @ti.kernel
+        def p2g(n: ti.i32, step: ti.i32, push_accel: ti.f32):
+            s.clear_grid()
+            s.scatter(n, step, push_accel)
+
+        @ti.kernel
+        def grid_op(t: ti.f32, contact: ti.i32):
+            s.update_grid(t, contact)
+
+        @ti.kernel
+        def g2p(n: ti.i32, step: ti.i32, t: ti.f32):
+            s.gather(n, step, t)
+
+        return p2g, grid_op, g2p
 
     def substep(self, n: int, step: int, t: float = 0.0, push_accel: float = 0.0, contact: int = 0) -> None:
         self.p2g(n, step, push_accel)
         self.grid_op(t, contact)
         self.g2p(n, step, t)
+
+    def advance(self, n: int, step: int, ts, push_accel: float = 0.0, contact: int = 0) -> None:
+        """len(ts) substeps, numbered step, step + 1, ... at times ts, from one Python call.
+
+        Same kernels and arguments as len(ts) ``substep`` calls (so the same result bit for bit), but a
+        compiled ti.graph dispatches the 3 len(ts) launches from C++: no Python between them, no compile.
+        """
+        graph = self._graph(len(ts))
+        if graph is None:  # no kernel graphs on this backend: the same launches from Python
+            for j, t in enumerate(ts):
+                self.substep(n, step + j, t, push_accel, contact)
+            return
+        args = {"n": int(n), "push_accel": float(push_accel), "contact": int(contact)}
+        for j, t in enumerate(ts):
+            args[f"step{j}"], args[f"t{j}"] = int(step) + j, float(t)
+        graph.run(args)
+
+    def _graph(self, k: int):
+        if k not in self._graphs:
+            def arg(name, dtype):
+                return ti.graph.Arg(ti.graph.ArgKind.SCALAR, name, dtype)
+
+            try:
+                n, push, contact = arg("n", ti.i32), arg("push_accel", ti.f32), arg("contact", ti.i32)
+                g = ti.graph.GraphBuilder()
+                for j in range(k):
+                    step, t = arg(f"step{j}", ti.i32), arg(f"t{j}", ti.f32)
+                    g.dispatch(self.p2g, n, step, push)
+                    g.dispatch(self.grid_op, t, contact)
+                    g.dispatch(self.g2p, n, step, t)
+                self._graphs[k] = g.compile()
+            except Exception as e:  # noqa: BLE001 (any backend limitation: keep simulating, say so once)
+                warnings.warn(f"ti.graph unavailable ({type(e).__name__}: {e}); MPMSolver.advance falls back to "
+                              f"one Python call per phase", RuntimeWarning, stacklevel=3)
+                self._graphs[k] = None
+        return self._graphs[k]
 
     @ti.kernel
     def reset_knife_stats(self):
