@@ -4,15 +4,14 @@ particles -> SDF(x) = min_p |x - x_p| - r_p on a grid -> carve the knife sweep w
 through damaged material -> (keep earlier splits apart) -> marching cubes -> Laplacian smoothing
 -> connected components -> cluster id per particle -> ids consistent with the previous labels.
 
-Pieces are the connected components of the inside nodes (sdf < 0, 6-connected,
-scipy.ndimage.label) *united* with the marching-cubes mesh components: every MC
-vertex links its mesh component to the inside node of its grid edge, and the
-connected components of that bipartite graph are the pieces.  So the meshes and
-the voxel labels always agree, an inner shell (cavity) joins the piece that
-contains it, and a torus is one piece.  Particles are labelled through the
-voxel labelling (O(1) per particle); particles whose node is outside every kept
-piece (inside the carved gap, debris) take the piece of the nearest mesh vertex
-if it is closer than tau, else -1.  Warp is imported only when discover() runs.
+Every step runs as Warp kernels on ``device`` (CPU or CUDA); the inputs go up
+once and the labels come back once.  In between, only scalars and per-piece
+statistics cross to the host: the particle spacing and the number of carvers
+(they size the grid and a hash grid), marching cubes' vertex and face counts,
+the number of pieces, and K counts plus a K x L overlap matrix for the
+Hungarian id matching.  Per-piece trimesh meshes are built only when
+``TopologyResult.meshes`` is first read, so callers that need labels only
+(planning, evaluation) never pay for them.  See docs/topology.md.
 """
 from __future__ import annotations
 
@@ -24,18 +23,55 @@ import numpy as np
 
 from topocut.sim.action import KnifeSweep
 from topocut.topology.config import TopologyConfig
-from topocut.topology.tracking import match_labels
+from topocut.topology.tracking import assign_ids
 
 EXPORT_FORMATS = ("ply", "obj", "stl")
+STEPS = ("sdf", "carve", "marching_cubes", "smoothing", "components", "assignment", "tracking")
+MAX_DIRECT_IDS = 1 << 16  # previous ids up to this index the overlap matrix directly; larger ones are compacted
+
+
+@dataclass
+class PieceSurface:
+    """The smoothed marching-cubes surface on the device and which piece each vertex belongs to."""
+
+    verts: object  # warp vec3 (V,), smoothed
+    faces: object  # warp int32 (3F,)
+    vpiece: object  # warp int32 (V,), raw piece of each vertex (-1: dropped)
+    id_of: np.ndarray  # K, persistent id of each raw piece (-1: none)
+    counts: np.ndarray  # K, particles per raw piece
+
+    def meshes(self) -> dict:
+        import trimesh
+
+        from topocut.topology.mesh import oriented
+
+        v = self.verts.numpy().astype(np.float64).reshape(-1, 3)
+        f = oriented(v, self.faces.numpy().astype(np.int64).reshape(-1, 3))
+        fpiece = self.vpiece.numpy()[f[:, 0]]
+        out = {}
+        for k in range(len(self.id_of)):
+            if self.id_of[k] < 0 or self.counts[k] == 0:
+                continue  # a surface with no particles assigned to it (e.g. a thin shell) is no piece
+            used, inv = np.unique(f[fpiece == k], return_inverse=True)
+            out[int(self.id_of[k])] = trimesh.Trimesh(v[used], inv.reshape(-1, 3), process=False)
+        return out
 
 
 @dataclass
 class TopologyResult:
     labels: np.ndarray  # N, int32 cluster id per particle (-1 = unassigned)
-    meshes: dict  # id -> trimesh.Trimesh (smoothed surface of that piece)
     num_clusters: int
     timings: dict = field(default_factory=dict)  # step -> seconds
     next_id: int = 0  # first id never used so far in the episode (pass it to the next discover call)
+    surface: PieceSurface | None = field(default=None, repr=False)
+    _meshes: dict | None = field(default=None, repr=False)
+
+    @property
+    def meshes(self) -> dict:
+        """{id: trimesh.Trimesh}: smoothed closed surface of each piece (built on first access)."""
+        if self._meshes is None:
+            self._meshes = self.surface.meshes() if self.surface is not None else {}
+        return self._meshes
 
     def export(self, directory, fmt: str = "ply") -> list[Path]:
         """Write one mesh file per piece, ``piece_<id>.<fmt>``; returns the paths."""
@@ -65,20 +101,6 @@ def as_sweeps(knife_sweep) -> list[KnifeSweep]:
                      f"got {type(knife_sweep).__name__}")
 
 
-def particle_radius(x: np.ndarray, cfg: TopologyConfig) -> float:
-    if cfg.particle_radius is not None:
-        return float(cfg.particle_radius)
-    from scipy.spatial import cKDTree
-
-    sample = x if len(x) <= 20000 else x[np.linspace(0, len(x) - 1, 20000).astype(np.int64)]
-    # the 3rd-nearest-neighbour distance is the lattice spacing for a jittered lattice and close to the
-    # sampling spacing of the simulator's (blue-noise-like) object samples; the 1st is biased low by jitter
-    k = min(4, len(x))
-    d, _ = cKDTree(x).query(sample, k=k)
-    spacing = float(np.median(d[:, k - 1])) if len(x) > 1 else 0.01
-    return cfg.radius_factor * max(spacing, 1e-6)
-
-
 def snap_to_board(s: KnifeSweep, board_z: float | None, tol: float) -> KnifeSweep:
     """A sweep that stopped at (or within ``tol`` of) the board is extended ``tol`` through it.
 
@@ -94,37 +116,32 @@ def snap_to_board(s: KnifeSweep, board_z: float | None, tol: float) -> KnifeSwee
     return s
 
 
-def fill_voids(sdf: np.ndarray, max_voxels: int, value: float) -> None:
-    """Fill enclosed outside regions of at most ``max_voxels`` nodes (gaps between jittered particles).
-
-    Outside nodes not connected to the grid border are cavities; tiny ones are
-    sampling artefacts that would become bubble shells in the mesh, large ones
-    (a hollow object) are kept.
-    """
-    if max_voxels <= 0:
-        return
-    from scipy import ndimage
-
-    lab, n = ndimage.label(sdf >= 0)
-    if n <= 1:
-        return
-    border = np.unique(np.concatenate([lab[[0, -1]].ravel(), lab[:, [0, -1]].ravel(), lab[:, :, [0, -1]].ravel()]))
-    size = np.bincount(lab.ravel(), minlength=n + 1)
-    small = size <= max_voxels
-    small[0] = False
-    small[border] = False
-    if small.any():
-        sdf[small[lab]] = value
+def _previous(previous_labels, n: int, preserve_splits: bool):
+    """-> (prev (N,) int64 or None, column index per particle (N,) int32, old ids (L,) or None, used, split)."""
+    if previous_labels is None:
+        return None, None, None, 0, False
+    prev = np.asarray(previous_labels).reshape(-1).astype(np.int64)
+    if prev.shape[0] != n:
+        raise ValueError(f"previous_labels has {prev.shape[0]} entries, positions has {n}")
+    used = int(prev.max()) + 1 if n else 0
+    old = prev[prev >= 0]
+    split = preserve_splits and old.size > 0 and old.min() != old.max()  # several earlier pieces
+    if used <= MAX_DIRECT_IDS:
+        return prev, prev.astype(np.int32), None, used, split
+    old_ids, col = np.unique(old, return_inverse=True)  # huge ids: compact them for the overlap matrix
+    idx = np.full(n, -1, np.int32)
+    idx[prev >= 0] = col.ravel()
+    return prev, idx, old_ids, used, split
 
 
 def discover(positions, damage, knife_sweep, previous_labels=None, cfg: TopologyConfig | None = None,
              device: str = "cpu", next_id: int | None = None) -> TopologyResult:
     """Cluster id per particle after a cut.  positions (N,3), damage (N,) bool; see module docstring."""
-    from scipy import ndimage
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-    from scipy.spatial import cKDTree
+    import warp as wp
 
+    from topocut.topology import assign as A
+    from topocut.topology import carve as C
+    from topocut.topology import components as CC
     from topocut.topology import mesh as M
     from topocut.topology import sdf as S
 
@@ -133,144 +150,88 @@ def discover(positions, damage, knife_sweep, previous_labels=None, cfg: Topology
     timings: dict[str, float] = {}
     t_all = t = time.perf_counter()
 
-    def lap(name):
+    def lap(name):  # the device runs ahead of Python: wait for it so that each step gets its own time
         nonlocal t
+        wp.synchronize_device(device)
         now = time.perf_counter()
         timings[name] = timings.get(name, 0.0) + now - t
         t = now
 
-    x = np.asarray(positions, np.float64).reshape(-1, 3)  # N,3
+    x = np.asarray(positions)
+    x = (x if x.dtype in (np.float32, np.float64) else x.astype(np.float64)).reshape(-1, 3)  # N,3
     n = len(x)
     dmg = np.zeros(n, bool) if damage is None else np.asarray(damage, bool).reshape(-1)
     if dmg.shape[0] != n:
         raise ValueError(f"damage has {dmg.shape[0]} entries, positions has {n}")
+    prev, prev_idx, old_ids, used, split = _previous(previous_labels, n, cfg.preserve_splits)
     if n == 0:
-        return TopologyResult(np.zeros(0, np.int32), {}, 0, {"total": 0.0}, int(next_id or 0))
+        return TopologyResult(np.zeros(0, np.int32), 0, {"total": 0.0}, int(max(next_id or 0, used)))
     sweeps = as_sweeps(knife_sweep)
+    num_old = (used if old_ids is None else len(old_ids)) if prev is not None else 0
 
-    # --- grid + SDF -----------------------------------------------------------------------------
-    r = particle_radius(x, cfg)
+    # --- grid + SDF (inputs go up once) -----------------------------------------------------------
+    lo, hi = x.min(0).astype(np.float64), x.max(0).astype(np.float64)
+    xd = wp.array(np.ascontiguousarray(x, np.float32), dtype=wp.vec3, device=device)  # N
+    prev_d = wp.array(prev_idx, dtype=wp.int32, device=device) if prev is not None else None  # N
+    if cfg.particle_radius is not None:
+        r = float(cfg.particle_radius)
+    else:
+        r = cfg.radius_factor * max(S.particle_spacing(xd, lo, hi, device), 1e-6)
     pad = cfg.padding_voxels + cfg.band_voxels
-    extent = float(np.ptp(x, axis=0).max()) + 2 * r
+    extent = float((hi - lo).max()) + 2 * r
     if cfg.voxel_size is None:
         h_est = extent / max(cfg.resolution - 1 - 2 * pad, 1)
     else:
         h_est = max(cfg.voxel_size, extent / max(cfg.max_resolution - 1 - 2 * pad, 1))
-    grid = S.make_grid(x, r + pad * h_est, cfg.resolution, cfg.voxel_size, cfg.max_resolution)
+    grid = S.make_grid(lo, hi, r + pad * h_est, cfg.resolution, cfg.voxel_size, cfg.max_resolution)
     h = grid.h
-    owners_in = None
-    if cfg.preserve_splits and previous_labels is not None:
-        prev = np.asarray(previous_labels).reshape(-1)
-        if prev.shape[0] != n:
-            raise ValueError(f"previous_labels has {prev.shape[0]} entries, positions has {n}")
-        if len(np.unique(prev[prev >= 0])) > 1:
-            owners_in = prev.astype(np.int32)
-    sdf_wp = S.particle_sdf(x, r, grid, cfg.band_voxels * h, device, owners_in)
+    sdf = S.particle_sdf(xd, r, grid, cfg.band_voxels * h, device, prev_d if split else None)  # nx,ny,nz
     lap("sdf")
 
-    # --- carve the knife's path through damaged material -----------------------------------------
+    # --- board clip, knife carving through damaged material, tiny voids ---------------------------
     carve_radius = cfg.carve_radius if cfg.carve_radius is not None else 3.0 * r
     min_half = 0.5 * cfg.min_gap_voxels * h
     gap_half = max([max(s.half_thickness, min_half) for s in sweeps], default=0.0)
-    if cfg.carve and sweeps and dmg.any():
-        xd = x[dmg]
-        near = np.zeros(len(xd), bool)
-        for s in sweeps:
-            near |= s.sdf(xd) <= carve_radius
-        S.carve_sweeps(sdf_wp, grid, [snap_to_board(s, cfg.board_z, cfg.board_snap_voxels * h) for s in sweeps],
-                       xd[near], carve_radius, min_half, device)
-    sdf = sdf_wp.numpy()  # nx,ny,nz
-    if cfg.board_z is not None:  # particle balls reach r below the board; clip them to its top face
-        z = grid.lower[2] + np.arange(grid.shape[2]) * h
-        np.maximum(sdf, (cfg.board_z - z)[None, None, :].astype(sdf.dtype), out=sdf)
-    fill_voids(sdf, cfg.max_void_voxels, -0.5 * h)
+    carving = cfg.carve and bool(sweeps) and bool(dmg.any())
+    dmg_d = wp.array(dmg.astype(np.int32), dtype=wp.int32, device=device) if carving else None
+    snapped = [snap_to_board(s, cfg.board_z, cfg.board_snap_voxels * h) for s in sweeps]
+    # (the carvers' hash grid is kept until this function returns: kernels may still be queued)
+    _, carvers_grid = C.carve_and_clip(sdf, grid, xd, dmg_d, sweeps if carving else [],
+                                       snapped if carving else [], carve_radius, min_half, cfg.board_z, device)
+    CC.fill_voids(sdf, cfg.max_void_voxels, -0.5 * h, device)
     lap("carve")
 
-    # --- surface ------------------------------------------------------------------------------
-    verts, faces = M.marching_cubes(sdf, grid, device)
+    # --- surface ----------------------------------------------------------------------------------
+    verts, faces = M.extract_surface(sdf, grid, device)
+    nv = verts.shape[0]
     lap("marching_cubes")
-    adj = M.vertex_adjacency(faces, len(verts))
-    verts_s = M.laplacian_smooth(verts, faces, cfg.smoothing_iterations, cfg.smoothing_alpha, adj)
+    verts_s = M.smooth(verts, M.vertex_adjacency(faces, nv, device), cfg.smoothing_iterations,
+                       cfg.smoothing_alpha, device) if nv else verts
     lap("smoothing")
 
-    # --- pieces = inside-node components united with mesh components ----------------------------
-    vox, nv = ndimage.label(sdf < 0)  # 6-connectivity
-    n_mc, vcomp = M.mesh_components(faces, len(verts), adj)
-    vnode = M.vertex_inside_nodes(verts, sdf, grid)
-    vlab = np.where(vnode >= 0, vox.ravel()[np.maximum(vnode, 0)], 0)
-    e = np.unique(np.stack([vcomp[vlab > 0], n_mc + vlab[vlab > 0] - 1], 1), axis=0)
-    g = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n_mc + nv, n_mc + nv))
-    n_pieces, plab = connected_components(g, directed=False)
-    piece_vox = np.bincount(plab[n_mc:], weights=np.bincount(vox.ravel(), minlength=nv + 1)[1:],
-                            minlength=n_pieces)
-    keep = np.flatnonzero(piece_vox >= max(cfg.min_component_voxels, 1))
-    compact = np.full(n_pieces, -1, np.int64)
-    compact[keep] = np.arange(len(keep))
-    raw_of_vox = np.concatenate([[-1], compact[plab[n_mc:]]])  # voxel label -> raw piece (-1 dropped)
-    raw_of_mesh = compact[plab[:n_mc]]  # mesh component -> raw piece
+    # --- pieces = inside-node components united with mesh components ------------------------------
+    vnode = M.vertex_inside_nodes(verts, sdf, grid, device)
+    pieces = CC.label_pieces(sdf, faces, vnode, nv, cfg.min_component_voxels, device)
+    k = pieces.count
+    vpiece = wp.clone(pieces.labels[pieces.num_nodes:]) if nv else wp.zeros(0, dtype=wp.int32, device=device)
     lap("components")
 
-    # --- particles -> pieces --------------------------------------------------------------------
-    nodes = grid.nodes_of(x)
-    raw = raw_of_vox[vox[nodes[:, 0], nodes[:, 1], nodes[:, 2]]]  # N,
+    # --- particles -> pieces ----------------------------------------------------------------------
     tau = cfg.tau if cfg.tau is not None else 2.0 * r + gap_half
-    todo = np.flatnonzero(raw < 0)
-    vraw = raw_of_mesh[vcomp] if n_mc else np.zeros(0, np.int64)
-    if len(todo) and (vraw >= 0).any():
-        kept_v = np.flatnonzero(vraw >= 0)
-        kk = min(16, len(kept_v))
-        d, j = cKDTree(verts_s[kept_v]).query(x[todo], k=kk, distance_upper_bound=tau)  # T,kk
-        d, j = d.reshape(len(todo), kk), j.reshape(len(todo), kk)
-        ok = np.isfinite(d)
-        cand = np.where(ok, vraw[kept_v[np.minimum(j, len(kept_v) - 1)]], -1)  # T,kk raw piece per neighbour
-        if owners_in is not None:
-            # a particle on the wall between two earlier pieces goes to a piece of its own earlier cluster
-            res_ok = raw >= 0
-            origin = np.full(len(keep), -1, np.int64)
-            for k in range(len(keep)):
-                o = owners_in[res_ok & (raw == k)]
-                o = o[o >= 0]
-                origin[k] = np.bincount(o).argmax() if len(o) else -1
-            same = ok & (origin[np.maximum(cand, 0)] == owners_in[todo][:, None])
-            first = np.where(same.any(1), same.argmax(1), 0)
-        else:
-            first = np.zeros(len(todo), np.int64)
-        pick = cand[np.arange(len(todo)), first]
-        raw[todo[pick >= 0]] = pick[pick >= 0]
-    raw = _absorb_debris(raw, x, cfg.min_piece_particles)
+    raw = A.node_pieces(xd, grid, pieces.labels, device)
+    raw = A.surface_fallback(xd, raw, verts_s, vpiece, k, tau, (np.asarray(grid.shape) - 1) * h,
+                             prev_d if split else None, num_old, device)
+    counts, sum_x, overlap = A.piece_stats(xd, raw, k, prev_d, num_old, device)
+    small = (counts > 0) & (counts < cfg.min_piece_particles)
+    if small.any() and (counts >= cfg.min_piece_particles).any():
+        raw = A.absorb_chips(xd, raw, small, device)
+        counts, sum_x, overlap = A.piece_stats(xd, raw, k, prev_d, num_old, device)
     lap("assignment")
 
-    labels, id_of, nxt = match_labels(raw, previous_labels, next_id, x)
-    meshes = {}
-    if len(keep):
-        import trimesh
-
-        fraw = vraw[faces[:, 0]]
-        for k in range(len(keep)):
-            if k >= len(id_of) or id_of[k] < 0 or not (raw == k).any():
-                continue  # a surface with no particles assigned to it (e.g. a thin shell) is no piece
-            f = faces[fraw == k]
-            used, inv = np.unique(f, return_inverse=True)
-            meshes[int(id_of[k])] = trimesh.Trimesh(verts_s[used], inv.reshape(-1, 3), process=False)
+    # --- persistent ids ---------------------------------------------------------------------------
+    id_of, nxt = assign_ids(counts, sum_x, overlap, used, next_id, old_ids=old_ids)
+    labels = A.ids_of_pieces(raw, id_of, device).numpy().astype(np.int32)  # the one N-sized read-back
     lap("tracking")
     timings["total"] = time.perf_counter() - t_all
-    present = np.unique(labels[labels >= 0])
-    return TopologyResult(labels, meshes, int(len(present)), timings, int(nxt))
-
-
-def _absorb_debris(raw: np.ndarray, x: np.ndarray, min_particles: int) -> np.ndarray:
-    """Particles of pieces smaller than ``min_particles`` join the piece of their nearest particle in a
-    larger piece: MPM sheds chips of a few particles at a cut that are no piece a robot could pick up."""
-    counts = np.bincount(raw[raw >= 0], minlength=1)
-    small = np.flatnonzero((counts > 0) & (counts < min_particles))
-    if len(small) == 0 or not (counts >= min_particles).any():
-        return raw
-    from scipy.spatial import cKDTree
-
-    big = np.flatnonzero((raw >= 0) & ~np.isin(raw, small))
-    move = np.flatnonzero(np.isin(raw, small))
-    _, j = cKDTree(x[big]).query(x[move])
-    out = raw.copy()
-    out[move] = raw[big[j]]
-    return out
-
+    surface = PieceSurface(verts_s, faces, vpiece, id_of, counts) if nv else None
+    return TopologyResult(labels, int((counts > 0).sum()), timings, int(nxt), surface)

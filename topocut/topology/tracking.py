@@ -3,10 +3,15 @@
 A new piece keeps the id of the old cluster it overlaps most (Hungarian
 matching on the particle-overlap matrix), provided that at least
 ``min_share`` of the new piece's particles come from that old cluster.  Every
-other piece gets a fresh id: next_id, next_id + 1, ... in order of decreasing
-particle count (ties: smaller centroid x first).  Ids are never reused within
-an episode: pass the ``next_id`` returned by the previous step (the default,
-previous_labels.max() + 1, forgets ids whose pieces have vanished since).
+other piece that owns particles gets a fresh id: next_id, next_id + 1, ... in
+order of decreasing particle count (ties: smaller centroid x first).  Ids are
+never reused within an episode: pass the ``next_id`` returned by the previous
+step (the default, previous_labels.max() + 1, forgets ids whose pieces have
+vanished since).
+
+``assign_ids`` works on per-piece statistics only (K counts, K centroid sums,
+a K x L overlap matrix), which discover() computes on the device; the
+matching itself is a tiny host problem.
 """
 from __future__ import annotations
 
@@ -14,21 +19,39 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 
-def _new_order(raw: np.ndarray, k: int, x: np.ndarray | None) -> np.ndarray:
-    """Deterministic order of raw pieces 0..k-1: by particle count (desc), then centroid x."""
-    counts = np.bincount(raw[raw >= 0], minlength=k)
-    if x is None:
-        cx = np.zeros(k)
-    else:
-        sums = np.zeros(k)
-        np.add.at(sums, raw[raw >= 0], x[raw >= 0, 0])
-        cx = sums / np.maximum(counts, 1)
-    return np.lexsort((cx, -counts))
+def assign_ids(counts: np.ndarray, sum_x: np.ndarray | None, overlap: np.ndarray | None, used: int,
+               next_id: int | None = None, min_share: float = 0.5,
+               old_ids: np.ndarray | None = None) -> tuple[np.ndarray, int]:
+    """Persistent id per raw piece.
+
+    counts (K,) particles per piece; sum_x (K,) sum of their x coordinates (None: no tie-break by
+    centroid); overlap (K, L) particles of piece k whose previous id is l (None: no previous labels);
+    used: one past the largest previous id; old_ids (L,): the id of each overlap column (None: the
+    column index is the id).  Returns (id_of (K,) int64, -1 for empty pieces; next_id).
+    """
+    counts = np.asarray(counts, np.int64)
+    k = len(counts)
+    nxt = max(int(used), 0 if next_id is None else int(next_id))
+    id_of = np.full(k, -1, np.int64)
+    if overlap is not None and k:
+        ov = np.asarray(overlap, np.int64).reshape(k, -1)
+        cols = np.flatnonzero(ov.sum(0) > 0)  # the previous ids that still own particles of some piece
+        if len(cols):
+            rows, c = linear_sum_assignment(-ov[:, cols])
+            o = ov[rows, cols[c]]
+            ok = (o > 0) & (o >= min_share * counts[rows])
+            id_of[rows[ok]] = cols[c[ok]] if old_ids is None else np.asarray(old_ids)[cols[c[ok]]]
+    cx = np.zeros(k) if sum_x is None else np.asarray(sum_x, np.float64) / np.maximum(counts, 1)
+    order = np.lexsort((cx, -counts))
+    fresh = order[(id_of[order] < 0) & (counts[order] > 0)]
+    id_of[fresh] = nxt + np.arange(len(fresh))
+    nxt += len(fresh)
+    return id_of, nxt
 
 
 def match_labels(raw: np.ndarray, previous: np.ndarray | None = None, next_id: int | None = None,
                  positions: np.ndarray | None = None, min_share: float = 0.5) -> tuple[np.ndarray, np.ndarray, int]:
-    """Map raw piece indices to persistent ids.
+    """Map raw piece indices to persistent ids (numpy version of what discover() does on the device).
 
     raw: (N,) int, 0..K-1 per particle, -1 unassigned.  previous: (N,) int ids or None.
     Returns (labels (N,) int32, id_of_raw (K,) int64, next_id).
@@ -39,22 +62,15 @@ def match_labels(raw: np.ndarray, previous: np.ndarray | None = None, next_id: i
     if prev is not None and prev.shape != raw.shape:
         raise ValueError(f"previous_labels has shape {prev.shape}, expected {raw.shape}")
     used = int(prev.max()) + 1 if prev is not None and len(prev) else 0
-    nxt = max(used, 0 if next_id is None else int(next_id))
-    id_of = np.full(k, -1, np.int64)
+    a = raw >= 0
+    counts = np.bincount(raw[a], minlength=k)
+    sum_x = None if positions is None else np.bincount(raw[a], np.asarray(positions)[a, 0], minlength=k)
+    overlap = old_ids = None
     if prev is not None and k:
-        ok = (raw >= 0) & (prev >= 0)
-        old_ids, old_idx = np.unique(prev[ok], return_inverse=True)
-        if len(old_ids):
-            overlap = np.zeros((k, len(old_ids)), np.int64)
-            np.add.at(overlap, (raw[ok], old_idx), 1)
-            sizes = np.bincount(raw[raw >= 0], minlength=k)
-            rows, cols = linear_sum_assignment(-overlap)
-            for r, c in zip(rows, cols):
-                if overlap[r, c] > 0 and overlap[r, c] >= min_share * sizes[r]:
-                    id_of[r] = old_ids[c]
-    for r in _new_order(raw, k, positions):
-        if id_of[r] < 0:
-            id_of[r] = nxt
-            nxt += 1
-    labels = np.where(raw >= 0, id_of[np.maximum(raw, 0)] if k else -1, -1).astype(np.int32)
+        ok = a & (prev >= 0)
+        old_ids, col = np.unique(prev[ok], return_inverse=True)
+        overlap = np.zeros((k, max(len(old_ids), 1)), np.int64)
+        np.add.at(overlap, (raw[ok], col.ravel()), 1)
+    id_of, nxt = assign_ids(counts, sum_x, overlap, used, next_id, min_share, old_ids)
+    labels = np.where(a, id_of[np.maximum(raw, 0)] if k else -1, -1).astype(np.int32)
     return labels, id_of, nxt

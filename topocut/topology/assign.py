@@ -1,0 +1,195 @@
+"""Particles -> pieces on the device: grid lookup, nearest-surface fallback, debris, per-piece statistics.
+
+A particle takes the piece of its nearest grid node.  A particle whose node is
+in no kept piece (the carved gap, a wall, debris) takes the piece of the
+nearest smoothed-mesh vertex closer than tau (hash-grid query), preferring a
+piece that came from its own previous cluster.  Pieces of fewer than
+``min_piece_particles`` particles are chips: their particles join the piece of
+the nearest particle in a larger piece.  All per-particle work is a kernel;
+only per-piece counts (K values) come back to the host.
+"""
+# ruff: noqa: UP018  (int(0), float(...) declare mutable Warp kernel variables; a bare literal is a constant)
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from topocut.topology.sdf import Grid, hash_grid
+
+
+@wp.kernel
+def _node_pieces(x: wp.array(dtype=wp.vec3), lower: wp.vec3, h: float, nx: int, ny: int, nz: int,
+                 piece: wp.array(dtype=wp.int32), raw: wp.array(dtype=wp.int32)):
+    p = wp.tid()
+    c = (x[p] - lower) / h
+    i = wp.clamp(int(wp.round(c[0])), 0, nx - 1)
+    j = wp.clamp(int(wp.round(c[1])), 0, ny - 1)
+    k = wp.clamp(int(wp.round(c[2])), 0, nz - 1)
+    raw[p] = piece[(i * ny + j) * nz + k]
+
+
+@wp.kernel
+def _origin_histogram(raw: wp.array(dtype=wp.int32), owner: wp.array(dtype=wp.int32), num_old: int,
+                      hist: wp.array(dtype=wp.int32)):
+    p = wp.tid()
+    k = raw[p]
+    o = owner[p]
+    if k >= 0 and o >= 0:
+        wp.atomic_add(hist, k * num_old + o, 1)
+
+
+@wp.kernel
+def _origin_argmax(hist: wp.array(dtype=wp.int32), num_old: int, origin: wp.array(dtype=wp.int32)):
+    # the previous cluster most of a piece's particles came from (first on ties, as np.argmax); -1 if none
+    k = wp.tid()
+    best = int(-1)
+    best_n = int(0)
+    for o in range(num_old):
+        c = hist[k * num_old + o]
+        if c > best_n:
+            best_n = c
+            best = o
+    origin[k] = best
+
+
+@wp.kernel
+def _nearest_surface_piece(x: wp.array(dtype=wp.vec3), raw: wp.array(dtype=wp.int32), hg: wp.uint64,
+                           verts: wp.array(dtype=wp.vec3), vpiece: wp.array(dtype=wp.int32), tau: float,
+                           use_origin: int, owner: wp.array(dtype=wp.int32), origin: wp.array(dtype=wp.int32),
+                           out: wp.array(dtype=wp.int32)):
+    p = wp.tid()
+    r = raw[p]
+    out[p] = r
+    if r >= 0:
+        return
+    xp = x[p]
+    o = int(-1)
+    if use_origin == 1:
+        o = owner[p]
+    best = int(-1)
+    best_d = tau
+    same = int(-1)
+    same_d = tau
+    query = wp.hash_grid_query(hg, xp, tau)
+    q = int(0)
+    while wp.hash_grid_query_next(query, q):
+        k = vpiece[q]
+        if k >= 0:
+            d = wp.length(verts[q] - xp)
+            if d < best_d:
+                best_d = d
+                best = k
+            if use_origin == 1:
+                if origin[k] == o and d < same_d:  # a particle on the wall between two earlier pieces
+                    same_d = d  # goes to a piece of its own earlier cluster
+                    same = k
+    if same >= 0:
+        out[p] = same
+    else:
+        out[p] = best
+
+
+@wp.kernel
+def _piece_stats(x: wp.array(dtype=wp.vec3), raw: wp.array(dtype=wp.int32), prev: wp.array(dtype=wp.int32),
+                 num_old: int, count: wp.array(dtype=wp.int32), sum_x: wp.array(dtype=float),
+                 overlap: wp.array(dtype=wp.int32)):
+    p = wp.tid()
+    k = raw[p]
+    if k < 0:
+        return
+    wp.atomic_add(count, k, 1)
+    wp.atomic_add(sum_x, k, x[p][0])
+    if num_old > 0:
+        o = prev[p]
+        if o >= 0:
+            wp.atomic_add(overlap, k * num_old + o, 1)
+
+
+@wp.kernel
+def _absorb_chips(x: wp.array(dtype=wp.vec3), raw: wp.array(dtype=wp.int32), small: wp.array(dtype=wp.int32),
+                  out: wp.array(dtype=wp.int32)):
+    # brute force over all particles, but only for the few particles of chips (< min_piece_particles each)
+    p = wp.tid()
+    r = raw[p]
+    out[p] = r
+    if r < 0:
+        return
+    if small[r] == 0:
+        return
+    xp = x[p]
+    best = float(1.0e30)
+    for q in range(x.shape[0]):
+        rq = raw[q]
+        if rq >= 0:
+            if small[rq] == 0:
+                d = wp.length_sq(x[q] - xp)
+                if d < best:
+                    best = d
+                    out[p] = rq
+
+
+@wp.kernel
+def _ids_of_pieces(raw: wp.array(dtype=wp.int32), id_of: wp.array(dtype=wp.int32), labels: wp.array(dtype=wp.int32)):
+    p = wp.tid()
+    r = raw[p]
+    labels[p] = -1
+    if r >= 0:
+        labels[p] = id_of[r]
+
+
+def node_pieces(x, grid: Grid, piece_labels, device: str = "cpu"):
+    """Piece of each particle's nearest grid node (warp int32 (N,), -1 none)."""
+    raw = wp.empty(x.shape[0], dtype=wp.int32, device=device)
+    wp.launch(_node_pieces, dim=x.shape[0], inputs=[x, grid.wp_lower, float(grid.h), *grid.shape, piece_labels, raw],
+              device=device)
+    return raw
+
+
+def surface_fallback(x, raw, verts, vpiece, num_pieces: int, tau: float, extent, owner=None, num_old: int = 0,
+                     device: str = "cpu"):
+    """Particles with raw < 0 take the piece of the nearest vertex within tau (own earlier cluster first)."""
+    if num_pieces == 0 or verts.shape[0] == 0:
+        return raw
+    origin = wp.full(num_pieces, -1, dtype=wp.int32, device=device)
+    use_origin = owner is not None and num_old > 0
+    if use_origin:
+        hist = wp.zeros(num_pieces * num_old, dtype=wp.int32, device=device)
+        wp.launch(_origin_histogram, dim=x.shape[0], inputs=[raw, owner, num_old, hist], device=device)
+        wp.launch(_origin_argmax, dim=num_pieces, inputs=[hist, num_old, origin], device=device)
+    hg = hash_grid(verts, tau, extent, device)
+    out = wp.empty_like(raw)
+    wp.launch(_nearest_surface_piece, dim=x.shape[0], device=device,
+              inputs=[x, raw, hg.id, verts, vpiece, float(tau), int(use_origin),
+                      owner if use_origin else raw, origin, out])
+    wp.synchronize_device(device)  # the hash grid is freed when this returns
+    return out
+
+
+def piece_stats(x, raw, num_pieces: int, prev=None, num_old: int = 0, device: str = "cpu"):
+    """(count (K,) int, sum of x (K,) float, overlap (K, num_old) int with prev) as numpy: one read-back."""
+    k = max(num_pieces, 1)
+    count = wp.zeros(k, dtype=wp.int32, device=device)
+    sum_x = wp.zeros(k, dtype=float, device=device)
+    overlap = wp.zeros(max(k * num_old, 1), dtype=wp.int32, device=device)
+    wp.launch(_piece_stats, dim=x.shape[0], device=device,
+              inputs=[x, raw, prev if prev is not None else raw, num_old if prev is not None else 0,
+                      count, sum_x, overlap])
+    ov = overlap.numpy()[: num_pieces * num_old].reshape(num_pieces, num_old) if prev is not None else None
+    return count.numpy()[:num_pieces], sum_x.numpy()[:num_pieces].astype(np.float64), ov
+
+
+def absorb_chips(x, raw, small: np.ndarray, device: str = "cpu"):
+    """Particles of the pieces flagged in ``small`` (K,) join the piece of their nearest particle elsewhere."""
+    flags = wp.array(np.asarray(small, np.int32), dtype=wp.int32, device=device)
+    out = wp.empty_like(raw)
+    wp.launch(_absorb_chips, dim=x.shape[0], inputs=[x, raw, flags, out], device=device)
+    return out
+
+
+def ids_of_pieces(raw, id_of: np.ndarray, device: str = "cpu"):
+    """labels[p] = id_of[raw[p]] (-1 stays -1), as a warp int32 array."""
+    ids = wp.array(np.asarray(id_of, np.int32) if len(id_of) else np.zeros(1, np.int32), dtype=wp.int32,
+                   device=device)
+    labels = wp.empty_like(raw)
+    wp.launch(_ids_of_pieces, dim=raw.shape[0], inputs=[raw, ids, labels], device=device)
+    return labels
