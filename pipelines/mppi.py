@@ -32,6 +32,13 @@ def episode_seed(run_seed: int, e: int) -> int:
 
 
 def run(ctx: RunContext, sim, object, task, topology, reward, planner, data, compare_heuristic: bool = True) -> dict:
+    if task.name == "cream_writing":
+        return run_writing(ctx, sim, task, topology, reward, planner, compare_heuristic)
+    if task.name == "scooping":
+        raise ValueError("task=scooping has no MPPI stage (the spoon primitive is scripted); valid tasks for "
+                         "stage=mppi: slice, stick, dice, pyramid, cream_writing")
+    if task.sample_tilt and "tilt" not in planner.sampled_dims:  # pyramid: the goal plane is tilted
+        planner = dataclasses.replace(planner, sampled_dims=[*planner.sampled_dims, "tilt"])
     from topocut.data.episodes import EpisodeDataset, EpisodeWriter
     from topocut.goals import make_goal
     from topocut.planning import HeuristicPolicy, MPPIPolicy, run_episode, sim_rollout_factory
@@ -97,6 +104,59 @@ def run(ctx: RunContext, sim, object, task, topology, reward, planner, data, com
     ctx.logger.log({f"mppi/{k}": v for k, v in summary.items() if isinstance(v, (int, float))})
     ctx.logger.log_image("mppi/rewards", path / "rewards.png")
     return {"dataset": str(path), **summary}
+
+
+def run_writing(ctx: RunContext, sim, task, topology, reward, planner, compare_scripted: bool = True) -> dict:
+    """task=cream_writing: MPPI over each letter's stroke (K = planner.num_samples scenes), scored by its
+    spectral reward; writes ``sim/cream_writing-<word>-mppi`` (states, per-letter rewards, frames)."""
+    from topocut.planning.writer import StrokeMPPI, StrokeMPPIConfig, cluster_check, write_scripted, writing_scene
+    from topocut.sim import init_taichi
+    from topocut.sim.pen import CreamPen
+    from topocut.sim.render import write_gif
+
+    mcfg = StrokeMPPIConfig(num_samples=planner.num_samples, iterations=planner.iterations,
+                            temperature=planner.temperature)
+    config = as_dict(("sim", sim), ("task", task), ("topology", topology), ("reward", reward), ("planner", mcfg),
+                     ("compare_scripted", compare_scripted), ("seed", ctx.seed))
+    writer, existing = ctx.store.begin("sim", f"cream_writing-{task.word}-mppi", config,
+                                       extra={"seed": ctx.seed, "device": ctx.device})
+    if existing is not None:
+        return {"artifact": str(existing), "reused": True}
+    sim = dataclasses.replace(sim, arch=ctx.device)
+    init_taichi(arch=ctx.device, seed=ctx.seed)
+    goals, strokes, start, draw = writing_scene(sim, task)
+    out = {"word": task.word}
+    if compare_scripted:
+        out["scripted"] = write_scripted(CreamPen(sim, task.pen, 1, start=start), strokes, goals, reward)
+    pen = CreamPen(sim, task.pen, mcfg.num_samples, start=start)
+    frames = []
+
+    def on_letter(i, state):
+        frames.append(draw(state["x"], state["stroke"], writer.path / "frames" / f"letter{i + 1}.png",
+                           f"MPPI stroke {i + 1}: {task.word[i]}"))
+        advance(1, info=f"letter {task.word[i]}")
+
+    with progress_bar(f"mppi cream_writing/{task.word}", len(strokes), ctx.progress) as advance:
+        res = StrokeMPPI(pen, goals, mcfg, reward, seed=ctx.seed).write(strokes, on_letter=on_letter)
+    x, stroke = pen.particles()
+    check = cluster_check(x[0], stroke, topology)
+    frames.append(draw(x[0], stroke, writer.path / "frames" / "final.png",
+                       f"MPPI {task.word}: {check['clusters']} clusters, reward {res['total']:.3f}"))
+    np.savez_compressed(writer.path / "states.npz", x=x[0], stroke=stroke, labels=check.pop("labels"),
+                        **{f"polyline_{i}": p for i, p in enumerate(res.pop("polylines"))})
+    out["mppi"] = {**res, **check}
+    (writer.path / "writing.json").write_text(json.dumps(out, indent=2, default=float))
+    write_gif(frames, writer.path / "writing.gif", fps=1)
+    summary = {"letters": len(strokes), "rollouts": res["rollouts"], "reward": res["total"],
+               "clusters": check["clusters"], "clusters_match_strokes": check["agree"],
+               **{f"reward_{c}{i}": r for i, (c, r) in enumerate(zip(task.word, res["per_letter"]))},
+               "mppi_s": round(res["seconds"], 2)}
+    if compare_scripted:
+        summary["scripted_reward"] = out["scripted"]["total"]
+    path = writer.commit(summary)
+    ctx.logger.log({f"mppi/{k}": v for k, v in summary.items() if isinstance(v, (int, float))})
+    ctx.logger.log_image("mppi/writing", path / "frames" / "final.png")
+    return {"artifact": str(path), **summary}
 
 
 def _plot_rewards(records: list[dict], path) -> None:

@@ -118,8 +118,10 @@ def make_goal(task: TaskConfig | None, object: str, pose=None, spacing: float = 
         planes, labels = _sticks(p64, axes, task.thickness, task.width, task.max_cuts, board_z, pad)
     elif task.name == "dice":
         planes, labels = _sticks(p64, axes, task.size, task.size, task.max_cuts, board_z, pad)
-    else:
+    elif task.name == "pyramid":
         planes, labels = _pyramid(p64, axes, task.size, board_z, pad)
+    else:
+        raise ValueError(f"task.name={task.name!r} has no knife goal; valid: slice, stick, dice, pyramid")
     ids = [i for i in range(1, labels.max(initial=0) + 1) if (labels == i).any()]
     if not ids:
         raise ValueError(f"task {task.name!r} produced no goal piece on {object!r} at spacing {spacing}: "

@@ -1,0 +1,186 @@
+"""Ice-cream scooping episodes: block, spoon primitive per 2-D placement, chunks in the cup, rewards.
+
+The block is a jittered lattice of the von Mises material (material 1, per-particle yield stress
+``spoon.yield_stress``; damage and softening as for the food's skin, so the spoon's rim tears the
+chunk free).  Every placement in ``task.spoon.scoops`` (x, y offsets from the block centre) runs the
+primitive of topocut.sim.spoon.scoop_keyframes; the solver's p2g, grid_op, the tools' collider
+kernel and g2p make one substep.
+
+Chunk bookkeeping: when the spoon has lifted, the particles inside its bowl are chunk i (by
+construction).  At the end, topology discovery labels the scene; the clusters whose centroid lies in
+the cup are the scooped pieces, and each chunk should be one of them.  The reward is the spectral
+reward of those pieces against one target chunk per scoop: the material a level bowl would hold,
+a spherical cap of height ``spoon.depth`` of the bowl's inner sphere.
+"""
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+
+from topocut.sim.spoon import SpoonPath, ToolColliders, scoop_keyframes
+
+
+def block_particles(spoon, spacing: float, board_z: float, seed: int = 0, jitter: float = 0.25) -> np.ndarray:
+    """Jittered lattice (N,3) filling the block spoon.block centred on spoon.block_center, on the board."""
+    size = np.asarray(spoon.block, float)
+    counts = np.maximum(np.round(size / spacing).astype(int), 1)
+    g = np.stack(np.meshgrid(*[np.arange(c) for c in counts], indexing="ij"), -1).reshape(-1, 3)
+    x = (g + 0.5) * spacing - np.array([size[0] / 2, size[1] / 2, 0.0])
+    x += np.random.default_rng(seed).uniform(-jitter, jitter, x.shape) * spacing
+    return (x + np.array([spoon.block_center[0], spoon.block_center[1], board_z])).astype(np.float32)
+
+
+def target_chunk(spoon, spacing: float) -> np.ndarray:
+    """Lattice points (m,3) of a spherical cap of height spoon.depth cut from a ball of radius spoon.radius."""
+    r, h = spoon.radius, spoon.depth
+    n = int(np.ceil(r / spacing))
+    g = np.stack(np.meshgrid(*[np.arange(-n, n + 1)] * 3, indexing="ij"), -1).reshape(-1, 3) * spacing
+    keep = (np.linalg.norm(g, axis=1) <= r) & (g[:, 2] <= -r + h)
+    return g[keep].astype(np.float32)
+
+
+def in_cup(points, spoon, board_z: float) -> np.ndarray:
+    """(N,) bool: inside the cup's inner cylinder."""
+    p = np.asarray(points, float)
+    rho = np.linalg.norm(p[:, :2] - np.asarray(spoon.cup_center, float), axis=1)
+    return (rho < spoon.cup_radius) & (p[:, 2] < board_z + spoon.cup_height)
+
+
+def tool_points(spoon, c, a, board_z: float, n: int = 400) -> tuple[np.ndarray, np.ndarray]:
+    """Points on the spoon's bowl and the cup wall, for pictures: (spoon (k,3), cup (m,3))."""
+    rng = np.random.default_rng(0)
+    d = rng.standard_normal((n * 3, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    d = d[d @ a <= spoon.opening][:n]
+    th = np.linspace(0, 2 * np.pi, 90, endpoint=False)
+    z = np.linspace(board_z, board_z + spoon.cup_height, 8)
+    ring = np.stack([np.cos(th), np.sin(th)], -1) * (spoon.cup_radius + spoon.cup_wall / 2) + spoon.cup_center
+    cup = np.concatenate([np.column_stack([ring, np.full(len(ring), zz)]) for zz in z])
+    return c + spoon.radius * d, cup
+
+
+class ScoopScene:
+    """One block, the spoon and the cup in a one-scene solver."""
+
+    def __init__(self, sim, spoon, seed: int = 0):
+        from topocut.sim import CuttingEnv
+
+        self.spoon = spoon
+        self.env = CuttingEnv(dataclasses.replace(sim, yield_stress=spoon.yield_stress), batch_size=1)
+        x = block_particles(spoon, self.env.cfg.spacing, self.env.cfg.board_z, seed)
+        self.env.load_particles(x, np.ones(len(x), np.int32))
+        self.tools = ToolColliders(self.env.solver, spoon)
+        self.chunk = np.zeros(len(x), np.int32)  # 0 = block, i + 1 = chunk of scoop i
+        self.t = 0.0
+
+    @property
+    def x(self) -> np.ndarray:  # N,3
+        return self.env.solver.x.to_numpy()[0, :self.env.n]
+
+    def run(self, path: SpoonPath | None, until: float, on_phase=None) -> None:
+        """Advance to time ``until`` with the spoon following path (None: spoon away); on_phase(name) at changes."""
+        env, s = self.env, self.env.solver
+        self.tools.on[None] = int(path is not None)
+        phase = path.phase(self.t) if path is not None else ""
+        while self.t < until:
+            if path is not None:
+                c, a, vc, om = path.pose(self.t)
+                self.tools.set_pose(np.stack([c, a, vc, om])[None])
+                p = path.phase(self.t)
+                if p != phase and on_phase is not None:
+                    on_phase(phase, c, a)
+                phase = p
+            k = env.step_count
+            s.p2g(env.n, k, 0.0)
+            s.grid_op(self.t, 0)
+            self.tools.collide_tools()
+            s.g2p(env.n, k, self.t)
+            if path is not None:
+                self.tools.cut_with_rim(env.n)
+            env.step_count += 1
+            self.t += env.dt
+            if env.step_count % env.cfg.check_every == 0:
+                env._check()
+        env._check()
+
+    def scoop(self, i: int, place_xy, on_phase=None) -> dict:
+        """Scoop i at absolute placement (x, y); chunk i = the particles in the bowl once it has lifted."""
+        top = float(self.x[:, 2].max())
+        path = scoop_keyframes(self.spoon, place_xy, top, self.env.cfg.board_z + self.spoon.cup_height, t0=self.t)
+        lift_end = next(k.t for k in path.keys if k.phase == "lift")
+        self.run(path, lift_end, on_phase)
+        c, a, _, _ = path.pose(self.t)
+        d = self.x - c
+        held = (np.linalg.norm(d, axis=1) < self.spoon.radius + 0.5 * self.env.cfg.dx) & (d @ a < self.spoon.opening * self.spoon.radius)
+        self.chunk[held & (self.chunk == 0)] = i + 1
+        self.run(path, path.duration, on_phase)
+        return {"held": int(held.sum()), "keyframes": [(k.phase, k.t) for k in path.keys]}
+
+
+def scoop_episode(sim, task, topology=None, frames_dir=None, seed: int = 0, reward_cfg=None, on_scoop=None) -> dict:
+    """All scoops of task.spoon.scoops, then settle; clusters, chunks in the cup, rewards, frames."""
+    from topocut.reward import spectral_reward
+    from topocut.sim.render import render_particles
+    from topocut.topology import discover
+
+    t0 = time.perf_counter()
+    spoon = task.spoon
+    scene = ScoopScene(sim, spoon, seed)
+    bz = scene.env.cfg.board_z
+    target = target_chunk(spoon, scene.env.cfg.spacing)
+    frames, arrays, records = [], {"x_0": scene.x}, []
+    limits = ((spoon.block_center[0] - 0.1, spoon.block_center[1] - 0.15, bz),
+              (spoon.cup_center[0] + 0.1, spoon.block_center[1] + 0.15, bz + 0.25))
+
+    def draw(name, c=None, a=None, labels=None):
+        if frames_dir is None:
+            return
+        lab = scene.chunk if labels is None else np.asarray(labels) + 1
+        pts, col = [scene.x], [lab]
+        if c is not None:
+            sp, cup = tool_points(spoon, c, a, bz)
+            pts += [sp, cup]
+            col += [np.full(len(sp), -1), np.full(len(cup), 6)]
+        else:
+            _, cup = tool_points(spoon, np.zeros(3), np.array([0, 0, 1.0]), bz)
+            pts.append(cup)
+            col.append(np.full(len(cup), 6))
+        frames.append(render_particles(np.concatenate(pts), np.concatenate(col), frames_dir / f"{len(frames):02d}_{name}.png",
+                                       title=name, view=(20.0, -70.0), size=3, limits=limits))
+
+    draw("start")
+    for i, off in enumerate(spoon.scoops):
+        place = (spoon.block_center[0] + off[0], spoon.block_center[1] + off[1])
+        rec = scene.scoop(i, place, on_phase=lambda ph, c, a, i=i: draw(f"scoop{i + 1}_{ph}", c, a)
+                          if ph in ("advance", "tilt") else None)
+        rec["chunk_in_cup"] = float(in_cup(scene.x[scene.chunk == i + 1], spoon, bz).mean()) if rec["held"] else 0.0
+        records.append(rec)
+        arrays[f"x_{i + 1}"] = scene.x
+        if on_scoop is not None:
+            on_scoop(i, {"chunks_in_cup": i + 1, **rec})
+    scene.run(None, scene.t + scene.env.cfg.settle_substeps * scene.env.dt)
+    x = scene.x
+    st = scene.env.state()
+    topo = discover(x, st.damage[0], None, cfg=topology)
+    lab = np.asarray(topo.labels)
+    ids = [c for c in np.unique(lab) if c >= 0]
+    cup_ids = [c for c in ids if in_cup(x[lab == c].mean(0, keepdims=True), spoon, bz)[0]]
+    pieces = [x[lab == c] for c in cup_ids]
+    res = spectral_reward(pieces, [target] * len(spoon.scoops), reward_cfg)
+    # by construction vs discovery: the cup cluster holding most of each chunk, and how much of it
+    chunk_cluster = []
+    for i in range(len(spoon.scoops)):
+        m = (scene.chunk == i + 1) & np.isin(lab, cup_ids)
+        vals, cnt = np.unique(lab[m], return_counts=True)
+        chunk_cluster.append((int(vals[cnt.argmax()]), float(cnt.max() / max((scene.chunk == i + 1).sum(), 1)))
+                             if len(vals) else (-1, 0.0))
+    draw("final (clusters)", labels=lab)
+    arrays.update(x=x, labels=lab, chunk=scene.chunk, damage=st.damage[0], target=target)
+    distinct = len({c for c, _ in chunk_cluster if c >= 0}) == len(spoon.scoops)
+    return {"scoops": records, "clusters": int(topo.num_clusters), "chunks_in_cup": len(cup_ids),
+            "cup_piece_sizes": [int(len(p)) for p in pieces], "chunk_clusters": chunk_cluster,
+            "chunks_distinct": bool(distinct), "reward": float(res.total), "per_chunk": res.per_goal.tolist(),
+            "target_points": int(len(target)), "particles": int(len(x)), "substeps": int(scene.env.step_count),
+            "seconds": time.perf_counter() - t0, "arrays": arrays, "frames": frames}

@@ -1,0 +1,254 @@
+"""Cream writing: a scripted writer, per-stroke spectral rewards and MPPI over stroke shapes.
+
+Actions are (dx, dy, b): move the pen by (dx, dy) in a straight line, extruding iff b = 1
+(topocut.sim.pen.CreamPen.move).  ``stroke_actions`` turns letter polylines into such actions
+(travel with b = 0 to a stroke's start, then its segments with b = 1, split into moves of at most
+pen.step).  Clusters are the strokes (by construction: CreamPen bookkeeps a stroke id per
+particle); ``stroke_fragments`` groups particles by it, ``cluster_check`` compares that with
+topology discovery.  The reward is topocut.reward.spectral_reward of the strokes against the
+letters' goal clouds (Hungarian matching, one goal piece per letter).
+
+``StrokeMPPI`` plans one letter at a time: the stroke is the scripted polyline plus a smooth
+offset field (``controls`` points along the arc length, linearly interpolated), MPPI samples K
+offset fields, writes them in the K scenes of the batch from the same state, scores each new stroke
+against its letter and keeps the best scene's state (no re-simulation).
+"""
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from topocut.planning.mppi import mppi_weights
+
+
+def _segments(strokes, start):
+    """(from, to, b) of every straight move: travel to each stroke's start, then its segments."""
+    pos, out = np.asarray(start, np.float64), []
+    for poly in strokes:
+        poly = np.asarray(poly, np.float64)
+        out += [(pos, poly[0], 0.0)] + [(p, q, 1.0) for p, q in zip(poly[:-1], poly[1:])]
+        pos = poly[-1]
+    return out
+
+
+def stroke_actions(strokes: list[np.ndarray], start, step: float, splits=None) -> np.ndarray:
+    """Actions (T,3) that write ``strokes`` (list of (m,2) polylines) from pen position ``start``.
+
+    Each straight move is split into k = ceil(length / step) equal actions, or ``splits[i]`` for
+    move i (so that perturbed copies of a stroke have the same number of actions).
+    """
+    acts = []
+    for i, (a, b, on) in enumerate(_segments(strokes, start)):
+        d = b - a
+        k = splits[i] if splits is not None else max(1, int(np.ceil(np.linalg.norm(d) / step)))
+        acts += [[*(d / k), on]] * k
+    return np.asarray(acts, np.float64)
+
+
+def segment_splits(strokes, start, step: float) -> list[int]:
+    return [max(1, int(np.ceil(np.linalg.norm(b - a) / step))) for a, b, _ in _segments(strokes, start)]
+
+
+def execute(pen, actions: np.ndarray) -> None:
+    """Run actions (T,3), or per scene (B,T,3), on the pen; consecutive moves each take their own substeps."""
+    actions = np.asarray(actions, np.float64)
+    per_scene = actions.ndim == 3
+    T = actions.shape[1] if per_scene else len(actions)
+    for t in range(T):
+        a = actions[:, t] if per_scene else actions[t]
+        b = a[..., 2] > 0.5
+        if per_scene and not (b == b[0]).all():
+            raise ValueError("extrusion b must agree across the batch (the particle count is shared)")
+        pen.move(a[..., :2], bool(np.ravel(b)[0]))
+
+
+def writing_scene(sim, task):
+    """(goal clouds per letter, stroke polylines, pen start, draw(x, stroke, path, title)) for task.word."""
+    from topocut.goals.letters import word_goal
+    from topocut.sim.render import render_particles
+
+    goals, strokes = word_goal(task.word, task.letter_height, task.letter_gap, sim.spacing, sim.board_z)
+    allp = np.concatenate(strokes)
+    lo, hi = allp.min(0) - 0.02, allp.max(0) + 0.02
+    limits = ((lo[0], lo[1], sim.board_z), (hi[0], hi[1], sim.board_z + 0.1))
+    start = strokes[0][0] - np.array([0.03, 0.0])
+
+    def draw(x, stroke, path, title):  # top-down, coloured by stroke id (+1: palette colour 0 is grey)
+        return render_particles(x, np.asarray(stroke) + 1, path, title=title, view=(75.0, -90.0), size=5,
+                                limits=limits, figsize=(7, 4))
+
+    return goals, strokes, start, draw
+
+
+def stroke_fragments(x: np.ndarray, stroke: np.ndarray, min_points: int = 4) -> tuple[list, list]:
+    """Particles (n,3) grouped by stroke id (n,): (fragments, their stroke ids)."""
+    ids = [int(s) for s in np.unique(stroke) if (stroke == s).sum() >= min_points]
+    return [x[stroke == s] for s in ids], ids
+
+
+def cluster_check(x: np.ndarray, stroke: np.ndarray, topo_cfg=None) -> dict:
+    """Topology discovery on the written cream vs the stroke ids: clusters found and their purity."""
+    from topocut.topology import discover
+
+    res = discover(np.asarray(x), np.zeros(len(x), bool), None, cfg=topo_cfg)
+    lab = np.asarray(res.labels)
+    pure = 0
+    for s in np.unique(stroke):
+        vals, cnt = np.unique(lab[stroke == s], return_counts=True)
+        pure += cnt.max()
+    agree = len(np.unique(stroke)) == res.num_clusters and pure == len(stroke)
+    # purity both ways: every stroke inside one cluster and every cluster holding one stroke
+    back = sum(np.unique(stroke[lab == c], return_counts=True)[1].max() for c in np.unique(lab))
+    return {"strokes": int(len(np.unique(stroke))), "clusters": int(res.num_clusters),
+            "stroke_purity": float(pure / max(len(stroke), 1)), "cluster_purity": float(back / max(len(stroke), 1)),
+            "agree": bool(agree and back == len(stroke)), "labels": lab}
+
+
+def letter_rewards(x, stroke, goals, reward_cfg=None) -> dict:
+    """Spectral reward of the strokes against the letters; per_letter[i] = R of the stroke matched to letter i."""
+    from topocut.reward import spectral_reward
+
+    frags, ids = stroke_fragments(x, stroke)
+    res = spectral_reward(frags, list(goals), reward_cfg)
+    d = np.full(len(goals), np.inf)
+    for f, g in res.matching:
+        d[g] = res.distances[f, g]
+    return {"total": float(res.total), "per_letter": [float(r) for r in res.per_goal], "distance": d.tolist(),
+            "matching": [(ids[f], g) for f, g in res.matching]}
+
+
+def write_scripted(pen, strokes, goals, reward_cfg=None, on_letter=None) -> dict:
+    """Write every stroke with the scripted writer in scene 0's pen; returns rewards and timings."""
+    t0 = time.perf_counter()
+    for i, poly in enumerate(strokes):
+        execute(pen, stroke_actions([poly], pen.pos[0], pen.pen.step))
+        if on_letter is not None:
+            on_letter(i)
+    pen.settle()
+    x, stroke = pen.particles()
+    out = letter_rewards(x[0], stroke, goals, reward_cfg)
+    out.update(particles=int(pen.n), substeps=int(pen.env.step_count), seconds=time.perf_counter() - t0)
+    return out
+
+
+@dataclass
+class StrokeMPPIConfig:
+    num_samples: int = 4  # K: one per scene of the batch
+    iterations: int = 1
+    controls: int = 4  # offset control points along each stroke
+    sigma: float = 0.006  # std of a control point's offset [units]
+    temperature: float = 0.1
+    settle_substeps: int = 120  # before a rollout's stroke is scored (the last cream is still falling)
+    cost_delta: float = 1.1  # MPPI ranks samples by the reward with this tail slope (R > 0 up to d ~ 0.9)
+
+
+def offset_field(poly: np.ndarray, controls: np.ndarray) -> np.ndarray:
+    """Vertex offsets (m,2) of poly (m,2): controls (q,2) placed evenly along the arc length, linearly interpolated."""
+    seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)]) / max(seg.sum(), 1e-12)
+    knots = np.linspace(0.0, 1.0, len(controls))
+    return np.stack([np.interp(s, knots, controls[:, d]) for d in range(2)], -1)
+
+
+class StrokeMPPI:
+    """MPPI over the shape of each letter's stroke, scored by its spectral reward against the letter."""
+
+    def __init__(self, pen, goals, cfg: StrokeMPPIConfig | None = None, reward_cfg=None, seed: int = 0):
+        self.pen, self.goals, self.cfg, self.reward_cfg = pen, list(goals), cfg or StrokeMPPIConfig(), reward_cfg
+        if pen.B != self.cfg.num_samples:
+            raise ValueError(f"StrokeMPPI needs one scene per sample: pen batch {pen.B} != num_samples "
+                             f"{self.cfg.num_samples}")
+        self.rng = np.random.default_rng(seed)
+        from topocut.reward import RewardConfig
+
+        # the default reward is 0 beyond d ~ 0.1-0.2 (most perturbed strokes): rank by a gentler tail instead
+        base = reward_cfg or RewardConfig()
+        self.cost_cfg = dataclasses.replace(base, delta=max(self.cfg.cost_delta, base.gamma * 1.01))
+
+    def _score(self, x, stroke, sid: int, goal) -> float:
+        from topocut.reward import spectral_reward
+
+        frag = x[stroke == sid]
+        return float(spectral_reward([frag], [goal], self.cost_cfg).total) if len(frag) >= 4 else 0.0
+
+    def plan_letter(self, poly: np.ndarray, goal: np.ndarray, state: dict) -> tuple[dict, dict]:
+        """Best stroke for one letter from ``state``: (state after writing it, info)."""
+        cfg, pen, K = self.cfg, self.pen, self.cfg.num_samples
+        mean = np.zeros((cfg.controls, 2))
+        best = (-np.inf, None, None)
+        history = []
+        for _ in range(cfg.iterations):
+            eps = self.rng.standard_normal((K, cfg.controls, 2)) * cfg.sigma
+            eps[0] = 0.0  # sample 0 is the mean
+            polys = [poly + offset_field(poly, mean + e) for e in eps]
+            pen.set_state(state)
+            sid = pen.num_strokes  # the id the new stroke gets
+            splits = segment_splits([poly], state["pen"], pen.pen.step)
+            acts = np.stack([stroke_actions([p], state["pen"], pen.pen.step, splits) for p in polys])  # K,T,3
+            execute(pen, acts)
+            pen.settle(cfg.settle_substeps)
+            x, stroke = pen.particles()
+            rewards = np.array([self._score(x[k], stroke, sid, goal) for k in range(K)])
+            k = int(np.argmax(rewards))
+            if rewards[k] > best[0]:
+                best = (float(rewards[k]), pen.get_state(k), polys[k])
+            w = mppi_weights(-rewards, cfg.temperature, normalize=True)
+            mean = mean + np.einsum("k,kqd->qd", w, eps)
+            history.append(rewards.tolist())
+        return best[1], {"cost_reward": best[0], "cost_rewards": history, "polyline": best[2]}
+
+    def write(self, strokes, on_letter=None) -> dict:
+        """Plan and write every letter in turn; returns rewards, per-letter MPPI info and timings."""
+        t0 = time.perf_counter()
+        state = self.pen.get_state(0)
+        infos = []
+        for i, (poly, goal) in enumerate(zip(strokes, self.goals)):
+            state, info = self.plan_letter(np.asarray(poly, np.float64), goal, state)
+            infos.append(info)
+            if on_letter is not None:
+                on_letter(i, state)
+        self.pen.set_state(state)
+        self.pen.settle()
+        x, stroke = self.pen.particles()
+        out = letter_rewards(x[0], stroke, self.goals, self.reward_cfg)
+        out.update(letters=[{k: v for k, v in f.items() if k != "polyline"} for f in infos],
+                   polylines=[f["polyline"] for f in infos], particles=int(self.pen.n),
+                   rollouts=self.cfg.num_samples * self.cfg.iterations * len(strokes),
+                   seconds=time.perf_counter() - t0)
+        return out
+
+
+def draw_writing(path, goals, results: list[tuple[str, np.ndarray, np.ndarray, dict]]) -> None:
+    """Top-down figure: the letter goals, then each result (title, x (n,3), stroke (n,), rewards) by stroke."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from topocut.sim.render import label_colors
+
+    rows = 1 + len(results)
+    fig, axes = plt.subplots(rows, 1, figsize=(8, 2.3 * rows), dpi=110)
+    g = np.concatenate(goals)
+    axes[0].scatter(g[:, 0], g[:, 1], s=4, c=label_colors(np.repeat(np.arange(len(goals)), [len(q) for q in goals]) + 1))
+    axes[0].set_title(f"goal: {len(goals)} letter point clouds ({', '.join(str(len(q)) for q in goals)} points)",
+                      fontsize=9)
+    for ax, (title, x, stroke, rew) in zip(axes[1:], results):
+        ax.scatter(x[:, 0], x[:, 1], s=4, c=label_colors(np.asarray(stroke) + 1))
+        per = ", ".join(f"{r:.2f}" for r in rew["per_letter"])
+        d = ", ".join(f"{v:.3f}" for v in rew["distance"])
+        ax.set_title(f"{title}: {len(x)} particles, reward {rew['total']:.3f} (per letter {per}; d_spec {d})",
+                     fontsize=9)
+    lo, hi = g[:, :2].min(0) - 0.02, g[:, :2].max(0) + 0.02
+    for ax in axes:
+        ax.set_xlim(lo[0], hi[0])
+        ax.set_ylim(lo[1], hi[1])
+        ax.set_aspect("equal")
+        ax.set_xticks([])
+        ax.set_yticks([])
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
