@@ -28,6 +28,8 @@ case "$phase" in
   wheels) ls /tmp/site | head -50 ;;
   bench-sim)
     python3 benchmarks/sim_throughput.py --device cuda 2>&1 | tee "$OUT/bench_sim.txt" ;;
+  bench-topo)  # every size, cut beside it (cold Warp/Taichi caches need the long timeout)
+    timeout 500 python3 benchmarks/topology.py --device cuda 2>&1 | tee "$OUT/bench_topology.txt" ;;
   bench-rest)
     for b in topology reward train train_policy; do
       [ -f benchmarks/$b.py ] && timeout 150 python3 benchmarks/$b.py --device cuda 2>&1 | tee "$OUT/bench_$b.txt"
