@@ -34,6 +34,10 @@ class TopologyConfig:
     max_void_voxels: int = 64  # enclosed empty regions up to this size are filled (gaps between particles)
     # --- particle assignment ------------------------------------------------
     tau: float | None = None  # proximity threshold to a piece's surface; None: 2 r_p + half the gap
+    # --- timing ---------------------------------------------------------------
+    # wait for the device after every step so that each gets its own time; off, the host queues the next
+    # step's launches while the GPU runs (the total is shorter; per-step figures are then enqueue times)
+    step_timings: bool = False
 
     def validate(self) -> TopologyConfig:
         if self.resolution < 8:
