@@ -2,7 +2,9 @@
 
 A cut moves a thin blade (``KnifeAction``) from just above the object down
 along its in-plane travel direction w to the board while it oscillates along
-its long axis u; it then rests ``dwell_substeps`` and is withdrawn.  A push
+its long axis u; it then rests ``dwell_substeps`` and is withdrawn.  In a
+batch every scene gets its own substep budget (its travel + dwell) and is
+frozen after it, so scene b's cut equals the same cut run alone.  A push
 (``SimConfig.push_mode``) settles the pieces afterwards.  See docs/sim.md.
 """
 from __future__ import annotations
@@ -47,8 +49,9 @@ class CutInfo:
     work: np.ndarray  # B, work done by the knife on the material
     knife_end: np.ndarray  # B,3 edge midpoint where the knife stopped
     newly_damaged: np.ndarray  # B, particles damaged by this cut
-    substeps: int
+    substeps: int  # substeps the batch ran: the largest of substeps_per_scene
     wall_time: float
+    substeps_per_scene: np.ndarray | None = None  # B, each scene's own budget (travel + dwell); frozen after it
 
 
 class CuttingEnv:
@@ -174,17 +177,23 @@ class CuttingEnv:
         self._check()
 
     def _arm_knife(self, o, u, w, nrm, half, depth, speed, amp) -> None:
+        """Knife pose per scene; ``speed`` a scalar or one per scene."""
         s = self.solver
         for fld, val in ((s.k_o, o), (s.k_u, u), (s.k_w, w), (s.k_n, nrm), (s.k_half, half)):
             fld.from_numpy(np.asarray(val, np.float32).reshape(self.B, 3))
         s.k_depth.from_numpy(np.asarray(depth, np.float32))
-        s.k_speed.from_numpy(np.full(self.B, speed, np.float32))
+        s.k_speed.from_numpy(np.ascontiguousarray(np.broadcast_to(np.asarray(speed, np.float32), (self.B,))))
         s.k_amp.from_numpy(np.full(self.B, amp, np.float32))
         s.k_on.fill(1)
         s.reset_knife_stats()
 
     def cut(self, action: KnifeAction | list[KnifeAction]) -> CutInfo:
-        """One cut per scene (a single action goes to every scene), all scenes in one launch sequence."""
+        """One cut per scene (a single action goes to every scene), all scenes in one launch sequence.
+
+        Scene b runs its own budget, ceil(depth_b / (speed_b dt)) + dwell_substeps substeps, and is frozen
+        (no phase touches it) for the rest of the batch's substeps, so its result does not depend on the
+        other scenes: it equals a batch_size=1 cut with the same action from the same state.
+        """
         t_wall = time.perf_counter()
         cfg, s = self.cfg, self._need()
         acts = [action] * self.B if isinstance(action, KnifeAction) else list(action)
@@ -204,36 +213,41 @@ class CuttingEnv:
             o0.append(p0 - w * t_board)
             frames.append((u, w, nrm))
         depth = np.asarray(depth)
-        if cfg.cut_substeps is not None:
-            speed = max(depth.max(), 1e-6) / (cfg.cut_substeps * self.dt)
-            if speed * self.dt > 0.5 * cfg.dx:
+        if cfg.cut_substeps is not None:  # each scene covers its own depth in cut_substeps substeps
+            speed = np.maximum(depth, 1e-6) / (cfg.cut_substeps * self.dt)
+            if (speed * self.dt > 0.5 * cfg.dx).any():
                 raise ValueError(f"sim.cut_substeps={cfg.cut_substeps} moves the knife more than half a cell "
                                  f"per substep; raise it above {int(depth.max() / (0.5 * cfg.dx)) + 1}")
         else:
-            speed = cfg.knife_speed
-        travel = int(math.ceil(depth.max() / (speed * self.dt)))
+            speed = np.full(self.B, cfg.knife_speed)
+        # each scene's own budget (cut_substeps exactly: ceil(depth / (speed dt)) may round up by one)
+        travel = [cfg.cut_substeps if cfg.cut_substeps is not None else int(math.ceil(depth[b] / (speed[b] * self.dt)))
+                  for b in range(self.B)]
+        totals = np.asarray(travel, np.int64) + cfg.dwell_substeps
+        total = int(totals.max())
         half = [cfg.knife_half_length, cfg.knife_height / 2, cfg.knife_half_thickness]
         self._arm_knife(o0, [f[0] for f in frames], [f[1] for f in frames], [f[2] for f in frames],
                         [half] * self.B, depth, speed, cfg.osc_amplitude)
-        total = travel + cfg.dwell_substeps
+        s.frozen_at.from_numpy((self.step_count + totals).astype(np.int32))  # scene b stops after its budget
         try:
             self.simulate(total, contact=0 if cfg.knife_mode == "wedge" else 1)
         finally:
             s.k_on.fill(0)
+            s.frozen_at.fill(NO_STEP)  # outside a cut every scene moves
         om = 2 * math.pi * cfg.osc_frequency
         sweeps, ends = [], []
         for b, (u, w, nrm) in enumerate(frames):
-            t_stop = depth[b] / speed
+            t_stop = depth[b] / speed[b]
             ends.append(o0[b] + w * depth[b] + u * cfg.osc_amplitude * math.sin(om * t_stop))
             sweeps.append(KnifeSweep(origin=tuple(map(float, o0[b])), u=tuple(map(float, u)), w=tuple(map(float, w)),
                                      n=tuple(map(float, nrm)), half_length=cfg.knife_half_length + cfg.osc_amplitude,
                                      depth=float(depth[b]), half_thickness=cfg.knife_half_thickness + cfg.margin))
         self.sweeps = [[sw] for sw in sweeps]
-        duration = total * self.dt
-        return CutInfo(sweeps=sweeps, force=s.k_imp.to_numpy() / duration, peak_force=s.k_peak.to_numpy(),
+        duration = (totals * self.dt).astype(np.float32)  # B: each scene's own cut duration
+        return CutInfo(sweeps=sweeps, force=s.k_imp.to_numpy() / duration[:, None], peak_force=s.k_peak.to_numpy(),
                        work=s.k_work.to_numpy().astype(np.float64), knife_end=np.asarray(ends),
                        newly_damaged=s.damage.to_numpy()[:, :self.n].sum(1) - dmg0, substeps=total,
-                       wall_time=time.perf_counter() - t_wall)
+                       wall_time=time.perf_counter() - t_wall, substeps_per_scene=totals)
 
     def push(self) -> None:
         """Settle the pieces after a cut according to sim.push_mode (docs/sim.md)."""

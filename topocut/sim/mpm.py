@@ -10,7 +10,8 @@ quantity the damage rule reads.
 
 Per particle: material (0 core, 1 skin), damage (0/1, permanent) and the
 skin's current yield stress.  Per scene: the knife (an oriented box, one
-SDF evaluation per grid node) and the push plane.
+SDF evaluation per grid node), the push plane and ``frozen_at``, the first
+substep at which the scene stops moving (a cut's per-scene substep budget).
 """
 
 
@@ -83,11 +84,15 @@ class MPMSolver:
         self.k_work, self.k_peak = ti.field(f32), ti.field(f32)
         self.push_n, self.push_p = vec.field(), vec.field()  # last cut plane per scene
         self.bad_step = ti.field(ti.i32)  # first substep with NaN / runaway J (2**30 = none)
+        # substep number from which scene b is frozen (2**30 = never): every phase skips it from then on,
+        # so a batched cut gives scene b its own substep budget.  A field, so ti.graph runs read it live.
+        self.frozen_at = ti.field(ti.i32)
         fb.dense(ti.i, B).place(self.k_o, self.k_u, self.k_w, self.k_n, self.k_half, self.k_depth, self.k_amp,
                                 self.k_speed, self.k_on, self.k_imp, self.k_imp_step, self.k_work, self.k_peak,
-                                self.push_n, self.push_p, self.bad_step)
+                                self.push_n, self.push_p, self.bad_step, self.frozen_at)
         self.tree = fb.finalize()
         self.bad_step.fill(2 ** 30)
+        self.frozen_at.fill(2 ** 30)
         self.p2g, self.grid_op, self.g2p = self._phase_kernels()
         self._graphs = {}  # k -> compiled ti.graph of k substeps
 
@@ -139,6 +144,11 @@ class MPMSolver:
     # Loops run over the constant capacity (not the particle count n) so no serial task computes their
     # bounds at launch; scalar arguments are ti.template() so that no serial task stores them either.
     @ti.func
+    def active(self, b, step):
+        """Scene b moves in substep ``step`` (it is frozen from substep frozen_at[b] on)."""
+        return step < self.frozen_at[b]
+
+    @ti.func
     def clear_grid(self):
         for I in ti.grouped(self.grid_m):
             self.grid_v[I] = ti.Vector.zero(ti.f32, 3)
@@ -147,7 +157,7 @@ class MPMSolver:
     @ti.func
     def scatter(self, n: ti.template(), step: ti.template(), push_accel: ti.template()):
         for b, p in ti.ndrange(self.B, self.capacity):
-            if p < n:
+            if p < n and self.active(b, step):  # a frozen scene scatters nothing: its grid stays empty
                 self.scatter_particle(b, p, step, push_accel)
 
     @ti.func
@@ -297,10 +307,11 @@ class MPMSolver:
     @ti.func
     def gather(self, n: ti.template(), step: ti.template(), t: ti.template()):
         for b, p in ti.ndrange(self.B, self.capacity):
-            if p == 0 and self.k_on[b] == 1:  # one thread per scene books the knife's impulse of this substep
-                self.record_knife(b, t)
-            if p < n:
-                self.gather_particle(b, p, step)
+            if self.active(b, step):  # a frozen scene keeps x, v, C and its knife totals
+                if p == 0 and self.k_on[b] == 1:  # one thread per scene books the knife's impulse of this substep
+                    self.record_knife(b, t)
+                if p < n:
+                    self.gather_particle(b, p, step)
 
     @ti.func
     def record_knife(self, b, t):
