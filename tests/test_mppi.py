@@ -182,3 +182,13 @@ def test_sim_rollout_batched_matches_sequential_and_restores_state():
     np.testing.assert_allclose(rollout2(seqs), costs2, rtol=2e-3, atol=1e-4)  # state restored before every chunk
     assert np.isfinite(costs1).all()
     assert costs1[0] < costs1[1]  # the goal's own plane beats a cut that misses the object (x = 0.95)
+
+
+def test_rollout_discovers_topology_where_the_simulator_runs():
+    from types import SimpleNamespace
+
+    from topocut.planning.rollout import topology_device
+
+    assert topology_device(SimpleNamespace(cfg=SimpleNamespace(arch="cuda"))) == "cuda"
+    assert topology_device(SimpleNamespace(cfg=SimpleNamespace(arch="cpu"))) == "cpu"
+    assert topology_device(object()) == "cpu"  # a stand-in env without a config (tests' fakes)

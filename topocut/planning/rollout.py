@@ -62,6 +62,11 @@ class Scorer:
         return total, bool(ok)
 
 
+def topology_device(env) -> str:
+    """Discovery runs where the simulator runs: its particles are already on that device's side."""
+    return "cuda" if getattr(getattr(env, "cfg", None), "arch", "cpu") == "cuda" else "cpu"
+
+
 def _as_actions(vectors: np.ndarray) -> list[KnifeAction]:
     return [KnifeAction.from_vector(v) for v in vectors]
 
@@ -73,7 +78,7 @@ def make_sim_rollout(env, state_dict: dict, goal, reward_cfg=None, topo_cfg=None
     Every chunk of env.batch_size sequences starts from ``state_dict`` (one
     scene, env.get_state(0)); a chunk that diverges costs +inf (weight 0).
     """
-    scorer = scorer or Scorer(goal, reward_cfg, topo_cfg)
+    scorer = scorer or Scorer(goal, reward_cfg, topo_cfg, device=topology_device(env))
     B = int(getattr(env, "batch_size", 1))
     Diverged = simulation_diverged_error()
     labels0 = None if labels is None else np.asarray(labels, np.int32)
@@ -155,7 +160,7 @@ def run_episode(env, goal, planner, reward_cfg=None, topo_cfg=None, max_cuts: in
     episode ``failed`` and keeps the steps recorded before it.
     """
     t0 = time.perf_counter()
-    scorer = scorer or Scorer(goal, reward_cfg, topo_cfg, success_threshold)
+    scorer = scorer or Scorer(goal, reward_cfg, topo_cfg, success_threshold, device=topology_device(env))
     board_z = env_board_z(env)
     B = int(getattr(env, "batch_size", 1))
     Diverged = simulation_diverged_error()
