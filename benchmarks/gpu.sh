@@ -30,6 +30,8 @@ case "$phase" in
     python3 benchmarks/sim_throughput.py --device cuda 2>&1 | tee "$OUT/bench_sim.txt" ;;
   bench-topo)  # every size, cut beside it (cold Warp/Taichi caches need the long timeout)
     timeout 500 python3 benchmarks/topology.py --device cuda 2>&1 | tee "$OUT/bench_topology.txt" ;;
+  bench-mppi)
+    timeout 400 python3 benchmarks/mppi.py --device cuda --K 16 --n-grid 64 2>&1 | tee "$OUT/bench_mppi.txt" ;;
   bench-rest)
     for b in topology reward train train_policy; do
       [ -f benchmarks/$b.py ] && timeout 150 python3 benchmarks/$b.py --device cuda 2>&1 | tee "$OUT/bench_$b.txt"
