@@ -1,11 +1,11 @@
-"""Ice-cream scooping: spoon kinematics, the shell SDF, the target chunk (hand-checked)."""
+"""Ice-cream scooping: spoon kinematics, the shell SDF, the target chunk (hand-checked), and one simulated scoop."""
 import math
 
 import numpy as np
 import pytest
 
 from topocut.goals.config import SpoonConfig
-from topocut.planning.scoop import block_particles, in_cup, target_chunk
+from topocut.planning.scoop import block_particles, in_cup, target_chunk, target_volume
 from topocut.sim.spoon import Keyframe, SpoonPath, bowl_axis, scoop_keyframes, spoon_sdf_np
 
 
@@ -49,10 +49,16 @@ def test_shell_sdf_and_target_cap():
     # inside the shell's bottom; the centre; above the rim (cut off); on the rim, where the rim plane is nearer
     np.testing.assert_allclose(spoon_sdf_np(pts, c, up, sp), [-t / 2, r, r + t / 2, -1e-4], atol=1e-6)
     s = 0.005
+    h, a = sp.depth, sp.advance
     cap = target_chunk(sp, s)
-    h = sp.depth
-    assert len(cap) * s ** 3 == pytest.approx(math.pi * h * h * (3 * r - h) / 3, rel=0.1)
+    # the cap of height h, swept a along x: pi h^2 (3r - h) / 3 + a * (segment r^2 acos((r-h)/r) - (r-h) sqrt(2rh - h^2))
+    vol = math.pi * h * h * (3 * r - h) / 3 + a * (r * r * math.acos((r - h) / r) - (r - h) * math.sqrt(2 * r * h - h * h))
+    assert target_volume(sp) == pytest.approx(vol)
+    assert len(cap) * s ** 3 == pytest.approx(vol, rel=0.1)
     assert cap[:, 2].min() >= -r and cap[:, 2].max() <= -r + h
+    assert cap[:, 0].min() >= -r and cap[:, 0].max() <= r + a
+    # without the advance it is the plain cap
+    assert target_volume(SpoonConfig(advance=1e-12)) == pytest.approx(math.pi * h * h * (3 * r - h) / 3)
 
 
 def test_block_and_cup_regions():
@@ -61,5 +67,37 @@ def test_block_and_cup_regions():
     assert len(x) == 24 * 24 * 10
     np.testing.assert_allclose(x.mean(0), [*sp.block_center, 0.05 + sp.block[2] / 2], atol=1e-5)  # float32
     inside = np.array([[*sp.cup_center, 0.06], [sp.cup_center[0] + sp.cup_radius + 0.001, sp.cup_center[1], 0.06],
-                       [*sp.cup_center, 0.05 + sp.cup_height + 0.01]])
-    assert in_cup(inside, sp, 0.05).tolist() == [True, False, False]
+                       [*sp.cup_center, 0.05 + sp.cup_height + 0.01], [*sp.cup_center, 0.05 + sp.cup_height + 2 * sp.radius]])
+    # chunks may heap above the rim (up to a bowl's diameter); beside the wall it is out
+    assert in_cup(inside, sp, 0.05).tolist() == [True, False, True, False]
+
+
+def test_one_scoop_moves_a_chunk_into_the_cup():
+    """n_grid 32 (dx 3.1 cm, 1350 particles, ~15 s): the chunk leaves the block, lands in the cup, is its own cluster."""
+    from topocut.goals.config import TaskConfig
+    from topocut.planning.scoop import scoop_episode
+    from topocut.sim import SimConfig
+    from topocut.topology import TopologyConfig
+
+    sp = SpoonConfig(scoops=[[-0.03, 0.0]])
+    sim = SimConfig(n_grid=32)
+    res = scoop_episode(sim, TaskConfig(name="scooping", spoon=sp).validate(), TopologyConfig(resolution=64))
+    arr = res["arrays"]
+    x, lab, chunk = arr["x"], arr["labels"], arr["chunk"]
+    s = sim.spacing
+    # expected count: the swept cap's volume in particle cells; a particle stands for a cube of side s, so the
+    # chunk's boundary (the bowl's inner surface) is known to +- s/2: the band is the cap with r, h shrunk / grown by it
+    lo = target_volume(SpoonConfig(radius=sp.radius - s / 2, depth=sp.depth - s / 2)) / s ** 3
+    hi = target_volume(SpoonConfig(radius=sp.radius + s / 2, depth=sp.depth + s / 2)) / s ** 3
+    cup = in_cup(x, sp, sim.board_z)
+    assert lo <= cup.sum() <= hi, (lo, int(cup.sum()), hi)
+    # the block keeps the rest: everything not in the cup is still on the block's footprint, on the board
+    half = np.asarray(sp.block[:2]) / 2 + s
+    on_block = (np.abs(x[:, :2] - sp.block_center) <= half).all(1) & (x[:, 2] <= sim.board_z + sp.block[2] + s)
+    assert (on_block | cup).all() and not (on_block & cup).any()
+    # the bookkeeping: the chunk is what landed; discovery gives it one cluster id, not the block's
+    assert (chunk == 1).sum() == res["scoops"][0]["held"] and cup[chunk == 1].mean() > 0.95
+    assert res["chunks_in_cup"] == 1 and res["chunks_distinct"]
+    cid, frac = res["chunk_clusters"][0]
+    assert frac > 0.95 and (lab[cup] == cid).mean() > 0.95 and not (lab[on_block] == cid).any()
+    assert res["per_chunk"][0] > 0

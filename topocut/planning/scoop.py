@@ -1,16 +1,16 @@
 """Ice-cream scooping episodes: block, spoon primitive per 2-D placement, chunks in the cup, rewards.
 
 The block is a jittered lattice of the von Mises material (material 1, per-particle yield stress
-``spoon.yield_stress``; damage and softening as for the food's skin, so the spoon's rim tears the
-chunk free).  Every placement in ``task.spoon.scoops`` (x, y offsets from the block centre) runs the
-primitive of topocut.sim.spoon.scoop_keyframes; the solver's p2g, grid_op, the tools' collider
-kernel and g2p make one substep.
+``spoon.yield_stress``; damage and softening as for the food's skin; the chunk comes free because the
+sided transfers keep material on either side of the shell apart, see topocut.sim.spoon).  Every placement in ``task.spoon.scoops`` (x, y offsets from the block centre) runs the
+primitive of topocut.sim.spoon.scoop_keyframes; the tools' sided p2g, the solver's grid_op, the tools'
+collider kernel and the sided g2p make one substep (the solver's own p2g / g2p once the spoon is away).
 
 Chunk bookkeeping: when the spoon has lifted, the particles inside its bowl are chunk i (by
 construction).  At the end, topology discovery labels the scene; the clusters whose centroid lies in
 the cup are the scooped pieces, and each chunk should be one of them.  The reward is the spectral
-reward of those pieces against one target chunk per scoop: the material a level bowl would hold,
-a spherical cap of height ``spoon.depth`` of the bowl's inner sphere.
+reward of those pieces against one target chunk per scoop: the material the primitive cuts out, a
+spherical cap of height ``spoon.depth`` of the bowl's inner sphere swept ``spoon.advance`` along x.
 """
 from __future__ import annotations
 
@@ -33,19 +33,38 @@ def block_particles(spoon, spacing: float, board_z: float, seed: int = 0, jitter
 
 
 def target_chunk(spoon, spacing: float) -> np.ndarray:
-    """Lattice points (m,3) of a spherical cap of height spoon.depth cut from a ball of radius spoon.radius."""
-    r, h = spoon.radius, spoon.depth
+    """Lattice points (m,3) of the material the primitive scoops: the block below depth h = spoon.depth of its top
+    that the bowl's sphere (radius r) covers somewhere along its advance a = spoon.advance (+x).
+
+    That is a spherical cap of height h swept by a: volume pi h^2 (3r - h) / 3 + a * (circular segment of the
+    same height, r^2 acos((r - h) / r) - (r - h) sqrt(2 r h - h^2)) (``target_volume``).  Origin: the
+    sphere's centre at the start of the advance; the cap's bottom is at z = -r.
+    """
+    r, h, a = spoon.radius, spoon.depth, spoon.advance
     n = int(np.ceil(r / spacing))
-    g = np.stack(np.meshgrid(*[np.arange(-n, n + 1)] * 3, indexing="ij"), -1).reshape(-1, 3) * spacing
-    keep = (np.linalg.norm(g, axis=1) <= r) & (g[:, 2] <= -r + h)
+    ax = np.arange(-n, n + 1) * spacing
+    g = np.stack(np.meshgrid(np.arange(-n, int(np.ceil((r + a) / spacing)) + 1) * spacing, ax, ax, indexing="ij"),
+                 -1).reshape(-1, 3)
+    along = np.clip(g[:, 0], 0.0, a)  # nearest centre on the swept segment
+    rad = np.linalg.norm(g - np.column_stack([along, np.zeros((len(g), 2))]), axis=1)
+    keep = (rad <= r) & (g[:, 2] <= -r + h)
     return g[keep].astype(np.float32)
 
 
+def target_volume(spoon) -> float:
+    """Volume of ``target_chunk``'s region (the swept cap), in closed form."""
+    r, h, a = spoon.radius, spoon.depth, spoon.advance
+    cap = np.pi * h * h * (3 * r - h) / 3
+    segment = r * r * np.arccos((r - h) / r) - (r - h) * np.sqrt(2 * r * h - h * h)
+    return float(cap + a * segment)
+
+
 def in_cup(points, spoon, board_z: float) -> np.ndarray:
-    """(N,) bool: inside the cup's inner cylinder."""
+    """(N,) bool: over the cup's inner disc, below its rim plus a bowl's diameter (chunks resting in the cup heap
+    above the rim: a bowlful stands ~7 cm tall and the second lands on the first)."""
     p = np.asarray(points, float)
     rho = np.linalg.norm(p[:, :2] - np.asarray(spoon.cup_center, float), axis=1)
-    return (rho < spoon.cup_radius) & (p[:, 2] < board_z + spoon.cup_height)
+    return (rho < spoon.cup_radius) & (p[:, 2] < board_z + spoon.cup_height + 2 * spoon.radius)
 
 
 def tool_points(spoon, c, a, board_z: float, n: int = 400) -> tuple[np.ndarray, np.ndarray]:
@@ -64,10 +83,10 @@ def tool_points(spoon, c, a, board_z: float, n: int = 400) -> tuple[np.ndarray, 
 class ScoopScene:
     """One block, the spoon and the cup in a one-scene solver."""
 
-    def __init__(self, sim, spoon, seed: int = 0):
+    def __init__(self, sim, spoon, seed: int = 0, sided: bool = True):
         from topocut.sim import CuttingEnv
 
-        self.spoon = spoon
+        self.spoon, self.sided = spoon, sided
         self.env = CuttingEnv(dataclasses.replace(sim, yield_stress=spoon.yield_stress), batch_size=1)
         x = block_particles(spoon, self.env.cfg.spacing, self.env.cfg.board_z, seed)
         self.env.load_particles(x, np.ones(len(x), np.int32))
@@ -93,12 +112,17 @@ class ScoopScene:
                     on_phase(phase, c, a)
                 phase = p
             k = env.step_count
-            s.p2g(env.n, k, 0.0)
+            sided = self.sided and path is not None
+            if sided:
+                self.tools.p2g_sided(env.n, k)
+            else:
+                s.p2g(env.n, k, 0.0)
             s.grid_op(self.t, 0)
             self.tools.collide_tools()
-            s.g2p(env.n, k, self.t)
-            if path is not None:
-                self.tools.cut_with_rim(env.n)
+            if sided:
+                self.tools.g2p_sided(env.n, k)
+            else:
+                s.g2p(env.n, k, self.t)
             env.step_count += 1
             self.t += env.dt
             if env.step_count % env.cfg.check_every == 0:
@@ -107,7 +131,7 @@ class ScoopScene:
 
     def scoop(self, i: int, place_xy, on_phase=None) -> dict:
         """Scoop i at absolute placement (x, y); chunk i = the particles in the bowl once it has lifted."""
-        top = float(self.x[:, 2].max())
+        top = float(self.x[self.chunk == 0, 2].max())  # the block's top (earlier chunks may heap higher in the cup)
         path = scoop_keyframes(self.spoon, place_xy, top, self.env.cfg.board_z + self.spoon.cup_height, t0=self.t)
         lift_end = next(k.t for k in path.keys if k.phase == "lift")
         self.run(path, lift_end, on_phase)
@@ -184,3 +208,24 @@ def scoop_episode(sim, task, topology=None, frames_dir=None, seed: int = 0, rewa
             "chunks_distinct": bool(distinct), "reward": float(res.total), "per_chunk": res.per_goal.tolist(),
             "target_points": int(len(target)), "particles": int(len(x)), "substeps": int(scene.env.step_count),
             "seconds": time.perf_counter() - t0, "arrays": arrays, "frames": frames}
+
+
+def figure(frames_dir, out, names=("00_", "scoop1_tilt", "scoop2_advance", "final")) -> None:
+    """docs/img/scooping.png: the run's frames (frames/NN_<phase>.png) whose names contain ``names``, side by side."""
+    from pathlib import Path
+
+    import imageio.v2 as imageio
+
+    files = sorted(Path(frames_dir).glob("*.png"))
+    imgs = [imageio.imread(next(f for f in files if key in f.name))[..., :3] for key in names]
+    h = min(i.shape[0] for i in imgs)
+    row = np.concatenate([i[:h] for i in imgs], axis=1)
+    ink = np.flatnonzero((row < 250).any(axis=(1, 2)))  # drop blank rows (titles and scenes stay)
+    keep = np.unique(np.concatenate([np.arange(max(r - 4, 0), min(r + 5, h)) for r in ink]))
+    imageio.imwrite(out, row[keep])
+
+
+if __name__ == "__main__":  # python -m topocut.planning.scoop <run>/frames docs/img/scooping.png
+    import sys
+
+    figure(sys.argv[1], sys.argv[2])

@@ -13,13 +13,17 @@ pose is linear between keyframes.
 
 Cup: a cylindrical wall (inner radius R, thickness w, height H) standing on the board.
 
-The rim cuts: ``cut_with_rim`` (after g2p) damages the particles inside the shell, as the knife damages
-its band (see its docstring for why).
+Colliders (``collide_tools``, a Taichi kernel run between grid_op and g2p): a grid node within ``margin`` (half a
+cell beyond the surface; the shell is thinner than a cell) of a tool may not move into it relative to the tool
+(normal from the tool's mid-surface towards the node's side), with Coulomb friction on the tangential part.
 
-Colliders (``collide_tools``, a Taichi kernel run between the solver's grid_op and g2p): a grid node
-within ``margin`` (half a cell beyond the surface; the shell is thinner than a cell) of a tool may not move into it
-relative to the tool (normal from the tool's mid-surface towards the node's side), with Coulomb
-friction on the tangential part — so material rests in the bowl and is carried with it.
+Sided transfers (``p2g_sided``, ``g2p_sided``, replacing the solver's p2g and g2p while the spoon is in use): the
+grid alone cannot separate material across a shell thinner than a cell, since a particle beside it exchanges
+momentum with nodes on the far side (with the solver's transfers the whole block was lifted with the spoon).  As
+in CPIC (Hu et al. 2018, the MLS-MPM paper's section on thin boundaries), particles and nodes below the rim plane
+have a side of the shell's mid-sphere and a particle only scatters to / gathers from nodes on its side; an
+incompatible node lends g2p the particle's own velocity (its normal part not moving into the spoon), and a
+particle that still ends inside the shell's volume is put back on its side with the spoon's normal velocity.
 """
 import math
 from dataclasses import dataclass
@@ -146,23 +150,135 @@ class ToolColliders:
             out = vb + vt
         return out
 
-    @ti.kernel
-    def cut_with_rim(self, n: ti.i32):
-        """Particles inside the shell (inflated by half a cell) are cut: damaged, as the knife's band is.
+    # -- sided transfers (CPIC, Hu et al. 2018 "A moving least squares material point method", section 5) ----------
+    # The shell (1 cm) is thinner than a cell: with the solver's p2g/g2p a particle beside it exchanges momentum with
+    # nodes on the far side, so the block outside the bowl is dragged up with the chunk.  Here every particle and
+    # node near the bowl has a side (inside / outside the shell's mid-sphere, where it is below the rim plane) and a
+    # particle only scatters to and gathers from nodes on its own side; in g2p an incompatible node contributes the
+    # particle's own velocity, its normal part relative to the spoon kept from moving into it.
+    @ti.func
+    def side(self, b, pos):
+        """+1 outside the mid-sphere, -1 inside, 0 where the shell does not separate (above the rim plane, spoon off)."""
+        out = 0
+        if self.on[None] == 1:
+            d = pos - self.pose[b, 0]
+            if d.dot(self.pose[b, 1]) < self.spoon.opening * self.spoon.radius:
+                out = 1 if d.norm() > self.spoon.radius + self.spoon.thickness / 2 else -1
+        return out
 
-        The grid cannot separate material across a shell thinner than a cell (a particle beside it
-        spreads over nodes on both sides); damaged material keeps 1% of its stiffness and no yield
-        stress, so the scooped cap comes loose instead of lifting the block with it.
-        """
+    @ti.func
+    def near_shell(self, b, pos):
+        """Within 3 cells of the mid-sphere (beyond that no node of the particle's 3x3x3 stencil is across it)."""
+        d = pos - self.pose[b, 0]
+        return self.on[None] == 1 and ti.abs(d.norm() - self.spoon.radius - self.spoon.thickness / 2) < 3 * self.s.dx
+
+    @ti.kernel
+    def p2g_sided(self, n: ti.i32, step: ti.i32):
+        """The solver's p2g (clear + scatter, von Mises / damage as in MPMSolver.scatter_particle), sided."""
+        s = self.s
+        for I in ti.grouped(s.grid_m):
+            s.grid_v[I] = ti.Vector.zero(ti.f32, 3)
+            s.grid_m[I] = 0.0
+        for b, p in ti.ndrange(s.B, s.capacity):
+            if p < n:
+                xp = s.x[b, p]
+                base = s.base_node(xp)
+                fx = xp * s.inv_dx - base.cast(ti.f32)
+                w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1) ** 2, 0.5 * (fx - 0.5) ** 2]
+                F = (ti.Matrix.identity(ti.f32, 3) + s.dt * s.C[b, p]) @ s.F[b, p]
+                J = F.determinant()
+                if J <= s.jc or J >= s.js:
+                    s.damage[b, p] = 1
+                if not (s.cfg.j_min < J < s.cfg.j_max):
+                    ti.atomic_min(s.bad_step[b], step)
+                mat = s.material[p]
+                scale = 1.0
+                if s.damage[b, p] == 1:
+                    scale = s.cfg.damaged_stiffness
+                R = ti.Matrix.identity(ti.f32, 3)
+                if mat == 1 or s.damage[b, p] == 1:
+                    U, sig, V = ti.svd(F)
+                    if mat == 1:
+                        sig = s.von_mises_return(sig, b, p, scale)
+                    else:
+                        sig = s.damaged_flow(sig)
+                    F = U @ sig @ V.transpose()
+                    R = U @ V.transpose()
+                    J = sig[0, 0] * sig[1, 1] * sig[2, 2]
+                else:
+                    R = s.polar_rotation(F)
+                s.F[b, p] = F
+                s.Jp[b, p] = J
+                tau = s.fixed_corotated(F, R, J, scale)
+                mass = s.vol * (s.cfg.rho_skin if mat == 1 else s.cfg.rho_core)
+                affine = -s.dt * s.vol * 4 * s.inv_dx * s.inv_dx * tau + mass * s.C[b, p]
+                mom = mass * s.v[b, p]
+                sp = 0
+                if self.near_shell(b, xp):
+                    sp = self.side(b, xp)
+                for off in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
+                    ok = True
+                    if sp != 0:
+                        sn = self.side(b, (base + off).cast(ti.f32) * s.dx)
+                        ok = sn == 0 or sn == sp
+                    if ok:
+                        dpos = (off.cast(ti.f32) - fx) * s.dx
+                        weight = w[off[0]][0] * w[off[1]][1] * w[off[2]][2]
+                        s.grid_v[b, base + off] += weight * (mom + affine @ dpos)
+                        s.grid_m[b, base + off] += weight * mass
+
+    @ti.kernel
+    def g2p_sided(self, n: ti.i32, step: ti.i32):
+        """The solver's g2p, sided; then particles inside the shell's volume are put back on their side of it."""
         s = self.s
         r_mid = ti.static(self.spoon.radius + self.spoon.thickness / 2)
-        band = ti.static(self.spoon.thickness / 2) + 0.5 * s.dx
-        opening = ti.static(self.spoon.opening * self.spoon.radius)
-        for b, p in ti.ndrange(s.B, n):
-            if self.on[None] == 1:
-                d = s.x[b, p] - self.pose[b, 0]
-                if ti.abs(d.norm() - r_mid) < band and d.dot(self.pose[b, 1]) < opening:
-                    s.damage[b, p] = 1
+        half_t = ti.static(self.spoon.thickness / 2)
+        for b, p in ti.ndrange(s.B, s.capacity):
+            if p < n:
+                xp = s.x[b, p]
+                base = s.base_node(xp)
+                fx = xp * s.inv_dx - base.cast(ti.f32)
+                w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1) ** 2, 0.5 * (fx - 0.5) ** 2]
+                sp = 0
+                if self.near_shell(b, xp):
+                    sp = self.side(b, xp)
+                c = self.pose[b, 0]
+                nrm = (xp - c).normalized(1e-12) * ti.cast(sp, ti.f32)  # towards the particle's side
+                vb = self.pose[b, 2] + self.pose[b, 3].cross(xp - c)
+                v_own = s.v[b, p]
+                vr = (v_own - vb).dot(nrm)
+                if vr < 0:
+                    v_own -= vr * nrm
+                new_v = ti.Vector.zero(ti.f32, 3)
+                new_C = ti.Matrix.zero(ti.f32, 3, 3)
+                for off in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
+                    dpos = (off.cast(ti.f32) - fx) * s.dx
+                    weight = w[off[0]][0] * w[off[1]][1] * w[off[2]][2]
+                    g_v = s.grid_v[b, base + off]
+                    if sp != 0:
+                        sn = self.side(b, (base + off).cast(ti.f32) * s.dx)
+                        if sn != 0 and sn != sp:
+                            g_v = v_own
+                    new_v += weight * g_v
+                    new_C += 4 * s.inv_dx * s.inv_dx * weight * g_v.outer_product(dpos)
+                xn = xp + s.dt * new_v
+                if sp != 0:  # ended inside the shell (or across it): back onto the particle's side, moving with it
+                    d = xn - c
+                    dist = d.norm() + 1e-12
+                    if ti.cast(sp, ti.f32) * (dist - r_mid) < half_t and d.dot(self.pose[b, 1]) < self.spoon.opening * self.spoon.radius:
+                        xn = c + d / dist * (r_mid + ti.cast(sp, ti.f32) * (half_t + 1e-4))
+                        nn = d / dist * ti.cast(sp, ti.f32)
+                        vbn = self.pose[b, 2] + self.pose[b, 3].cross(xn - c)
+                        vrel = new_v - vbn
+                        vn = vrel.dot(nn)
+                        if vn < 0:
+                            vt = vrel - vn * nn
+                            vt *= ti.max(0.0, 1 + self.friction * vn / (vt.norm() + 1e-12))
+                            new_v = vbn + vt
+                s.v[b, p], s.C[b, p] = new_v, new_C
+                if not (xn.norm() < 10.0):
+                    ti.atomic_min(s.bad_step[b], step)
+                s.x[b, p] = xn
 
     @ti.kernel
     def collide_tools(self):
