@@ -31,7 +31,9 @@ case "$phase" in
   bench-topo)  # every size, cut beside it (cold Warp/Taichi caches need the long timeout)
     timeout 500 python3 benchmarks/topology.py --device cuda 2>&1 | tee "$OUT/bench_topology.txt" ;;
   bench-mppi)
-    timeout 400 python3 benchmarks/mppi.py --device cuda --K 16 --n-grid 64 2>&1 | tee "$OUT/bench_mppi.txt" ;;
+    timeout 400 python3 benchmarks/mppi.py --device cuda --K 16 --n-grid 64 2>&1 | tee "$OUT/bench_mppi.txt"
+    timeout 300 python3 benchmarks/mppi.py --device cuda --K 16 --n-grid 64 --reward-backend torch 2>&1 \
+      | tee -a "$OUT/bench_mppi.txt" ;;
   bench-rest)
     for b in topology reward train train_policy; do
       [ -f benchmarks/$b.py ] && timeout 150 python3 benchmarks/$b.py --device cuda 2>&1 | tee "$OUT/bench_$b.txt"

@@ -37,6 +37,7 @@ def bench_sim(args, cfg: MPPIConfig) -> dict:
     from topocut.goals import make_goal
     from topocut.goals.config import TaskConfig
     from topocut.planning.rollout import make_sim_rollout
+    from topocut.reward.config import RewardConfig
     from topocut.sim.config import SimConfig
     from topocut.sim.env import CuttingEnv
     from topocut.sim.objects import ObjectPose
@@ -50,7 +51,9 @@ def bench_sim(args, cfg: MPPIConfig) -> dict:
         env = CuttingEnv(sim, batch_size=batch)
         env.reset(args.object, pose, seed=0)
         goal = make_goal(TaskConfig(name=args.task), args.object, pose, getattr(sim, "spacing", 0.01))
-        rollout = make_sim_rollout(env, env.get_state(0), goal, board_z=sim.board_z)
+        rcfg = RewardConfig(backend=args.reward_backend,
+                            device=args.device if args.reward_backend == "torch" else "cpu")
+        rollout = make_sim_rollout(env, env.get_state(0), goal, reward_cfg=rcfg, board_z=sim.board_z)
         mppi = MPPI(cfg, rollout, np.random.default_rng(0))
         mean = np.stack([p.to_vector() for p in (goal.planes * cfg.horizon)[: cfg.horizon]]).astype(np.float64)
         dt = time_it(lambda m=mppi, u=mean: m.plan(u), args.repeats)
@@ -70,6 +73,8 @@ def main() -> None:
     p.add_argument("--task", default="slice")
     p.add_argument("--n-grid", type=int, default=0, help="override sim.n_grid (0: SimConfig default)")
     p.add_argument("--repeats", type=int, default=1)
+    p.add_argument("--reward-backend", choices=("scipy", "torch"), default="scipy",
+                   help="spectral reward eigensolver (torch runs on --device)")
     p.add_argument("--core-only", action="store_true", help="skip the simulator rollouts")
     args = p.parse_args()
     cfg = MPPIConfig(num_samples=args.K, horizon=args.H, iterations=args.iters)
@@ -84,7 +89,8 @@ def main() -> None:
         print(f"simulator rollouts skipped: {e}")
         return
     seq, bat = out["sequential B=1"], out[f"batched B={args.K}"]
-    print(f"batched / sequential speed-up: {seq / bat:.2f}x  (device={args.device}, K={args.K}, H={args.H})")
+    print(f"batched / sequential speed-up: {seq / bat:.2f}x  (device={args.device}, K={args.K}, H={args.H}, "
+          f"reward={args.reward_backend})")
 
 
 if __name__ == "__main__":

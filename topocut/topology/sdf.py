@@ -187,7 +187,9 @@ def _node_dist(xp: wp.vec3, lower: wp.vec3, h: float, i: int, j: int, k: int, r:
 @wp.kernel
 def _splat_sdf(x: wp.array(dtype=wp.vec3), r: float, lower: wp.vec3, h: float, reach: int,
                sdf: wp.array3d(dtype=float)):
-    p = wp.tid()
+    # one thread per (particle, slab i of its window): a few thousand particles alone would leave most of a
+    # GPU idle, each thread walking (2 reach + 1)^3 nodes in turn
+    p, s = wp.tid()
     xp = x[p]
     c = (xp - lower) / h
     ci = int(wp.round(c[0]))
@@ -195,7 +197,8 @@ def _splat_sdf(x: wp.array(dtype=wp.vec3), r: float, lower: wp.vec3, h: float, r
     ck = int(wp.round(c[2]))
     lim = (float(reach) + 0.5) * h  # skip the corners of the cube window: the band is a ball
     # (the plain cube loop: limiting each column to the ball was slower on the CPU)
-    for i in range(wp.max(ci - reach, 0), wp.min(ci + reach + 1, sdf.shape[0])):
+    i = ci - reach + s
+    if i >= 0 and i < sdf.shape[0]:
         for j in range(wp.max(cj - reach, 0), wp.min(cj + reach + 1, sdf.shape[1])):
             for k in range(wp.max(ck - reach, 0), wp.min(ck + reach + 1, sdf.shape[2])):
                 d = _node_dist(xp, lower, h, i, j, k, r)
@@ -207,13 +210,14 @@ def _splat_sdf(x: wp.array(dtype=wp.vec3), r: float, lower: wp.vec3, h: float, r
 def _splat_owner(x: wp.array(dtype=wp.vec3), lab: wp.array(dtype=wp.int32), r: float, lower: wp.vec3, h: float,
                  reach: int, sdf: wp.array3d(dtype=float), owner: wp.array3d(dtype=wp.int32)):
     # second pass: the particle that achieved the min writes its label (same float expression -> exact tie test)
-    p = wp.tid()
+    p, s = wp.tid()  # (particle, slab), as in _splat_sdf
     xp = x[p]
     c = (xp - lower) / h
     ci = int(wp.round(c[0]))
     cj = int(wp.round(c[1]))
     ck = int(wp.round(c[2]))
-    for i in range(wp.max(ci - reach, 0), wp.min(ci + reach + 1, sdf.shape[0])):
+    i = ci - reach + s
+    if i >= 0 and i < sdf.shape[0]:
         for j in range(wp.max(cj - reach, 0), wp.min(cj + reach + 1, sdf.shape[1])):
             for k in range(wp.max(ck - reach, 0), wp.min(ck + reach + 1, sdf.shape[2])):
                 if _node_dist(xp, lower, h, i, j, k, r) == sdf[i, j, k]:
@@ -256,13 +260,13 @@ def particle_sdf(x, r: float, grid: Grid, band: float, device: str = "cpu", owne
         x = wp.array(np.ascontiguousarray(x, np.float32), dtype=wp.vec3, device=device)
     reach = int(np.ceil((r + band) / grid.h))
     sdf = wp.full(grid.shape, float(band), dtype=float, device=device)
-    wp.launch(_splat_sdf, dim=x.shape[0], inputs=[x, float(r), grid.wp_lower, float(grid.h), reach, sdf],
+    wp.launch(_splat_sdf, dim=(x.shape[0], 2 * reach + 1), inputs=[x, float(r), grid.wp_lower, float(grid.h), reach, sdf],
               device=device)
     if owner_labels is not None:
         if not isinstance(owner_labels, wp.array):
             owner_labels = wp.array(np.ascontiguousarray(owner_labels, np.int32), dtype=wp.int32, device=device)
         ow = wp.full(grid.shape, -1, dtype=wp.int32, device=device)
-        wp.launch(_splat_owner, dim=x.shape[0],
+        wp.launch(_splat_owner, dim=(x.shape[0], 2 * reach + 1),
                   inputs=[x, owner_labels, float(r), grid.wp_lower, float(grid.h), reach, sdf, ow], device=device)
         walled = wp.empty_like(sdf)
         wp.launch(_walls, dim=grid.shape, inputs=[sdf, ow, 0.5 * float(grid.h), walled], device=device)
