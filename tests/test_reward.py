@@ -11,6 +11,7 @@ from topocut.reward import (
     spectral_descriptors,
     spectral_distance,
     spectral_reward,
+    spectral_rewards,
 )
 from topocut.reward.spectral import hks_signature, laplacian, resample, smallest_eigenpairs
 
@@ -191,3 +192,24 @@ def test_metric_table_wrong_cut_scores_below_right_cut_and_pose_moves_only_hurt_
     # CD sees the move: goal piece 2 now takes a neighbouring piece, one slab away, as its closest fragment
     assert tab["cd"][3] > 2 * tab["cd"][1] and tab["cd_score"][3] < tab["cd_score"][1]
     assert tab["cd_score"].min() == 0.0 and tab["cd_score"].max() < 1.0  # 1 - d / max d over the steps
+
+
+@pytest.mark.parametrize("backend", ["scipy", "torch"])
+def test_rewards_of_many_scenes_equal_one_scene_at_a_time(backend):
+    """spectral_rewards batches every scene's fragments through one descriptor call (MPPI's K scenes);
+    each scene's result must equal spectral_reward of that scene alone, empty scenes included."""
+    if backend == "torch":
+        pytest.importorskip("torch")
+    cfg = RewardConfig(num_point=256, knn=20, num_eig=12, backend=backend, success_distance=0.05)
+    goals = [box(0.016, 0.016, 0.016), box(0.016, 0.016, 0.04)]
+    scenes = [[box(0.03, 0.03, 0.03), moved(box(0.016, 0.016, 0.016, seed=3), 2)],
+              [],
+              [moved(box(0.016, 0.016, 0.04, seed=1), 5), box(0.004, 0.004, 0.008)]]
+    batched = spectral_rewards(scenes, goals, cfg)
+    assert len(batched) == len(scenes)
+    for frags, r in zip(scenes, batched):
+        alone = spectral_reward(frags, goals, cfg)
+        assert r.total == pytest.approx(alone.total, rel=1e-6, abs=1e-9)
+        assert r.matching == alone.matching and r.cut_count == alone.cut_count
+        np.testing.assert_allclose(r.distances, alone.distances, rtol=1e-6)
+    assert batched[1].total == 0.0 and batched[0].total > 0.4 and batched[2].per_goal[1] > 0.9

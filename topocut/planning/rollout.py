@@ -61,6 +61,12 @@ class Scorer:
         ok = self.success_threshold is not None and total >= self.success_threshold
         return total, bool(ok)
 
+    def rewards(self, xs, labels) -> np.ndarray:  # K, the rewards of K scenes in one batched reward call
+        from topocut.reward import spectral_rewards
+
+        sets = [self.fragments(x, lab) for x, lab in zip(xs, labels)]
+        return np.array([r.total for r in spectral_rewards(sets, list(self.goal.fragments), self.reward_cfg)])
+
 
 def topology_device(env) -> str:
     """Discovery runs where the simulator runs: its particles are already on that device's side."""
@@ -113,8 +119,9 @@ def make_sim_rollout(env, state_dict: dict, goal, reward_cfg=None, topo_cfg=None
             except Diverged:
                 costs[c0:c0 + n] = np.inf
                 continue
-            for b in range(n):
-                costs[c0 + b] = -scorer.reward(xs[b], labs[b])[0]
+            batched = getattr(scorer, "rewards", None)  # a scorer may offer only per-scene reward()
+            costs[c0:c0 + n] = -(batched(xs, labs) if batched is not None
+                                 else np.array([scorer.reward(x, lab)[0] for x, lab in zip(xs, labs)]))
         return costs
 
     return rollout

@@ -97,33 +97,42 @@ def distance_matrix(fragments, goal_fragments, cfg: RewardConfig | None = None) 
     Goal resamplings and descriptors are cached (keyed by the goal's bytes and the config),
     so repeated calls with the same goal, as in MPPI, only pay for the fragments.
     """
+    return distance_matrices([fragments], goal_fragments, cfg, names=("fragments",))[0]
+
+
+def distance_matrices(fragment_sets, goal_fragments, cfg: RewardConfig | None = None,
+                      names=None) -> list[np.ndarray]:
+    """One (F_s,G) matrix per set of fragments (e.g. the K scenes of an MPPI batch) against one goal.
+
+    All sets' fragments go through one descriptor call, so the torch backend
+    decomposes every scene's fragments in one batch instead of one scene at a time.
+    """
     cfg = (cfg or RewardConfig()).validate()
-    frags = [resample(_points(f, f"fragments[{i}]"), cfg) for i, f in enumerate(fragments)]
+    names = names or [f"fragment_sets[{s}]" for s in range(len(fragment_sets))]
+    sets = [[resample(_points(f, f"{name}[{i}]"), cfg) for i, f in enumerate(fs)]
+            for name, fs in zip(names, fragment_sets)]
     goals = [_points(g, f"goal_fragments[{i}]") for i, g in enumerate(goal_fragments)]
     ckey = repr(cfg)
     gkeys = [_hash(g) for g in goals]
     goals = [_cached(("resample", k, ckey), lambda g=g: resample(g, cfg)) for k, g in zip(gkeys, goals)]
-    D = np.full((len(frags), len(goals)), np.inf)
+    Ds = [np.full((len(fs), len(goals)), np.inf) for fs in sets]
     valid = [g for g in goals if len(g) >= cfg.min_points]
-    if not frags or not valid:
-        return D
+    flat = [f for fs in sets for f in fs]
+    if not flat or not valid:
+        return Ds
     sigma = reference_sigma(valid, cfg)
-    fd = _descriptors(frags, sigma, cfg)
+    fd = iter(_descriptors(flat, sigma, cfg))
     gd = [_cached(("desc", k, sigma, ckey), lambda g=g: _descriptors([g], sigma, cfg)[0]) for k, g in zip(gkeys, goals)]
-    for i, a in enumerate(fd):
-        for j, b in enumerate(gd):
-            if a is not None and b is not None:
-                D[i, j] = descriptor_distance(*a, *b, cfg)
-    return D
+    for D in Ds:
+        for i in range(D.shape[0]):
+            a = next(fd)
+            for j, b in enumerate(gd):
+                if a is not None and b is not None:
+                    D[i, j] = descriptor_distance(*a, *b, cfg)
+    return Ds
 
 
-def spectral_reward(fragments, goal_fragments, cfg: RewardConfig | None = None) -> RewardResult:
-    """Reward of the current pieces (list of (n,3)) against the goal pieces (list of (m,3))."""
-    cfg = (cfg or RewardConfig()).validate()
-    G = len(goal_fragments)
-    if G == 0:
-        raise ValueError("spectral_reward needs at least one goal fragment")
-    D = distance_matrix(fragments, goal_fragments, cfg)
+def _result(D: np.ndarray, G: int, cfg: RewardConfig) -> RewardResult:
     pairs = match(D)
     per_goal = np.zeros(G)
     success = cfg.tau if cfg.success_distance is None else cfg.success_distance
@@ -133,3 +142,20 @@ def spectral_reward(fragments, goal_fragments, cfg: RewardConfig | None = None) 
         cut_count += int(D[f, g] <= success)
     kappa = 1.0 / G if cfg.kappa is None else cfg.kappa
     return RewardResult(float(kappa * per_goal.sum()), per_goal, pairs, cut_count, D)
+
+
+def spectral_rewards(fragment_sets, goal_fragments, cfg: RewardConfig | None = None) -> list[RewardResult]:
+    """spectral_reward of each set of fragments against the same goal, descriptors batched across sets."""
+    cfg = (cfg or RewardConfig()).validate()
+    if not goal_fragments:
+        raise ValueError("spectral_rewards needs at least one goal fragment")
+    return [_result(D, len(goal_fragments), cfg) for D in distance_matrices(fragment_sets, goal_fragments, cfg)]
+
+
+def spectral_reward(fragments, goal_fragments, cfg: RewardConfig | None = None) -> RewardResult:
+    """Reward of the current pieces (list of (n,3)) against the goal pieces (list of (m,3))."""
+    cfg = (cfg or RewardConfig()).validate()
+    G = len(goal_fragments)
+    if G == 0:
+        raise ValueError("spectral_reward needs at least one goal fragment")
+    return _result(distance_matrix(fragments, goal_fragments, cfg), G, cfg)
