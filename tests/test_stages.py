@@ -193,3 +193,46 @@ def test_tampered_dataset_is_refused_downstream(resumed, tmp_path):
     assert proc.returncode != 0, out[-3000:]
     assert str(target) in out and "sha256" in out, out[-3000:]
     assert not (root / "checkpoint").exists() or not ArtifactStore(root).versions("checkpoint", "perception")
+
+
+def _pixels_of(png: Path, rgb) -> int:
+    """Pixels drawn in colour ``rgb`` at any opacity over white: 1 - pixel is parallel to 1 - rgb
+    (matplotlib's depth shading only changes the opacity)."""
+    import matplotlib.image as mpimg
+
+    ink = 1.0 - mpimg.imread(png)[..., :3].reshape(-1, 3).astype(np.float64)  # P,3
+    ref = (1.0 - np.asarray(rgb, np.float64)) / np.linalg.norm(1.0 - np.asarray(rgb, np.float64))
+    norm = np.linalg.norm(ink, axis=1)
+    strong = norm > 0.15
+    cos = (ink[strong] @ ref) / norm[strong]
+    return int((cos > 0.995).sum())
+
+
+def test_simulate_slices_a_cube_into_three_labelled_pieces(tmp_path):
+    """stage=simulate, two slice cuts through a cube: 2 pieces, then 3, each piece on one side of every
+    blade plane (from the recorded sweeps), and the renders colour particles by cluster id."""
+    from topocut.sim.render import _PALETTE
+
+    proc = topocut(tmp_path, "stage=simulate", "task=slice", "object=cube", "task.max_cuts=2", "sim.n_grid=32",
+                   "topology.resolution=48", "object.randomize_pose=false", "logger=none", "progress=false")
+    assert proc.returncode == 0, _output(proc)[-3000:]
+    art = Path(_summary(proc)["artifact"])
+    cuts = json.loads((art / "cuts.json").read_text())["cuts"]
+    assert [c["pieces"] for c in cuts] == [2, 3]
+    st = np.load(art / "states.npz")
+    lab = st["labels_2"]
+    assert len(set(lab[lab >= 0].tolist())) == 3 and (lab >= 0).mean() > 0.99
+    for c in cuts:  # right after cut k (and its push), every piece lies on one side of blade plane k
+        k = c["cut"]
+        x, lab_k = st[f"x_{k}"], st[f"labels_{k}"]
+        o, n = np.asarray(c["sweep"]["origin"]), np.asarray(c["sweep"]["n"])
+        side = (x - o) @ n > 0
+        for i in set(lab_k[lab_k >= 0].tolist()):
+            s = side[lab_k == i]
+            assert max(s.mean(), 1 - s.mean()) > 0.97, (k, i, s.mean())
+    np.testing.assert_array_equal(np.unique(st["labels_1"][st["labels_1"] >= 0]), [0, 1])
+    # renders: ids 0, 1 after the first cut; a third colour (id 2) appears only after the second
+    frames = art / "frames"
+    assert _pixels_of(frames / "cut1.png", _PALETTE[1]) > 200
+    assert _pixels_of(frames / "cut1.png", _PALETTE[2]) < 20
+    assert _pixels_of(frames / "cut2.png", _PALETTE[2]) > 200
