@@ -139,7 +139,7 @@ def run_writing(ctx: RunContext, sim, task, topology, reward, planner, compare_s
     with progress_bar(f"mppi cream_writing/{task.word}", len(strokes), ctx.progress) as advance:
         res = StrokeMPPI(pen, goals, mcfg, reward, seed=ctx.seed).write(strokes, on_letter=on_letter)
     x, stroke = pen.particles()
-    check = cluster_check(x[0], stroke, topology)
+    check = cluster_check(x[0], stroke, topology, device=ctx.device)
     frames.append(draw(x[0], stroke, writer.path / "frames" / "final.png",
                        f"MPPI {task.word}: {check['clusters']} clusters, reward {res['total']:.3f}"))
     np.savez_compressed(writer.path / "states.npz", x=x[0], stroke=stroke, labels=check.pop("labels"),

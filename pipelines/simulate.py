@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from pathlib import Path
 
 import numpy as np
 
@@ -113,7 +114,7 @@ def run_writing(ctx: RunContext, sim, task, topology) -> dict:
         res = write_scripted(pen, strokes, goals, on_letter=on_letter)
         advance(1, info=f"reward {res['total']:.3f}")
     x, stroke = pen.particles()
-    check = cluster_check(x[0], stroke, topology)
+    check = cluster_check(x[0], stroke, topology, device=ctx.device)
     frames.append(draw(x[0], stroke, writer.path / "frames" / "final.png",
                        f"{task.word}: {check['clusters']} clusters, reward {res['total']:.3f}"))
     np.savez_compressed(writer.path / "states.npz", x=x[0], stroke=stroke, labels=check.pop("labels"),
@@ -125,7 +126,7 @@ def run_writing(ctx: RunContext, sim, task, topology) -> dict:
                "clusters": check["clusters"], "clusters_match_strokes": check["agree"],
                **{f"reward_{c}{i}": r for i, (c, r) in enumerate(zip(task.word, res["per_letter"]))},
                "sim_s": round(res["seconds"], 2)}
-    return _commit(ctx, writer, summary, "simulate", "frames/final.png")
+    return _commit(ctx, writer, summary, "simulate", Path(frames[-1]).relative_to(writer.path))
 
 
 def run_scooping(ctx: RunContext, sim, task, topology) -> dict:
@@ -149,4 +150,4 @@ def run_scooping(ctx: RunContext, sim, task, topology) -> dict:
     write_gif(frames, writer.path / "scoop.gif", fps=2)
     summary = {"scoops": len(task.spoon.scoops), "chunks_in_cup": res["chunks_in_cup"], "reward": res["reward"],
                "particles": res["particles"], "sim_s": round(res["seconds"], 2)}
-    return _commit(ctx, writer, summary, "simulate", "frames/final.png")
+    return _commit(ctx, writer, summary, "simulate", Path(frames[-1]).relative_to(writer.path))

@@ -192,3 +192,36 @@ def test_rollout_discovers_topology_where_the_simulator_runs():
     assert topology_device(SimpleNamespace(cfg=SimpleNamespace(arch="cuda"))) == "cuda"
     assert topology_device(SimpleNamespace(cfg=SimpleNamespace(arch="cpu"))) == "cpu"
     assert topology_device(object()) == "cpu"  # a stand-in env without a config (tests' fakes)
+
+
+def test_plane_scorer_matches_the_rollout_and_survives_divergence(monkeypatch):
+    """The pyramid experiment's batched scorer: its rewards equal make_sim_rollout's (same cuts, one distance
+    matrix scored under two R(d) tails), the softer tail never scores lower, and a diverging chunk costs
+    +inf instead of ending the search."""
+    import dataclasses
+
+    CuttingEnv, SimConfig, ObjectPose, make_goal, TaskConfig = _sim_modules()
+    from topocut.planning.experiments import PlaneScorer
+    from topocut.planning.rollout import make_sim_rollout
+    from topocut.reward import RewardConfig
+    from topocut.sim import SimulationDiverged
+
+    pose = ObjectPose()
+    sim = _small_sim_cfg(SimConfig, 2)
+    goal = make_goal(TaskConfig(name="slice"), "cube", pose, sim.spacing)
+    env = CuttingEnv(sim, batch_size=2)
+    env.reset("cube", pose, seed=0)
+    state = env.get_state(0)
+    seqs = np.array([[goal.planes[0].to_vector()], [[0.95, 0.5, 0.0, 0.0]], [[0.5, 0.5, 0.0, 0.0]]], np.float32)
+    cfg = RewardConfig()
+    costs = make_sim_rollout(env, state, goal, reward_cfg=cfg, board_z=sim.board_z)(seqs)
+    scorer = PlaneScorer(env, state, goal, cfg, dataclasses.replace(cfg, delta=1.1), None)
+    res = scorer.run(seqs[:, 0])
+    np.testing.assert_allclose([r["reward"] for r in res], -costs, atol=1e-9)
+    assert all(r["cost_reward"] >= r["reward"] for r in res) and res[0]["reward"] > res[1]["reward"]
+
+    def diverge(*a, **k):
+        raise SimulationDiverged(3, 1)
+
+    monkeypatch.setattr(env, "cut", diverge)
+    assert np.isinf(scorer.rollout(seqs)).all()

@@ -8,7 +8,7 @@ and computing the spectral reward against the corner tetrahedron, and draws the 
 the goal piece and the result; the ideal plane's simulated reward is the reference.
 
 The MPPI cost uses the spectral reward with a gentler tail slope (``--delta``, default 1.1
-instead of 5: R(d) reaches 0 at d = 0.9 instead of 0.21) so that samples far from the goal still
+instead of 10: R(d) reaches 0 at d = 0.9 instead of 0.11) so that samples far from the goal still
 rank; every reported number is the reward under the default RewardConfig.
 """
 from __future__ import annotations
@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from topocut.reward import distance_matrices, reward_from_distances
 from topocut.sim.action import KnifeAction
 
 
@@ -38,11 +39,12 @@ class PlaneScorer:
     """Batched one-cut rollouts from one state: action vectors (K,4) -> fragments, rewards (two RewardConfigs)."""
 
     def __init__(self, env, state: dict, goal, reward_cfg, cost_cfg, topo_cfg):
-        from topocut.planning.rollout import Scorer
+        from topocut.planning.rollout import Scorer, simulation_diverged_error, topology_device
 
         self.env, self.state, self.goal = env, state, goal
-        self.scorer = Scorer(goal, reward_cfg, topo_cfg)
-        self.cost_scorer = Scorer(goal, cost_cfg, topo_cfg)
+        self.scorer = Scorer(goal, reward_cfg, topo_cfg, device=topology_device(env))
+        self.cost_cfg = cost_cfg
+        self.diverged = simulation_diverged_error()
         self.log: list[dict] = []
 
     def run(self, actions: np.ndarray) -> list[dict]:
@@ -52,13 +54,25 @@ class PlaneScorer:
             chunk = [KnifeAction.from_vector(a) for a in actions[c0:c0 + B]]
             n = len(chunk)
             env.set_state(self.state, b=None)
-            env.cut(chunk + [chunk[-1]] * (B - n))
+            try:
+                env.cut(chunk + [chunk[-1]] * (B - n))
+            except self.diverged:  # as in make_sim_rollout: the chunk gets no weight, the search goes on
+                env.set_state(self.state, b=None)
+                x0 = env.state().x[0]
+                out += [{"action": a.to_vector(), "x": x0, "labels": np.zeros(len(x0), np.int32), "reward": 0.0,
+                         "cost_reward": -np.inf} for a in chunk]
+                continue
             st = env.state()
+            xs = [st.x[b].copy() for b in range(n)]
+            labs = [self.scorer.labels(st.x[b], st.damage[b], st.sweeps[b]) for b in range(n)]
+            # one distance matrix per scene, scored under both reward configs (they differ only in R(d))
+            sets = [self.scorer.fragments(x, lab) for x, lab in zip(xs, labs)]
+            Ds = distance_matrices(sets, list(self.goal.fragments), self.scorer.reward_cfg)
+            G = len(self.goal.fragments)
             for b in range(n):
-                lab = self.scorer.labels(st.x[b], st.damage[b], st.sweeps[b])
-                out.append({"action": chunk[b].to_vector(), "x": st.x[b].copy(), "labels": lab,
-                            "reward": self.scorer.reward(st.x[b], lab)[0],
-                            "cost_reward": self.cost_scorer.reward(st.x[b], lab)[0]})
+                out.append({"action": chunk[b].to_vector(), "x": xs[b], "labels": labs[b],
+                            "reward": reward_from_distances(Ds[b], G, self.scorer.reward_cfg).total,
+                            "cost_reward": reward_from_distances(Ds[b], G, self.cost_cfg).total})
         return out
 
     def rollout(self, seqs: np.ndarray) -> np.ndarray:

@@ -145,6 +145,7 @@ class ScoopScene:
 
 def scoop_episode(sim, task, topology=None, frames_dir=None, seed: int = 0, reward_cfg=None, on_scoop=None) -> dict:
     """All scoops of task.spoon.scoops, then settle; clusters, chunks in the cup, rewards, frames."""
+    from topocut.planning.rollout import topology_device
     from topocut.reward import spectral_reward
     from topocut.sim.render import render_particles
     from topocut.topology import discover
@@ -187,7 +188,7 @@ def scoop_episode(sim, task, topology=None, frames_dir=None, seed: int = 0, rewa
     scene.run(None, scene.t + scene.env.cfg.settle_substeps * scene.env.dt)
     x = scene.x
     st = scene.env.state()
-    topo = discover(x, st.damage[0], None, cfg=topology)
+    topo = discover(x, st.damage[0], None, cfg=topology, device=topology_device(scene.env))
     lab = np.asarray(topo.labels)
     ids = [c for c in np.unique(lab) if c >= 0]
     cup_ids = [c for c in ids if in_cup(x[lab == c].mean(0, keepdims=True), spoon, bz)[0]]

@@ -89,11 +89,11 @@ def stroke_fragments(x: np.ndarray, stroke: np.ndarray, min_points: int = 4) -> 
     return [x[stroke == s] for s in ids], ids
 
 
-def cluster_check(x: np.ndarray, stroke: np.ndarray, topo_cfg=None) -> dict:
+def cluster_check(x: np.ndarray, stroke: np.ndarray, topo_cfg=None, device: str = "cpu") -> dict:
     """Topology discovery on the written cream vs the stroke ids: clusters found and their purity."""
     from topocut.topology import discover
 
-    res = discover(np.asarray(x), np.zeros(len(x), bool), None, cfg=topo_cfg)
+    res = discover(np.asarray(x), np.zeros(len(x), bool), None, cfg=topo_cfg, device=device)
     lab = np.asarray(res.labels)
     pure = 0
     for s in np.unique(stroke):

@@ -12,10 +12,12 @@ from topocut.reward.matching import (
     distance_matrix,
     match,
     piecewise_reward,
+    reward_from_distances,
     spectral_reward,
     spectral_rewards,
 )
 from topocut.reward.spectral import descriptor, spectral_descriptors, spectral_distance
 
 __all__ = ["RewardConfig", "RewardResult", "spectral_distance", "spectral_reward", "spectral_rewards",
-           "spectral_descriptors", "descriptor", "distance_matrix", "distance_matrices", "match", "piecewise_reward"]
+           "spectral_descriptors", "descriptor", "distance_matrix", "distance_matrices", "match", "piecewise_reward",
+           "reward_from_distances"]

@@ -132,7 +132,8 @@ def distance_matrices(fragment_sets, goal_fragments, cfg: RewardConfig | None = 
     return Ds
 
 
-def _result(D: np.ndarray, G: int, cfg: RewardConfig) -> RewardResult:
+def reward_from_distances(D: np.ndarray, G: int, cfg: RewardConfig) -> RewardResult:
+    """Matching, R(d) per goal piece, total and N_C from an (F,G) distance matrix (spectral_reward's last step)."""
     pairs = match(D)
     per_goal = np.zeros(G)
     success = cfg.tau if cfg.success_distance is None else cfg.success_distance
@@ -149,7 +150,7 @@ def spectral_rewards(fragment_sets, goal_fragments, cfg: RewardConfig | None = N
     cfg = (cfg or RewardConfig()).validate()
     if not goal_fragments:
         raise ValueError("spectral_rewards needs at least one goal fragment")
-    return [_result(D, len(goal_fragments), cfg) for D in distance_matrices(fragment_sets, goal_fragments, cfg)]
+    return [reward_from_distances(D, len(goal_fragments), cfg) for D in distance_matrices(fragment_sets, goal_fragments, cfg)]
 
 
 def spectral_reward(fragments, goal_fragments, cfg: RewardConfig | None = None) -> RewardResult:
@@ -158,4 +159,4 @@ def spectral_reward(fragments, goal_fragments, cfg: RewardConfig | None = None) 
     G = len(goal_fragments)
     if G == 0:
         raise ValueError("spectral_reward needs at least one goal fragment")
-    return _result(distance_matrix(fragments, goal_fragments, cfg), G, cfg)
+    return reward_from_distances(distance_matrix(fragments, goal_fragments, cfg), G, cfg)

@@ -50,6 +50,10 @@ class RunLogger:
                     w.writerow([step, k, v])
 
     def log_image(self, key: str, path: str | Path) -> None:
+        # checked for every kind, so that a stage naming a picture it never wrote fails in tests (logger=none)
+        # and not only later under wandb
+        if not Path(path).is_file():
+            raise FileNotFoundError(f"log_image({key!r}): no picture at {path}")
         if self.kind == "wandb":
             import wandb
 
