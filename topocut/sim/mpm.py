@@ -162,9 +162,21 @@ class MPMSolver:
 
     @ti.func
     def scatter_particle(self, b, p, step, push_accel):
+        base, fx, mass, mom, affine = self.particle_update(b, p, step, push_accel)
+        w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1) ** 2, 0.5 * (fx - 0.5) ** 2]
+        for off in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
+            dpos = (off.cast(ti.f32) - fx) * self.dx
+            weight = w[off[0]][0] * w[off[1]][1] * w[off[2]][2]
+            self.grid_v[b, base + off] += weight * (mom + affine @ dpos)
+            self.grid_m[b, base + off] += weight * mass
+
+    @ti.func
+    def particle_update(self, b, p, step, push_accel):
+        """Particle p's deformation update (plasticity, damage, the divergence flag; writes F, Jp) and what it
+        scatters: (base node, fx, mass, momentum, APIC affine matrix).  Tools with their own scatter (the
+        spoon's one-sided p2g) call it too, so every p2g shares one material model."""
         base = self.base_node(self.x[b, p])
         fx = self.x[b, p] * self.inv_dx - base.cast(ti.f32)
-        w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1) ** 2, 0.5 * (fx - 0.5) ** 2]
         F = (ti.Matrix.identity(ti.f32, 3) + self.dt * self.C[b, p]) @ self.F[b, p]
         J = F.determinant()
         if J <= self.jc or J >= self.js:
@@ -210,11 +222,7 @@ class MPMSolver:
             nh = ti.Vector([self.push_n[b][0], self.push_n[b][1], 0.0])
             if nh.norm() > 1e-6:  # scenes without a cut have a zero normal
                 mom += mass * self.dt * push_accel * side * nh.normalized()
-        for off in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
-            dpos = (off.cast(ti.f32) - fx) * self.dx
-            weight = w[off[0]][0] * w[off[1]][1] * w[off[2]][2]
-            self.grid_v[b, base + off] += weight * (mom + affine @ dpos)
-            self.grid_m[b, base + off] += weight * mass
+        return base, fx, mass, mom, affine
 
     @ti.func
     def knife_motion(self, b, t):

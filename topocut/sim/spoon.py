@@ -174,45 +174,16 @@ class ToolColliders:
 
     @ti.kernel
     def p2g_sided(self, n: ti.i32, step: ti.i32):
-        """The solver's p2g (clear + scatter, von Mises / damage as in MPMSolver.scatter_particle), sided."""
+        """The solver's p2g (clear + scatter; MPMSolver.particle_update for the material), sided."""
         s = self.s
         for I in ti.grouped(s.grid_m):
             s.grid_v[I] = ti.Vector.zero(ti.f32, 3)
             s.grid_m[I] = 0.0
         for b, p in ti.ndrange(s.B, s.capacity):
-            if p < n:
+            if p < n and s.active(b, step):
                 xp = s.x[b, p]
-                base = s.base_node(xp)
-                fx = xp * s.inv_dx - base.cast(ti.f32)
+                base, fx, mass, mom, affine = s.particle_update(b, p, step, 0.0)  # the solver's material model
                 w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1) ** 2, 0.5 * (fx - 0.5) ** 2]
-                F = (ti.Matrix.identity(ti.f32, 3) + s.dt * s.C[b, p]) @ s.F[b, p]
-                J = F.determinant()
-                if J <= s.jc or J >= s.js:
-                    s.damage[b, p] = 1
-                if not (s.cfg.j_min < J < s.cfg.j_max):
-                    ti.atomic_min(s.bad_step[b], step)
-                mat = s.material[p]
-                scale = 1.0
-                if s.damage[b, p] == 1:
-                    scale = s.cfg.damaged_stiffness
-                R = ti.Matrix.identity(ti.f32, 3)
-                if mat == 1 or s.damage[b, p] == 1:
-                    U, sig, V = ti.svd(F)
-                    if mat == 1:
-                        sig = s.von_mises_return(sig, b, p, scale)
-                    else:
-                        sig = s.damaged_flow(sig)
-                    F = U @ sig @ V.transpose()
-                    R = U @ V.transpose()
-                    J = sig[0, 0] * sig[1, 1] * sig[2, 2]
-                else:
-                    R = s.polar_rotation(F)
-                s.F[b, p] = F
-                s.Jp[b, p] = J
-                tau = s.fixed_corotated(F, R, J, scale)
-                mass = s.vol * (s.cfg.rho_skin if mat == 1 else s.cfg.rho_core)
-                affine = -s.dt * s.vol * 4 * s.inv_dx * s.inv_dx * tau + mass * s.C[b, p]
-                mom = mass * s.v[b, p]
                 sp = 0
                 if self.near_shell(b, xp):
                     sp = self.side(b, xp)
@@ -234,7 +205,7 @@ class ToolColliders:
         r_mid = ti.static(self.spoon.radius + self.spoon.thickness / 2)
         half_t = ti.static(self.spoon.thickness / 2)
         for b, p in ti.ndrange(s.B, s.capacity):
-            if p < n:
+            if p < n and s.active(b, step):  # frozen scenes stay put, as in MPMSolver.gather
                 xp = s.x[b, p]
                 base = s.base_node(xp)
                 fx = xp * s.inv_dx - base.cast(ti.f32)
