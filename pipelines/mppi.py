@@ -12,7 +12,7 @@ import json
 
 import numpy as np
 
-from pipelines._common import as_dict, object_pose
+from pipelines._common import as_dict, begin_sim, object_pose
 from topocut.utils.context import RunContext
 from topocut.utils.progress import progress_bar
 
@@ -110,7 +110,6 @@ def run_writing(ctx: RunContext, sim, task, topology, reward, planner, compare_s
     """task=cream_writing: MPPI over each letter's stroke (K = planner.num_samples scenes), scored by its
     spectral reward; writes ``sim/cream_writing-<word>-mppi`` (states, per-letter rewards, frames)."""
     from topocut.planning.writer import StrokeMPPI, StrokeMPPIConfig, cluster_check, write_scripted, writing_scene
-    from topocut.sim import init_taichi
     from topocut.sim.pen import CreamPen
     from topocut.sim.render import write_gif
 
@@ -118,12 +117,9 @@ def run_writing(ctx: RunContext, sim, task, topology, reward, planner, compare_s
                             temperature=planner.temperature)
     config = as_dict(("sim", sim), ("task", task), ("topology", topology), ("reward", reward), ("planner", mcfg),
                      ("compare_scripted", compare_scripted), ("seed", ctx.seed))
-    writer, existing = ctx.store.begin("sim", f"cream_writing-{task.word}-mppi", config,
-                                       extra={"seed": ctx.seed, "device": ctx.device})
-    if existing is not None:
-        return {"artifact": str(existing), "reused": True}
-    sim = dataclasses.replace(sim, arch=ctx.device)
-    init_taichi(arch=ctx.device, seed=ctx.seed)
+    writer, reused, sim = begin_sim(ctx, f"cream_writing-{task.word}-mppi", config, sim)
+    if reused is not None:
+        return reused
     goals, strokes, start, draw = writing_scene(sim, task)
     out = {"word": task.word}
     if compare_scripted:

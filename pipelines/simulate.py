@@ -5,13 +5,12 @@ as a versioned ``sim`` artifact and renders PNG frames coloured by cluster id an
 """
 from __future__ import annotations
 
-import dataclasses
 import json
 from pathlib import Path
 
 import numpy as np
 
-from pipelines._common import as_dict, object_pose
+from pipelines._common import as_dict, begin_sim, object_pose
 from topocut.utils.context import RunContext
 from topocut.utils.progress import progress_bar
 
@@ -22,17 +21,14 @@ def run(ctx: RunContext, sim, object, task, topology, frames_per_cut: int = 6) -
     if task.name == "scooping":
         return run_scooping(ctx, sim, task, topology)
     from topocut.goals import make_goal
-    from topocut.sim import CuttingEnv, init_taichi
+    from topocut.sim import CuttingEnv
     from topocut.sim.render import render_particles, write_gif
     from topocut.topology import discover
 
     config = as_dict(("sim", sim), ("object", object), ("task", task), ("topology", topology), ("seed", ctx.seed))
-    writer, existing = ctx.store.begin("sim", f"{object.name}-{task.name}", config,
-                                       extra={"seed": ctx.seed, "device": ctx.device})
-    if existing is not None:
-        return {"artifact": str(existing), "reused": True}
-    sim = dataclasses.replace(sim, arch=ctx.device)  # one backend for Taichi, Warp and torch
-    init_taichi(arch=ctx.device, seed=ctx.seed)
+    writer, reused, sim = begin_sim(ctx, f"{object.name}-{task.name}", config, sim)
+    if reused is not None:
+        return reused
     pose = object_pose(object, ctx.seed)
     goal = make_goal(task, object.name, pose, spacing=sim.spacing, board_z=sim.board_z, seed=ctx.seed)
     env = CuttingEnv(sim, batch_size=1)
@@ -90,17 +86,13 @@ def _commit(ctx, writer, summary: dict, stage: str, image) -> dict:
 def run_writing(ctx: RunContext, sim, task, topology) -> dict:
     """task=cream_writing: the scripted writer writes task.word; frames coloured by stroke (= cluster)."""
     from topocut.planning.writer import cluster_check, write_scripted, writing_scene
-    from topocut.sim import init_taichi
     from topocut.sim.pen import CreamPen
     from topocut.sim.render import write_gif
 
     config = as_dict(("sim", sim), ("task", task), ("topology", topology), ("seed", ctx.seed))
-    writer, existing = ctx.store.begin("sim", f"cream_writing-{task.word}", config,
-                                       extra={"seed": ctx.seed, "device": ctx.device})
-    if existing is not None:
-        return {"artifact": str(existing), "reused": True}
-    sim = dataclasses.replace(sim, arch=ctx.device)
-    init_taichi(arch=ctx.device, seed=ctx.seed)
+    writer, reused, sim = begin_sim(ctx, f"cream_writing-{task.word}", config, sim)
+    if reused is not None:
+        return reused
     goals, strokes, start, draw = writing_scene(sim, task)
     pen = CreamPen(sim, task.pen, 1, start=start)
     frames, arrays = [], {}
@@ -132,15 +124,12 @@ def run_writing(ctx: RunContext, sim, task, topology) -> dict:
 def run_scooping(ctx: RunContext, sim, task, topology) -> dict:
     """task=scooping: the spoon primitive at each placement of task.spoon.scoops; chunks in the cup are clusters."""
     from topocut.planning.scoop import scoop_episode
-    from topocut.sim import init_taichi
     from topocut.sim.render import write_gif
 
     config = as_dict(("sim", sim), ("task", task), ("topology", topology), ("seed", ctx.seed))
-    writer, existing = ctx.store.begin("sim", "scooping", config, extra={"seed": ctx.seed, "device": ctx.device})
-    if existing is not None:
-        return {"artifact": str(existing), "reused": True}
-    sim = dataclasses.replace(sim, arch=ctx.device)
-    init_taichi(arch=ctx.device, seed=ctx.seed)
+    writer, reused, sim = begin_sim(ctx, "scooping", config, sim)
+    if reused is not None:
+        return reused
     with progress_bar("simulate scooping", len(task.spoon.scoops), ctx.progress) as advance:
         res = scoop_episode(sim, task, topology, writer.path / "frames", seed=ctx.seed,
                             on_scoop=lambda i, r: advance(1, info=f"scoop {i + 1}: {r['chunks_in_cup']} chunks in cup"))
