@@ -31,6 +31,7 @@ lint: setup
 
 bench: setup
 	$(BIN)/python benchmarks/sim_throughput.py --quick
+	$(BIN)/python benchmarks/p2g_variants.py --grid 32 --batches 1 4 --steps 20
 	$(BIN)/python benchmarks/topology.py --quick
 	$(BIN)/python benchmarks/reward.py --batch 16
 	$(BIN)/python benchmarks/mppi.py --K 4 --n-grid 32

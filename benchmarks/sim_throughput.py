@@ -45,32 +45,49 @@ class ReferenceMPM:
         self.x, self.v, self.C, self.F = vec.field(), vec.field(), mat.field(), mat.field()
         self.grid_v, self.grid_m = vec.field(), ti.field(ti.f32)
         fb.dense(ti.ij, (B, self.N)).place(self.x, self.v, self.C, self.F)
-        fb.dense(ti.axes(0, 1, 2, 3), (B, n_grid, n_grid, n_grid)).place(self.grid_v, self.grid_m)
+        self.place_grid(fb)
         self.tree = fb.finalize()
         self.x.from_numpy(np.broadcast_to(x.astype(np.float32), (B, self.N, 3)).copy())
         self.F.from_numpy(np.broadcast_to(np.eye(3, dtype=np.float32), (B, self.N, 3, 3)).copy())
 
+    def place_grid(self, fb) -> None:  # benchmarks/p2g_variants.py places a sparse grid instead
+        n = self.n_grid
+        fb.dense(ti.axes(0, 1, 2, 3), (self.B, n, n, n)).place(self.grid_v, self.grid_m)
+
     @ti.func
-    def scatter(self):
+    def stress_update(self, b, p):
+        """Particle p's F update; returns its base node, fx and the APIC affine matrix with the stress."""
+        Xp = self.x[b, p] * self.inv_dx
+        base = ti.cast(Xp - 0.5, ti.i32)
+        fx = Xp - base
+        F = (ti.Matrix.identity(ti.f32, 3) + self.dt * self.C[b, p]) @ self.F[b, p]
+        self.F[b, p] = F
+        U, sig, V = ti.svd(F)
+        J = F.determinant()
+        tau = 2 * self.mu * (F - U @ V.transpose()) @ F.transpose() + ti.Matrix.identity(ti.f32, 3) * self.la * J * (J - 1)
+        return base, fx, -self.dt * self.vol * 4 * self.inv_dx ** 2 * tau + self.mass * self.C[b, p]
+
+    @ti.func
+    def clear_grid(self):
         for I in ti.grouped(self.grid_m):
             self.grid_v[I] = ti.Vector.zero(ti.f32, 3)
             self.grid_m[I] = 0.0
+
+    @ti.func
+    def scatter_particle(self, b, p):
+        base, fx, affine = self.stress_update(b, p)
+        w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1) ** 2, 0.5 * (fx - 0.5) ** 2]
+        for off in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
+            dpos = (off.cast(ti.f32) - fx) * self.dx
+            weight = w[off[0]][0] * w[off[1]][1] * w[off[2]][2]
+            self.grid_v[b, base + off] += weight * (self.mass * self.v[b, p] + affine @ dpos)
+            self.grid_m[b, base + off] += weight * self.mass
+
+    @ti.func
+    def scatter(self):
+        self.clear_grid()
         for b, p in self.x:
-            Xp = self.x[b, p] * self.inv_dx
-            base = ti.cast(Xp - 0.5, ti.i32)
-            fx = Xp - base
-            w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1) ** 2, 0.5 * (fx - 0.5) ** 2]
-            F = (ti.Matrix.identity(ti.f32, 3) + self.dt * self.C[b, p]) @ self.F[b, p]
-            self.F[b, p] = F
-            U, sig, V = ti.svd(F)
-            J = F.determinant()
-            tau = 2 * self.mu * (F - U @ V.transpose()) @ F.transpose() + ti.Matrix.identity(ti.f32, 3) * self.la * J * (J - 1)
-            affine = -self.dt * self.vol * 4 * self.inv_dx ** 2 * tau + self.mass * self.C[b, p]
-            for off in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
-                dpos = (off.cast(ti.f32) - fx) * self.dx
-                weight = w[off[0]][0] * w[off[1]][1] * w[off[2]][2]
-                self.grid_v[b, base + off] += weight * (self.mass * self.v[b, p] + affine @ dpos)
-                self.grid_m[b, base + off] += weight * self.mass
+            self.scatter_particle(b, p)
 
     @ti.func
     def update_grid(self):
@@ -119,11 +136,20 @@ class ReferenceMPM:
         self.update_grid()
 
     @ti.kernel
+    def grid_clear(self):
+        self.clear_grid()
+
+    @ti.kernel
     def g2p(self):
         self.gather()
 
     def run(self, steps: int, one_kernel: bool) -> float:
         phases = (self.substep,) if one_kernel else (self.p2g, self.grid_op, self.g2p)
+        return self.B * self.N / self.time_phases(steps, phases)
+
+    @staticmethod
+    def time_phases(steps: int, phases) -> float:
+        """Seconds per substep of running ``phases`` in order (after 3 untimed substeps that compile)."""
         for _ in range(3):  # compile
             for f in phases:
                 f()
@@ -133,7 +159,7 @@ class ReferenceMPM:
             for f in phases:
                 f()
         ti.sync()
-        return self.B * self.N * steps / (time.perf_counter() - t)
+        return (time.perf_counter() - t) / steps
 
 
 def full_model(n_grid: int, B: int, arch: str, fuse: int | None, rotation: str, profile: bool = False) -> dict:

@@ -1,0 +1,173 @@
+"""Why batching gains little: the plain MLS-MPM reference with other particle orders, scatters and grids.
+
+Every variant is ``sim_throughput.ReferenceMPM`` (three kernels per substep) on the same cube, grid and
+batch; one thing changes at a time:
+
+- ``lattice``: particles as sampled (neighbours in memory are neighbours in space): the yardstick;
+- ``shuffled``: one random permutation of the particles (no two lanes of a warp hit the same node);
+- ``runK``: one thread scatters K consecutive particles, adding their contributions to the same 27
+  nodes in registers and flushing a node only when the stencil leaves it (about 3x fewer atomics on
+  the lattice order);
+- ``sparse``: a pointer grid of 4^3-node blocks, each holding the list of particles whose stencil
+  starts in it (the layout of taichi_elements; grid work only where particles are).
+
+Plus the dense grid alone (clear + grid update of all B n^3 nodes). Each line prints the wall time per
+substep, the ratio to ``lattice`` and the largest position difference from it after the same substeps
+(float summation order only). An (N, B) field layout with thread = (p, b) was measured with this
+script's first revision (commit 1da7f85, ``interleaved``).
+
+    python benchmarks/p2g_variants.py --device cuda --grid 84 --batches 1 16
+"""
+import argparse
+
+import numpy as np
+import taichi as ti
+from sim_throughput import ReferenceMPM  # the script's own folder is on sys.path when it runs
+
+from topocut.sim.config import SimConfig
+from topocut.sim.mpm import init_taichi
+from topocut.sim.objects import sample_object
+
+
+@ti.data_oriented
+class RunMPM(ReferenceMPM):
+    """The reference whose p2g gives each thread ``run`` consecutive particles of one scene."""
+
+    def __init__(self, *args, run: int = 8, **kw):
+        self.run_len = run
+        super().__init__(*args, **kw)
+
+    @ti.func
+    def flush(self, b, node, acc, r: ti.template()):
+        if acc[r, 3] != 0:
+            self.grid_v[b, node] += ti.Vector([acc[r, 0], acc[r, 1], acc[r, 2]])
+            self.grid_m[b, node] += acc[r, 3]
+
+    @ti.func
+    def shift(self, b, cur, acc):
+        """Flush the 9 nodes of the window's lowest z plane and move the window up one cell."""
+        for i, j in ti.static(ti.ndrange(3, 3)):
+            r = i * 9 + j * 3
+            self.flush(b, cur + ti.Vector([i, j, 0]), acc, r)
+            for c in ti.static(range(4)):
+                acc[r, c] = acc[r + 1, c]
+                acc[r + 1, c] = acc[r + 2, c]
+                acc[r + 2, c] = 0.0
+        return acc
+
+    @ti.func
+    def scatter_run(self, b, p0):
+        """Particles p0 .. p0+run-1: the 27 nodes' momentum and mass (rows of acc) add up in registers; a
+        step of the stencil by one cell along z (the lattice's fast axis) flushes the 9 nodes it leaves,
+        any other move all 27 (as three steps), and so does the end of the run."""
+        acc = ti.Matrix.zero(ti.f32, 27, 4)
+        cur = ti.Vector([-1, -1, -1])
+        for r in range(self.run_len + 1):
+            p = p0 + r
+            live = r < self.run_len and p < self.N
+            base, fx, affine = ti.Vector([-1, -1, -1]), ti.Vector.zero(ti.f32, 3), ti.Matrix.zero(ti.f32, 3, 3)
+            if live:
+                base, fx, affine = self.stress_update(b, p)
+            d = base - cur
+            steps = 0
+            if cur[0] >= 0 and (d[0] != 0 or d[1] != 0 or d[2] != 0):
+                steps = 1 if d[0] == 0 and d[1] == 0 and d[2] == 1 else 3
+            for _ in range(steps):
+                acc = self.shift(b, cur, acc)
+                cur[2] += 1
+            cur = base
+            if live:
+                w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1) ** 2, 0.5 * (fx - 0.5) ** 2]
+                mom = self.mass * self.v[b, p]
+                for off in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
+                    weight = w[off[0]][0] * w[off[1]][1] * w[off[2]][2]
+                    val = weight * (mom + affine @ ((off.cast(ti.f32) - fx) * self.dx))
+                    for c in ti.static(range(3)):
+                        acc[off[0] * 9 + off[1] * 3 + off[2], c] += val[c]
+                    acc[off[0] * 9 + off[1] * 3 + off[2], 3] += weight * self.mass
+
+    @ti.kernel
+    def p2g(self):
+        self.clear_grid()
+        for b, t in ti.ndrange(self.B, (self.N + self.run_len - 1) // self.run_len):
+            self.scatter_run(b, t * self.run_len)
+
+
+@ti.data_oriented
+class SparseMPM(ReferenceMPM):
+    """The reference on B x (n/L)^3 pointer blocks of L^3 nodes; ``pid`` lists each block's particles."""
+
+    L, max_per_block = 4, 4096
+
+    def place_grid(self, fb) -> None:
+        self.pid = ti.field(ti.i32)
+        self.block = fb.dense(ti.axes(0), self.B).pointer(ti.axes(1, 2, 3), -(-self.n_grid // self.L))
+        self.block.dense(ti.axes(1, 2, 3), self.L).place(self.grid_v, self.grid_m)
+        self.block.dynamic(ti.axes(4), self.max_per_block, chunk_size=self.L ** 3 * 8).place(self.pid)
+
+    @ti.kernel
+    def clear(self):  # frees every block (and its particle list): the grid is all zero again
+        for I in ti.grouped(self.block):
+            ti.deactivate(self.block, I)
+
+    @ti.kernel
+    def build_pid(self):
+        for b, p in self.x:
+            base = ti.cast(self.x[b, p] * self.inv_dx - 0.5, ti.i32) // self.L
+            ti.append(self.pid.parent(), [b, base[0], base[1], base[2]], p)
+
+    @ti.kernel
+    def p2g(self):
+        ti.loop_config(block_dim=256)
+        for I in ti.grouped(self.pid):  # one GPU block per grid block's particle list
+            self.scatter_particle(I[0], self.pid[I])
+
+    def phases(self):
+        return self.clear, self.build_pid, self.p2g, self.grid_op, self.g2p
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
+    ap.add_argument("--grid", type=int, default=84)
+    ap.add_argument("--batches", type=int, nargs="+", default=[1, 16])
+    ap.add_argument("--steps", type=int, default=300)
+    ap.add_argument("--variants", nargs="+", default=["lattice", "shuffled", "run4", "run8", "sparse"],
+                    help="lattice (always first: the yardstick) | shuffled | runK (K particles per thread) | sparse")
+    args = ap.parse_args()
+    init_taichi(args.device)
+    cfg = SimConfig(n_grid=args.grid)
+    x, _ = sample_object("cube", spacing=cfg.spacing)
+    common = (args.grid, cfg.effective_dt(), cfg.spacing)
+    print(f"device={args.device} grid={args.grid} particles/scene={len(x)} steps={args.steps}")
+    print(f"{'variant':>10} {'B':>3} {'us/substep':>10} {'p-st/s':>10} {'vs lattice':>10} {'max |dx|':>9}")
+    for B in args.batches:
+        base_s, base_x = None, None
+        for name in ["lattice"] + [v for v in args.variants if v != "lattice"]:
+            if name == "sparse":
+                m = SparseMPM(x, B, *common)
+                phases = m.phases()
+            elif name.startswith("run"):
+                m = RunMPM(x, B, *common, run=int(name[3:]))
+                phases = m.p2g, m.grid_op, m.g2p
+            elif name in ("lattice", "shuffled"):
+                xs = x[np.random.default_rng(0).permutation(len(x))] if name == "shuffled" else x
+                m = ReferenceMPM(xs, B, *common)
+                phases = m.p2g, m.grid_op, m.g2p
+            else:
+                raise SystemExit(f"unknown variant {name!r}; valid: lattice, shuffled, runK, sparse")
+            s = m.time_phases(args.steps, phases)
+            xe = m.x.to_numpy()
+            if name == "lattice":
+                base_s, base_x = s, xe
+                g = m.time_phases(args.steps, (m.grid_clear, m.grid_op))
+                print(f"{'grid only':>10} {B:>3} {g * 1e6:>10.1f} {'':>10} {g / base_s:>10.3f}  (its share of lattice)")
+            # shuffled particles sit in another order: compare the sorted coordinates
+            err = np.abs(np.sort(xe, axis=1) - np.sort(base_x, axis=1)).max()
+            m.tree.destroy()
+            print(f"{name:>10} {B:>3} {s * 1e6:>10.1f} {B * len(x) / s:>10.3e} {base_s / s:>10.3f} {err:>9.2e}",
+                  flush=True)
+
+
+if __name__ == "__main__":
+    main()
