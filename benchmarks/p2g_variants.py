@@ -9,7 +9,9 @@ batch; one thing changes at a time:
   nodes in registers and flushing a node only when the stencil leaves it (about 3x fewer atomics on
   the lattice order);
 - ``sparse``: a pointer grid of 4^3-node blocks, each holding the list of particles whose stencil
-  starts in it (the layout of taichi_elements; grid work only where particles are).
+  starts in it (the layout of taichi_elements; grid work only where particles are);
+- ``tiled`` (CUDA only): particles binned per 4^3-cell tile each substep, one CUDA block per tile
+  accumulating in shared memory and flushing each node once (block-local P2G, Gao et al. 2018).
 
 Plus the dense grid alone (clear + grid update of all B n^3 nodes). Each line prints the wall time per
 substep, the ratio to ``lattice`` and the largest position difference from it after the same substeps
@@ -126,14 +128,97 @@ class SparseMPM(ReferenceMPM):
         return self.clear, self.build_pid, self.p2g, self.grid_op, self.g2p
 
 
+@ti.data_oriented
+class TiledMPM(ReferenceMPM):
+    """The reference with a block-local scatter (CUDA only; Gao et al. 2018's idea in plain Taichi SIMT).
+
+    Each substep bins the particles by the 4^3-cell tile of their base node (a slot per particle in its
+    tile's list, a list of non-empty tiles); then one CUDA block per tile adds its particles' 27-node
+    stencils into the tile's (4+2)^3 nodes in shared memory and flushes each node to the global grid once.
+    Global atomics drop from 108 per particle to at most 864 per tile.  A tile's particles beyond ``cap``
+    scatter straight to the global grid while binning."""
+
+    T, BD, cap = 4, 128, 512
+
+    def place_grid(self, fb) -> None:
+        super().place_grid(fb)
+        nt = self.nt = -(-self.n_grid // self.T)
+        self.count, self.order, self.act, self.n_act = (ti.field(ti.i32) for _ in range(4))
+        fb.dense(ti.axes(0, 1, 2, 3), (self.B, nt, nt, nt)).place(self.count)
+        fb.dense(ti.ij, (self.B * nt ** 3, self.cap)).place(self.order)
+        fb.dense(ti.i, self.B * nt ** 3).place(self.act)
+        fb.place(self.n_act)
+
+    @ti.kernel
+    def bin(self):
+        self.clear_grid()
+        self.n_act[None] = 0
+        nt = self.nt
+        for b, p in self.x:
+            t = ti.cast(self.x[b, p] * self.inv_dx - 0.5, ti.i32) // self.T
+            code = ((b * nt + t[0]) * nt + t[1]) * nt + t[2]
+            slot = ti.atomic_add(self.count[b, t], 1)
+            if slot == 0:
+                self.act[ti.atomic_add(self.n_act[None], 1)] = code
+            if slot < self.cap:
+                self.order[code, slot] = p
+            else:
+                self.scatter_particle(b, p)
+
+    @ti.kernel
+    def p2g(self):
+        nt, W, BD = self.nt, self.T + 2, self.BD
+        ti.loop_config(block_dim=BD)
+        for g in range(self.n_act[None] * BD):
+            tid = g % BD
+            code = self.act[g // BD]
+            b = code // (nt * nt * nt)
+            t = ti.Vector([(code // (nt * nt)) % nt, (code // nt) % nt, code % nt])
+            corner = t * self.T
+            sm = ti.simt.block.SharedArray((W * W * W * 4,), ti.f32)
+            for r in range((W * W * W * 4 + BD - 1) // BD):
+                if r * BD + tid < W * W * W * 4:
+                    sm[r * BD + tid] = 0.0
+            ti.simt.block.sync()
+            cnt = ti.min(self.count[b, t], self.cap)
+            for r in range((cnt + BD - 1) // BD):
+                if r * BD + tid < cnt:
+                    p = self.order[code, r * BD + tid]
+                    base, fx, affine = self.stress_update(b, p)
+                    w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1) ** 2, 0.5 * (fx - 0.5) ** 2]
+                    mom = self.mass * self.v[b, p]
+                    loc = base - corner
+                    for off in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
+                        weight = w[off[0]][0] * w[off[1]][1] * w[off[2]][2]
+                        val = weight * (mom + affine @ ((off.cast(ti.f32) - fx) * self.dx))
+                        li = (((loc[0] + off[0]) * W + loc[1] + off[1]) * W + loc[2] + off[2]) * 4
+                        for c in ti.static(range(3)):
+                            ti.atomic_add(sm[li + c], val[c])
+                        ti.atomic_add(sm[li + 3], weight * self.mass)
+            ti.simt.block.sync()
+            for r in range((W * W * W + BD - 1) // BD):
+                i = r * BD + tid
+                if i < W * W * W and sm[i * 4 + 3] != 0:
+                    node = corner + ti.Vector([i // (W * W), (i // W) % W, i % W])
+                    self.grid_v[b, node] += ti.Vector([sm[i * 4], sm[i * 4 + 1], sm[i * 4 + 2]])
+                    self.grid_m[b, node] += sm[i * 4 + 3]
+            ti.simt.block.sync()  # the block's next tile reuses sm
+            if tid == 0:
+                self.count[b, t] = 0
+
+    def phases(self):
+        return self.bin, self.p2g, self.grid_op, self.g2p
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
     ap.add_argument("--grid", type=int, default=84)
     ap.add_argument("--batches", type=int, nargs="+", default=[1, 16])
     ap.add_argument("--steps", type=int, default=300)
-    ap.add_argument("--variants", nargs="+", default=["lattice", "shuffled", "run4", "run8", "sparse"],
-                    help="lattice (always first: the yardstick) | shuffled | runK (K particles per thread) | sparse")
+    ap.add_argument("--variants", nargs="+", default=["lattice", "shuffled", "run4", "run8", "sparse", "tiled"],
+                    help="lattice (always first: the yardstick) | shuffled | runK (K particles per thread) | sparse "
+                         "| tiled (CUDA only)")
     args = ap.parse_args()
     init_taichi(args.device)
     cfg = SimConfig(n_grid=args.grid)
@@ -144,8 +229,11 @@ def main() -> None:
     for B in args.batches:
         base_s, base_x = None, None
         for name in ["lattice"] + [v for v in args.variants if v != "lattice"]:
-            if name == "sparse":
-                m = SparseMPM(x, B, *common)
+            if name in ("sparse", "tiled"):
+                if name == "tiled" and args.device != "cuda":
+                    print(f"{name:>10} {B:>3}  (CUDA only: shared memory)")
+                    continue
+                m = (SparseMPM if name == "sparse" else TiledMPM)(x, B, *common)
                 phases = m.phases()
             elif name.startswith("run"):
                 m = RunMPM(x, B, *common, run=int(name[3:]))
@@ -155,7 +243,7 @@ def main() -> None:
                 m = ReferenceMPM(xs, B, *common)
                 phases = m.p2g, m.grid_op, m.g2p
             else:
-                raise SystemExit(f"unknown variant {name!r}; valid: lattice, shuffled, runK, sparse")
+                raise SystemExit(f"unknown variant {name!r}; valid: lattice, shuffled, runK, sparse, tiled")
             s = m.time_phases(args.steps, phases)
             xe = m.x.to_numpy()
             if name == "lattice":
