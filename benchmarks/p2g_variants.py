@@ -167,7 +167,7 @@ class TiledMPM(ReferenceMPM):
 
     @ti.kernel
     def p2g(self):
-        nt, W, BD = self.nt, self.T + 2, self.BD
+        nt, W, BD = ti.static(self.nt, self.T + 2, self.BD)
         ti.loop_config(block_dim=BD)
         for g in range(self.n_act[None] * BD):
             tid = g % BD
