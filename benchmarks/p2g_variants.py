@@ -5,6 +5,7 @@ batch; one thing changes at a time:
 
 - ``lattice``: particles as sampled (neighbours in memory are neighbours in space): the yardstick;
 - ``shuffled``: one random permutation of the particles (no two lanes of a warp hit the same node);
+- ``polar``: the rotation of F by Newton's polar iteration instead of an SVD (a cheaper particle update);
 - ``runK``: one thread scatters K consecutive particles, adding their contributions to the same 27
   nodes in registers and flushing a node only when the stencil leaves it (about 3x fewer atomics on
   the lattice order);
@@ -29,6 +30,19 @@ from sim_throughput import ReferenceMPM  # the script's own folder is on sys.pat
 from topocut.sim.config import SimConfig
 from topocut.sim.mpm import init_taichi
 from topocut.sim.objects import sample_object
+
+
+@ti.data_oriented
+class PolarMPM(ReferenceMPM):
+    """The reference with the rotation of F = R S by Newton's iteration instead of an SVD (the full
+    model's ``core_rotation=polar``): a cheaper per-particle update, same scatter."""
+
+    @ti.func
+    def rotation(self, F):
+        R = F
+        for _ in ti.static(range(4)):
+            R = 0.5 * (R + R.inverse().transpose())
+        return R
 
 
 @ti.data_oriented
@@ -216,9 +230,10 @@ def main() -> None:
     ap.add_argument("--grid", type=int, default=84)
     ap.add_argument("--batches", type=int, nargs="+", default=[1, 16])
     ap.add_argument("--steps", type=int, default=300)
-    ap.add_argument("--variants", nargs="+", default=["lattice", "shuffled", "run4", "run8", "sparse", "tiled"],
-                    help="lattice (always first: the yardstick) | shuffled | runK (K particles per thread) | sparse "
-                         "| tiled (CUDA only)")
+    ap.add_argument("--variants", nargs="+", default=["lattice", "shuffled", "polar", "run4", "run8", "sparse",
+                                                      "tiled"],
+                    help="lattice (always first: the yardstick) | shuffled | polar | runK (K particles per thread) "
+                         "| sparse | tiled (CUDA only)")
     args = ap.parse_args()
     init_taichi(args.device)
     cfg = SimConfig(n_grid=args.grid)
@@ -235,6 +250,9 @@ def main() -> None:
                     continue
                 m = (SparseMPM if name == "sparse" else TiledMPM)(x, B, *common)
                 phases = m.phases()
+            elif name == "polar":
+                m = PolarMPM(x, B, *common)
+                phases = m.p2g, m.grid_op, m.g2p
             elif name.startswith("run"):
                 m = RunMPM(x, B, *common, run=int(name[3:]))
                 phases = m.p2g, m.grid_op, m.g2p
@@ -243,7 +261,7 @@ def main() -> None:
                 m = ReferenceMPM(xs, B, *common)
                 phases = m.p2g, m.grid_op, m.g2p
             else:
-                raise SystemExit(f"unknown variant {name!r}; valid: lattice, shuffled, runK, sparse, tiled")
+                raise SystemExit(f"unknown variant {name!r}; valid: lattice, shuffled, polar, runK, sparse, tiled")
             s = m.time_phases(args.steps, phases)
             xe = m.x.to_numpy()
             if name == "lattice":

@@ -55,6 +55,11 @@ class ReferenceMPM:
         fb.dense(ti.axes(0, 1, 2, 3), (self.B, n, n, n)).place(self.grid_v, self.grid_m)
 
     @ti.func
+    def rotation(self, F):
+        U, sig, V = ti.svd(F)
+        return U @ V.transpose()
+
+    @ti.func
     def stress_update(self, b, p):
         """Particle p's F update; returns its base node, fx and the APIC affine matrix with the stress."""
         Xp = self.x[b, p] * self.inv_dx
@@ -62,9 +67,8 @@ class ReferenceMPM:
         fx = Xp - base
         F = (ti.Matrix.identity(ti.f32, 3) + self.dt * self.C[b, p]) @ self.F[b, p]
         self.F[b, p] = F
-        U, sig, V = ti.svd(F)
         J = F.determinant()
-        tau = 2 * self.mu * (F - U @ V.transpose()) @ F.transpose() + ti.Matrix.identity(ti.f32, 3) * self.la * J * (J - 1)
+        tau = 2 * self.mu * (F - self.rotation(F)) @ F.transpose() + ti.Matrix.identity(ti.f32, 3) * self.la * J * (J - 1)
         return base, fx, -self.dt * self.vol * 4 * self.inv_dx ** 2 * tau + self.mass * self.C[b, p]
 
     @ti.func
