@@ -28,7 +28,7 @@ import taichi as ti
 from sim_throughput import ReferenceMPM  # the script's own folder is on sys.path when it runs
 
 from topocut.sim.config import SimConfig
-from topocut.sim.mpm import init_taichi
+from topocut.sim.mpm import init_taichi, polar_rotation
 from topocut.sim.objects import sample_object
 
 
@@ -39,10 +39,7 @@ class PolarMPM(ReferenceMPM):
 
     @ti.func
     def rotation(self, F):
-        R = F
-        for _ in ti.static(range(4)):
-            R = 0.5 * (R + R.inverse().transpose())
-        return R
+        return polar_rotation(F)
 
 
 @ti.data_oriented

@@ -54,6 +54,15 @@ def init_taichi(arch: str = "cpu", seed: int = 0, debug: bool = False, cpu_threa
     return arch
 
 
+@ti.func
+def polar_rotation(F):
+    """R of F = R S by Newton's iteration R <- (R + R^-T) / 2 (F is near a rotation; cheaper than an SVD)."""
+    R = F
+    for _ in ti.static(range(4)):
+        R = 0.5 * (R + R.inverse().transpose())
+    return R
+
+
 @ti.data_oriented
 class MPMSolver:
     """Fields of B scenes with room for ``capacity`` particles each; kernels read cfg constants."""
@@ -105,13 +114,6 @@ class MPMSolver:
         mu, la = self.cfg.mu * scale, self.cfg.lam * scale
         return 2 * mu * (F - R) @ F.transpose() + ti.Matrix.identity(ti.f32, 3) * la * J * (J - 1)
 
-    @ti.func
-    def polar_rotation(self, F):
-        """R of F = R S by Newton's iteration R <- (R + R^-T) / 2 (F is near a rotation; cheaper than an SVD)."""
-        R = F
-        for _ in ti.static(range(4)):
-            R = 0.5 * (R + R.inverse().transpose())
-        return R
 
     @ti.func
     def von_mises_return(self, sig, b, p, scale):
@@ -209,7 +211,7 @@ class MPMSolver:
                 R = U @ V.transpose()
                 J = sig[0, 0] * sig[1, 1] * sig[2, 2]
             else:  # healthy core: elastic only
-                R = self.polar_rotation(F)
+                R = polar_rotation(F)
         self.F[b, p] = F
         self.Jp[b, p] = J
         tau = self.fixed_corotated(F, R, J, scale)
