@@ -18,6 +18,7 @@ substep at which the scene stops moving (a cut's per-scene substep budget).
 import math
 import warnings
 
+import numpy as np
 import taichi as ti
 
 from topocut.sim.config import SimConfig
@@ -93,15 +94,20 @@ class MPMSolver:
         self.k_work, self.k_peak = ti.field(f32), ti.field(f32)
         self.push_n, self.push_p = vec.field(), vec.field()  # last cut plane per scene
         self.bad_step = ti.field(ti.i32)  # first substep with NaN / runaway J (2**30 = none)
+        # nodes [box[0:3], box[3:6]) of every scene hold all the scatter wrote since the last clear (sim.grid_box)
+        self.use_box = cfg.grid_box_enabled()
+        self.box = ti.field(ti.i32)
         # substep number from which scene b is frozen (2**30 = never): every phase skips it from then on,
         # so a batched cut gives scene b its own substep budget.  A field, so ti.graph runs read it live.
         self.frozen_at = ti.field(ti.i32)
         fb.dense(ti.i, B).place(self.k_o, self.k_u, self.k_w, self.k_n, self.k_half, self.k_depth, self.k_amp,
                                 self.k_speed, self.k_on, self.k_imp, self.k_imp_step, self.k_work, self.k_peak,
                                 self.push_n, self.push_p, self.bad_step, self.frozen_at)
+        fb.dense(ti.i, 6).place(self.box)
         self.tree = fb.finalize()
         self.bad_step.fill(2 ** 30)
         self.frozen_at.fill(2 ** 30)
+        self.box.from_numpy(np.array([0, 0, 0, n, n, n], np.int32))  # a fresh grid: clear it all once
         self.p2g, self.grid_op, self.g2p = self._phase_kernels()
         self._graphs = {}  # k -> compiled ti.graph of k substeps
 
@@ -152,9 +158,31 @@ class MPMSolver:
 
     @ti.func
     def clear_grid(self):
-        for I in ti.grouped(self.grid_m):
-            self.grid_v[I] = ti.Vector.zero(ti.f32, 3)
-            self.grid_m[I] = 0.0
+        if ti.static(self.use_box):  # only what the last scatter wrote; then the box is empty
+            for b, i, j, k in ti.ndrange(self.B, (self.box[0], self.box[3]), (self.box[1], self.box[4]),
+                                         (self.box[2], self.box[5])):
+                self.grid_v[b, i, j, k] = ti.Vector.zero(ti.f32, 3)
+                self.grid_m[b, i, j, k] = 0.0
+            for d in ti.static(range(3)):
+                self.box[d], self.box[d + 3] = self.n_grid, 0
+        else:
+            for I in ti.grouped(self.grid_m):
+                self.grid_v[I] = ti.Vector.zero(ti.f32, 3)
+                self.grid_m[I] = 0.0
+
+    @ti.func
+    def grow_box(self, base):
+        """The scatter writes nodes base .. base + 2 (one box for all scenes: its addresses are loop-invariant)."""
+        if ti.static(self.use_box):
+            for d in ti.static(range(3)):
+                ti.atomic_min(self.box[d], base[d])
+                ti.atomic_max(self.box[d + 3], base[d] + 3)
+
+    @ti.func
+    def whole_box(self):
+        """For scatters that do not grow the box (a tool's own p2g): grid_op and the next clear see every node."""
+        for d in ti.static(range(3)):
+            self.box[d], self.box[d + 3] = 0, self.n_grid
 
     @ti.func
     def scatter(self, n: ti.template(), step: ti.template(), push_accel: ti.template()):
@@ -165,6 +193,7 @@ class MPMSolver:
     @ti.func
     def scatter_particle(self, b, p, step, push_accel):
         base, fx, mass, mom, affine = self.particle_update(b, p, step, push_accel)
+        self.grow_box(base)
         w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1) ** 2, 0.5 * (fx - 0.5) ** 2]
         for off in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
             dpos = (off.cast(ti.f32) - fx) * self.dx
@@ -274,45 +303,54 @@ class MPMSolver:
 
     @ti.func
     def update_grid(self, t: ti.template(), contact: ti.template()):
-        for b, i, j, k in self.grid_m:
-            m = self.grid_m[b, i, j, k]
-            if m > 0:
-                v = self.grid_v[b, i, j, k] / m
-                v[2] -= self.dt * self.cfg.gravity
-                pos = ti.Vector([i, j, k]).cast(ti.f32) * self.dx
-                if self.k_on[b] == 1:
-                    edge, vk = self.knife_motion(b, t)
-                    sd, nrm = self.knife_sdf(b, pos, edge)
-                    v_old = v
-                    touched = False
-                    if contact == 0:  # wedge: a sharp blade splits material to either side, never pushes it ahead
-                        side = self.k_n[b] * ti.math.sign((pos - edge).dot(self.k_n[b]) + 1e-12)
-                        if sd < 0 or (sd < self.dx and ti.abs(nrm.dot(self.k_n[b])) > 0.5):
-                            target = self.k_speed[b] * self.cfg.knife_wedge if sd < 0 else 0.0
-                            v = self.collide(v, vk, side, target, self.cfg.knife_friction)
-                            touched = True
-                    else:  # solid: nodes inside move with the body, a contact band around it slides with friction
-                        if sd < 0:
-                            v = vk
-                            touched = True
-                        elif sd < self.dx:
-                            v = self.collide(v, vk, nrm, 0.0, self.cfg.knife_friction)
-                            touched = True
-                    if touched:  # only where the blade acted: atomics on one address contend on a GPU
-                        self.k_imp_step[b] += m * (v - v_old)
-                if ti.static(self.cfg.board):
-                    if pos[2] <= self.cfg.board_z and v[2] < 0:
-                        vt = ti.Vector([v[0], v[1], 0.0])
-                        vt_n = vt.norm() + 1e-12
-                        v = vt * ti.max(0.0, 1 + self.cfg.friction * v[2] / vt_n)
-                if ti.static(self.cfg.walls):
-                    I = ti.Vector([i, j, k])
-                    for d in ti.static(range(3)):
-                        if I[d] < 3 and v[d] < 0:
-                            v[d] = 0
-                        if I[d] > self.n_grid - 3 and v[d] > 0:
-                            v[d] = 0
-                self.grid_v[b, i, j, k] = v
+        if ti.static(self.use_box):
+            for b, i, j, k in ti.ndrange(self.B, (self.box[0], self.box[3]), (self.box[1], self.box[4]),
+                                         (self.box[2], self.box[5])):
+                self.update_node(b, i, j, k, t, contact)
+        else:
+            for b, i, j, k in self.grid_m:
+                self.update_node(b, i, j, k, t, contact)
+
+    @ti.func
+    def update_node(self, b, i, j, k, t, contact: ti.template()):
+        m = self.grid_m[b, i, j, k]
+        if m > 0:
+            v = self.grid_v[b, i, j, k] / m
+            v[2] -= self.dt * self.cfg.gravity
+            pos = ti.Vector([i, j, k]).cast(ti.f32) * self.dx
+            if self.k_on[b] == 1:
+                edge, vk = self.knife_motion(b, t)
+                sd, nrm = self.knife_sdf(b, pos, edge)
+                v_old = v
+                touched = False
+                if contact == 0:  # wedge: a sharp blade splits material to either side, never pushes it ahead
+                    side = self.k_n[b] * ti.math.sign((pos - edge).dot(self.k_n[b]) + 1e-12)
+                    if sd < 0 or (sd < self.dx and ti.abs(nrm.dot(self.k_n[b])) > 0.5):
+                        target = self.k_speed[b] * self.cfg.knife_wedge if sd < 0 else 0.0
+                        v = self.collide(v, vk, side, target, self.cfg.knife_friction)
+                        touched = True
+                else:  # solid: nodes inside move with the body, a contact band around it slides with friction
+                    if sd < 0:
+                        v = vk
+                        touched = True
+                    elif sd < self.dx:
+                        v = self.collide(v, vk, nrm, 0.0, self.cfg.knife_friction)
+                        touched = True
+                if touched:  # only where the blade acted: atomics on one address contend on a GPU
+                    self.k_imp_step[b] += m * (v - v_old)
+            if ti.static(self.cfg.board):
+                if pos[2] <= self.cfg.board_z and v[2] < 0:
+                    vt = ti.Vector([v[0], v[1], 0.0])
+                    vt_n = vt.norm() + 1e-12
+                    v = vt * ti.max(0.0, 1 + self.cfg.friction * v[2] / vt_n)
+            if ti.static(self.cfg.walls):
+                I = ti.Vector([i, j, k])
+                for d in ti.static(range(3)):
+                    if I[d] < 3 and v[d] < 0:
+                        v[d] = 0
+                    if I[d] > self.n_grid - 3 and v[d] > 0:
+                        v[d] = 0
+            self.grid_v[b, i, j, k] = v
 
     @ti.func
     def gather(self, n: ti.template(), step: ti.template(), t: ti.template()):

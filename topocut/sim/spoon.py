@@ -179,6 +179,7 @@ class ToolColliders:
         for I in ti.grouped(s.grid_m):
             s.grid_v[I] = ti.Vector.zero(ti.f32, 3)
             s.grid_m[I] = 0.0
+        s.whole_box()  # this scatter does not track its nodes: grid_op and the next clear cover the whole grid
         for b, p in ti.ndrange(s.B, s.capacity):
             if p < n and s.active(b, step):
                 xp = s.x[b, p]
