@@ -97,9 +97,9 @@ class SimConfig:
         return "svd" if self.arch == "cuda" else "polar"
 
     def grid_box_enabled(self) -> bool:
-        """On a CPU the grid clear and update over all n^3 nodes cost ~40% of a substep and the object fills a
-        few percent of them; on a GPU the box's atomics (every particle on six addresses) are unmeasured there,
-        so auto keeps the whole grid."""
+        """On a CPU the grid clear and update over all n^3 nodes cost up to a third of a substep (48^3, 4 scenes)
+        while the object fills a few percent of them; on a GPU the box is not measured yet, so auto keeps the
+        whole grid there (docs/sim.md)."""
         if self.grid_box != "auto":
             return self.grid_box == "on"
         return self.arch != "cuda"

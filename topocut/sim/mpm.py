@@ -174,9 +174,11 @@ class MPMSolver:
     def grow_box(self, base):
         """The scatter writes nodes base .. base + 2 (one box for all scenes: its addresses are loop-invariant)."""
         if ti.static(self.use_box):
-            for d in ti.static(range(3)):
-                ti.atomic_min(self.box[d], base[d])
-                ti.atomic_max(self.box[d + 3], base[d] + 3)
+            for d in ti.static(range(3)):  # read first: the box only grows, so most particles need no atomic
+                if base[d] < self.box[d]:
+                    ti.atomic_min(self.box[d], base[d])
+                if base[d] + 3 > self.box[d + 3]:
+                    ti.atomic_max(self.box[d + 3], base[d] + 3)
 
     @ti.func
     def whole_box(self):
