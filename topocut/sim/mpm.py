@@ -120,7 +120,6 @@ class MPMSolver:
         mu, la = self.cfg.mu * scale, self.cfg.lam * scale
         return 2 * mu * (F - R) @ F.transpose() + ti.Matrix.identity(ti.f32, 3) * la * J * (J - 1)
 
-
     @ti.func
     def von_mises_return(self, sig, b, p, scale):
         """Project the Hencky strain onto the yield surface; soften sigma_y by gamma * |d eps_p|."""
@@ -172,19 +171,14 @@ class MPMSolver:
 
     @ti.func
     def grow_box(self, base):
-        """The scatter writes nodes base .. base + 2 (one box for all scenes: its addresses are loop-invariant)."""
+        """A scatter writes nodes base .. base + 2 (one box for all scenes).  Every scatter into grid_v / grid_m
+        calls it (the solver's, the spoon's sided one), so grid_op and the next clear see all it wrote."""
         if ti.static(self.use_box):
             for d in ti.static(range(3)):  # read first: the box only grows, so most particles need no atomic
                 if base[d] < self.box[d]:
                     ti.atomic_min(self.box[d], base[d])
                 if base[d] + 3 > self.box[d + 3]:
                     ti.atomic_max(self.box[d + 3], base[d] + 3)
-
-    @ti.func
-    def whole_box(self):
-        """For scatters that do not grow the box (a tool's own p2g): grid_op and the next clear see every node."""
-        for d in ti.static(range(3)):
-            self.box[d], self.box[d + 3] = 0, self.n_grid
 
     @ti.func
     def scatter(self, n: ti.template(), step: ti.template(), push_accel: ti.template()):

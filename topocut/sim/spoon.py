@@ -176,14 +176,12 @@ class ToolColliders:
     def p2g_sided(self, n: ti.i32, step: ti.i32):
         """The solver's p2g (clear + scatter; MPMSolver.particle_update for the material), sided."""
         s = self.s
-        for I in ti.grouped(s.grid_m):
-            s.grid_v[I] = ti.Vector.zero(ti.f32, 3)
-            s.grid_m[I] = 0.0
-        s.whole_box()  # this scatter does not track its nodes: grid_op and the next clear cover the whole grid
+        s.clear_grid()  # the solver's clear (its grid box, sim.grid_box, when on)
         for b, p in ti.ndrange(s.B, s.capacity):
             if p < n and s.active(b, step):
                 xp = s.x[b, p]
                 base, fx, mass, mom, affine = s.particle_update(b, p, step, 0.0)  # the solver's material model
+                s.grow_box(base)  # writes a subset of base .. base + 2, as the solver's scatter
                 w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1) ** 2, 0.5 * (fx - 0.5) ** 2]
                 sp = 0
                 if self.near_shell(b, xp):
