@@ -9,6 +9,11 @@ batch; one thing changes at a time:
 - ``runK``: one thread scatters K consecutive particles, adding their contributions to the same 27
   nodes in registers and flushing a node only when the stencil leaves it (about 3x fewer atomics on
   the lattice order);
+- ``split`` / ``split-polar``: the particle update (F, SVD or polar, stress) in a loop of its own that
+  stores the affine matrix; a light scatter loop then reads it (few registers, so many threads per SM
+  to hide the atomics' latency);
+- ``warp`` / ``warp-sorted`` (CUDA only): lanes of a warp whose particles share a base cell sum their
+  stencils with shuffles and one lane issues the atomics (``sorted``: particles ordered by cell first);
 - ``sparse``: a pointer grid of 4^3-node blocks, each holding the list of particles whose stencil
   starts in it (the layout of taichi_elements; grid work only where particles are);
 - ``tiled`` (CUDA only): particles binned per 4^3-cell tile each substep, one CUDA block per tile
@@ -26,6 +31,7 @@ import argparse
 import numpy as np
 import taichi as ti
 from sim_throughput import ReferenceMPM  # the script's own folder is on sys.path when it runs
+from taichi.lang.expr import Expr
 
 from topocut.sim.config import SimConfig
 from topocut.sim.mpm import init_taichi, polar_rotation
@@ -37,6 +43,142 @@ class PolarMPM(ReferenceMPM):
     """The reference with the rotation of F = R S by Newton's iteration instead of an SVD (the full
     model's ``core_rotation=polar``): a cheaper per-particle update, same scatter."""
 
+    @ti.func
+    def rotation(self, F):
+        return polar_rotation(F)
+
+
+@ti.data_oriented
+class SplitMPM(ReferenceMPM):
+    """The reference with p2g in two loops: the heavy particle update writes the affine matrix A (B,N,3,3),
+    then a scatter that holds only x, v, A and the weights in registers."""
+
+    def place_grid(self, fb) -> None:
+        super().place_grid(fb)
+        self.A = ti.types.matrix(3, 3, ti.f32).field()
+        fb.dense(ti.ij, (self.B, self.N)).place(self.A)
+
+    @ti.kernel
+    def p2g(self):
+        self.clear_grid()
+        for b, p in self.x:
+            _base, _fx, affine = self.stress_update(b, p)
+            self.A[b, p] = affine
+        for b, p in self.x:
+            Xp = self.x[b, p] * self.inv_dx
+            base = ti.cast(Xp - 0.5, ti.i32)
+            fx = Xp - base
+            affine, mom = self.A[b, p], self.mass * self.v[b, p]
+            w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1) ** 2, 0.5 * (fx - 0.5) ** 2]
+            for off in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
+                dpos = (off.cast(ti.f32) - fx) * self.dx
+                weight = w[off[0]][0] * w[off[1]][1] * w[off[2]][2]
+                self.grid_v[b, base + off] += weight * (mom + affine @ dpos)
+                self.grid_m[b, base + off] += weight * self.mass
+
+
+@ti.data_oriented
+class ProbeMPM(SplitMPM):
+    """Parts of the split p2g alone, to see where its time goes (not a simulator: positions drift apart).
+
+    ``update``: the particle update loop only; ``scatter``: the light scatter loop only (4 atomics per node);
+    ``mass``: the light scatter of the mass only (1 atomic per node); ``store``: the light scatter with plain
+    stores instead of atomics (racy: the memory traffic of the scatter without the atomics); ``clear``: the
+    grid clear alone (every probe includes it)."""
+
+    def __init__(self, *args, part: str = "update", **kw):
+        self.part = part
+        super().__init__(*args, **kw)
+
+    @ti.kernel
+    def p2g(self):
+        self.clear_grid()
+        if ti.static(self.part == "update"):
+            for b, p in self.x:
+                _base, _fx, affine = self.stress_update(b, p)
+                self.A[b, p] = affine
+        elif ti.static(self.part != "clear"):
+            for b, p in self.x:
+                Xp = self.x[b, p] * self.inv_dx
+                base = ti.cast(Xp - 0.5, ti.i32)
+                fx = Xp - base
+                affine, mom = self.A[b, p], self.mass * self.v[b, p]
+                w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1) ** 2, 0.5 * (fx - 0.5) ** 2]
+                for off in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
+                    dpos = (off.cast(ti.f32) - fx) * self.dx
+                    weight = w[off[0]][0] * w[off[1]][1] * w[off[2]][2]
+                    if ti.static(self.part == "scatter"):
+                        self.grid_v[b, base + off] += weight * (mom + affine @ dpos)
+                        self.grid_m[b, base + off] += weight * self.mass
+                    elif ti.static(self.part == "mass"):
+                        self.grid_m[b, base + off] += weight * self.mass
+                    else:
+                        self.grid_v[b, base + off] = weight * (mom + affine @ dpos)
+                        self.grid_m[b, base + off] = weight * self.mass
+
+
+@ti.data_oriented
+class WarpMPM(ReferenceMPM):
+    """p2g with a warp-level segmented reduction (CUDA only; Gao et al. 2018 sec. 4.2).
+
+    Lanes of a warp whose particles share a base cell (and scene) and sit side by side in the warp form a
+    run; each of the 27 stencil values is summed over the run with 5 shuffle steps and the run's first lane
+    alone issues the 4 atomics.  Correct for any particle order (a run is only ever contiguous lanes with
+    equal keys); fast when particles are ordered by cell (``sort``: 8 per cell here; the lattice order
+    pairs 2 along z)."""
+
+    def __init__(self, x, B, *args, sort: bool = False, **kw):
+        if sort:
+            n_grid = args[0]
+            cell = np.floor(x * n_grid - 0.5).astype(np.int64)
+            x = x[np.lexsort((cell[:, 2], cell[:, 1], cell[:, 0]))]
+        super().__init__(x, B, *args, **kw)
+        self.Np = -(-self.N // 32) * 32  # every warp holds lanes of one scene
+
+    @ti.kernel
+    def p2g(self):
+        self.clear_grid()
+        full = ti.u32(0xFFFFFFFF)
+        ti.loop_config(block_dim=128)
+        for i in range(self.B * self.Np):
+            b, p = i // self.Np, i % self.Np
+            lane = Expr(ti.global_thread_idx()) % 32
+            live = p < self.N
+            base, fx, affine, mom = ti.Vector([0, 0, 0]), ti.Vector.zero(ti.f32, 3), ti.Matrix.zero(ti.f32, 3, 3), \
+                ti.Vector.zero(ti.f32, 3)
+            key = -1 - lane  # lanes past the end never join a run
+            if live:
+                base, fx, affine = self.stress_update(b, p)
+                mom = self.mass * self.v[b, p]
+                key = ((b * self.n_grid + base[0]) * self.n_grid + base[1]) * self.n_grid + base[2]
+            head = lane == 0 or ti.simt.warp.shfl_up_i32(full, key, 1) != key
+            nxt = ti.simt.warp.shfl_down_i32(full, key, 1)
+            e = lane if (lane == 31 or nxt != key) else 31  # last lane of my run: a suffix min over run tails
+            for s in ti.static([1, 2, 4, 8, 16]):
+                o = ti.simt.warp.shfl_down_i32(full, e, s)
+                if lane + s < 32:
+                    e = ti.min(e, o)
+            mass = self.mass if live else 0.0
+            w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1) ** 2, 0.5 * (fx - 0.5) ** 2]
+            for off in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
+                weight = w[off[0]][0] * w[off[1]][1] * w[off[2]][2]
+                val = weight * (mom + affine @ ((off.cast(ti.f32) - fx) * self.dx))
+                m = weight * mass
+                for s in ti.static([1, 2, 4, 8, 16]):
+                    o0 = ti.simt.warp.shfl_down_f32(full, val[0], s)
+                    o1 = ti.simt.warp.shfl_down_f32(full, val[1], s)
+                    o2 = ti.simt.warp.shfl_down_f32(full, val[2], s)
+                    om = ti.simt.warp.shfl_down_f32(full, m, s)
+                    if lane + s <= e:
+                        val += ti.Vector([o0, o1, o2])
+                        m += om
+                if head and live:
+                    self.grid_v[b, base + off] += val
+                    self.grid_m[b, base + off] += m
+
+
+@ti.data_oriented
+class SplitPolarMPM(SplitMPM):
     @ti.func
     def rotation(self, F):
         return polar_rotation(F)
@@ -227,9 +369,9 @@ def main() -> None:
     ap.add_argument("--grid", type=int, default=84)
     ap.add_argument("--batches", type=int, nargs="+", default=[1, 16])
     ap.add_argument("--steps", type=int, default=300)
-    ap.add_argument("--variants", nargs="+", default=["lattice", "shuffled", "polar", "run4", "run8", "sparse",
+    ap.add_argument("--variants", nargs="+", default=["lattice", "shuffled", "polar", "split", "split-polar", "warp", "warp-sorted", "run4", "run8", "sparse",
                                                       "tiled"],
-                    help="lattice (always first: the yardstick) | shuffled | polar | runK (K particles per thread) "
+                    help="lattice (always first: the yardstick) | shuffled | polar | split | split-polar | warp | warp-sorted (CUDA only) | probe-{clear,update,scatter,mass,store} (p2g parts, clear included) | runK (K particles per thread) "
                          "| sparse | tiled (CUDA only)")
     args = ap.parse_args()
     init_taichi(args.device)
@@ -247,9 +389,18 @@ def main() -> None:
                     continue
                 m = (SparseMPM if name == "sparse" else TiledMPM)(x, B, *common)
                 phases = m.phases()
-            elif name == "polar":
-                m = PolarMPM(x, B, *common)
+            elif name in ("polar", "split", "split-polar"):
+                m = {"polar": PolarMPM, "split": SplitMPM, "split-polar": SplitPolarMPM}[name](x, B, *common)
                 phases = m.p2g, m.grid_op, m.g2p
+            elif name in ("warp", "warp-sorted"):
+                if args.device != "cuda":
+                    print(f"{name:>10} {B:>3}  (CUDA only: warp shuffles)")
+                    continue
+                m = WarpMPM(x, B, *common, sort=name == "warp-sorted")
+                phases = m.p2g, m.grid_op, m.g2p
+            elif name.startswith("probe-"):  # p2g part alone, plus clear (compare with 'grid only' B n^3 clear)
+                m = ProbeMPM(x, B, *common, part=name[6:])
+                phases = (m.p2g,)
             elif name.startswith("run"):
                 m = RunMPM(x, B, *common, run=int(name[3:]))
                 phases = m.p2g, m.grid_op, m.g2p
@@ -258,7 +409,7 @@ def main() -> None:
                 m = ReferenceMPM(xs, B, *common)
                 phases = m.p2g, m.grid_op, m.g2p
             else:
-                raise SystemExit(f"unknown variant {name!r}; valid: lattice, shuffled, polar, runK, sparse, tiled")
+                raise SystemExit(f"unknown variant {name!r}; valid: lattice, shuffled, polar, split, split-polar, runK, sparse, tiled")
             s = m.time_phases(args.steps, phases)
             xe = m.x.to_numpy()
             if name == "lattice":

@@ -21,7 +21,8 @@ class SimConfig:
     arch: str = "cpu"
     fuse_substeps: int = 16  # substeps per Python call in simulate() (a kernel graph); 1 = a call per phase
     core_rotation: str = "auto"  # healthy core's R: polar (Newton) | svd | auto = polar on cpu, svd on cuda
-    grid_box: str = "auto"  # clear / update only the box of nodes the scatter wrote: on | off | auto = on on cpu
+    grid_box: str = "auto"  # clear / update only the box of nodes the scatter wrote: on | off | auto = on
+    warp_scatter: str = "auto"  # p2g sums a warp's same-cell stencils by shuffles: on (cuda only) | off | auto = on on cuda
     # -- materials (0: plasto-elastic core, 1: von Mises skin) -------------------
     mu: float = 2083.33
     lam: float = 1388.89
@@ -97,12 +98,21 @@ class SimConfig:
         return "svd" if self.arch == "cuda" else "polar"
 
     def grid_box_enabled(self) -> bool:
-        """On a CPU the grid clear and update over all n^3 nodes cost up to a third of a substep (48^3, 4 scenes)
-        while the object fills a few percent of them; on a GPU the box is not measured yet, so auto keeps the
-        whole grid there (docs/sim.md)."""
+        """The object fills a few percent of the n^3 grid: on a CPU the whole-grid clear and update cost up to a
+        third of a substep (48^3, 4 scenes), on an H100 135 of 752 us (84^3, 16 scenes).  The box's bounds are
+        read on the device before its loops (3 small serial tasks, ~20 us of one scene's 60-90 us on an
+        H100), so ``off`` is a little faster for a single scene on a GPU (docs/benchmarks.md)."""
         if self.grid_box != "auto":
             return self.grid_box == "on"
-        return self.arch != "cuda"
+        return True
+
+    def warp_scatter_enabled(self) -> bool:
+        """The scatter is bound by its global atomics on a GPU (4 per stencil node); lanes of a warp whose
+        particles share a base cell add their stencils with shuffles first, so one lane per run issues them
+        (docs/sim.md).  Warp shuffles exist only on CUDA."""
+        if self.warp_scatter != "auto":
+            return self.warp_scatter == "on"
+        return self.arch == "cuda"
 
     def effective_dt(self) -> float:
         return self.dt if self.dt is not None else self.cfl * self.cfl_bound()
@@ -123,6 +133,13 @@ class SimConfig:
             bad("core_rotation", f"{self.core_rotation!r}; valid: {', '.join(ROTATIONS)}")
         if self.grid_box not in ("auto", "on", "off"):
             bad("grid_box", f"{self.grid_box!r}; valid: auto, on, off")
+        if self.warp_scatter not in ("auto", "on", "off"):
+            bad("warp_scatter", f"{self.warp_scatter!r}; valid: auto, on, off")
+        if self.warp_scatter == "on" and self.arch != "cuda":
+            bad("warp_scatter", f"on needs arch=cuda (warp shuffles), got arch={self.arch!r}; use auto or off")
+        if self.warp_scatter_enabled() and self.batch_size * self.n_grid ** 3 >= 2 ** 31:
+            bad("warp_scatter", f"run keys (scene, cell) overflow 32 bits at batch_size={self.batch_size}, "
+                                f"n_grid={self.n_grid}; use fewer scenes or warp_scatter=off")
         if not 1 <= self.fuse_substeps <= 256:
             bad("fuse_substeps", f"{self.fuse_substeps} must lie in [1, 256]")
         if self.batch_size < 1:

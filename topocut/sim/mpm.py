@@ -12,6 +12,9 @@ Per particle: material (0 core, 1 skin), damage (0/1, permanent) and the
 skin's current yield stress.  Per scene: the knife (an oriented box, one
 SDF evaluation per grid node), the push plane and ``frozen_at``, the first
 substep at which the scene stops moving (a cut's per-scene substep budget).
+
+Longer than one screen on purpose: every @ti.func the kernels inline (materials, knife, grid box, the
+GPU's warp scatter) sits beside the fields it reads; the host-side API lives in env.py.
 """
 
 
@@ -20,6 +23,7 @@ import warnings
 
 import numpy as np
 import taichi as ti
+from taichi.lang.expr import Expr
 
 from topocut.sim.config import SimConfig
 
@@ -96,6 +100,8 @@ class MPMSolver:
         self.bad_step = ti.field(ti.i32)  # first substep with NaN / runaway J (2**30 = none)
         # nodes [box[0:3], box[3:6]) of every scene hold all the scatter wrote since the last clear (sim.grid_box)
         self.use_box = cfg.grid_box_enabled()
+        self.use_warp = cfg.warp_scatter_enabled()
+        self.lanes = -(-capacity // 32) * 32  # the warp scatter's particle slots per scene: no warp spans two
         self.box = ti.field(ti.i32)
         # substep number from which scene b is frozen (2**30 = never): every phase skips it from then on,
         # so a batched cut gives scene b its own substep budget.  A field, so ti.graph runs read it live.
@@ -182,9 +188,15 @@ class MPMSolver:
 
     @ti.func
     def scatter(self, n: ti.template(), step: ti.template(), push_accel: ti.template()):
-        for b, p in ti.ndrange(self.B, self.capacity):
-            if p < n and self.active(b, step):  # a frozen scene scatters nothing: its grid stays empty
-                self.scatter_particle(b, p, step, push_accel)
+        if ti.static(self.use_warp):
+            ti.loop_config(block_dim=128)  # a multiple of 32: lane = thread index % 32
+            for i in range(self.B * self.lanes):
+                b, p = i // self.lanes, i % self.lanes
+                self.scatter_warp(b, p, p < n and self.active(b, step), step, push_accel)
+        else:
+            for b, p in ti.ndrange(self.B, self.capacity):
+                if p < n and self.active(b, step):  # a frozen scene scatters nothing: its grid stays empty
+                    self.scatter_particle(b, p, step, push_accel)
 
     @ti.func
     def scatter_particle(self, b, p, step, push_accel):
@@ -196,6 +208,70 @@ class MPMSolver:
             weight = w[off[0]][0] * w[off[1]][1] * w[off[2]][2]
             self.grid_v[b, base + off] += weight * (mom + affine @ dpos)
             self.grid_m[b, base + off] += weight * mass
+
+    @ti.func
+    def scatter_warp(self, b, p, live, step, push_accel):
+        """scatter_particle with a warp-level segmented reduction (CUDA; Gao et al. 2018, sec. 4.2).
+
+        The scatter is bound by its global atomics (4 per stencil node, 108 per particle).  Lanes whose
+        particles share scene and base cell and sit side by side in the warp form a run: each stencil value
+        is summed over the run by 5 shuffle steps and only the run's first lane issues the atomics.  The
+        lanes are first sorted by key inside the warp, so a run is all of the warp's particles of one cell
+        wherever they sit; CuttingEnv.reset orders particles by cell, so a warp holds few cells (~8
+        particles each) and keeps holding few as they drift.  All 32 lanes reach every shuffle: the loop
+        covers B * lanes slots (a multiple of 32) and dead lanes (negative keys) join no run."""
+        full = ti.u32(0xFFFFFFFF)
+        lane = Expr(ti.global_thread_idx()) % 32
+        base, fx, mass = ti.Vector([0, 0, 0]), ti.Vector.zero(ti.f32, 3), 0.0
+        mom, affine = ti.Vector.zero(ti.f32, 3), ti.Matrix.zero(ti.f32, 3, 3)
+        key = -1 - lane
+        if live:
+            base, fx, mass, mom, affine = self.particle_update(b, p, step, push_accel)
+            self.grow_box(base)
+            key = ((b * self.n_grid + base[0]) * self.n_grid + base[1]) * self.n_grid + base[2]
+        # sort the warp's lanes by key (bitonic, 15 compare-exchange stages on (key, lane)): particles of a
+        # cell become one run wherever they sit in the warp; each lane then takes the particle of lane src
+        src = lane
+        for kk in ti.static([2, 4, 8, 16, 32]):
+            for j in ti.static([h for h in (16, 8, 4, 2, 1) if h < kk]):
+                pk = ti.simt.warp.shfl_xor_i32(full, key, j)
+                ps = ti.simt.warp.shfl_xor_i32(full, src, j)
+                keep_small = ((lane & kk) == 0) == ((lane & j) == 0)
+                smaller = key < pk or (key == pk and src < ps)
+                if keep_small != smaller:
+                    key, src = pk, ps
+        alive = key >= 0  # the particle this lane now holds is live
+        n = self.n_grid
+        base = ti.Vector([(key // (n * n)) % n, (key // n) % n, key % n])
+        mass = ti.simt.warp.shfl_sync_f32(full, mass, src)
+        for d in ti.static(range(3)):
+            fx[d] = ti.simt.warp.shfl_sync_f32(full, fx[d], src)
+            mom[d] = ti.simt.warp.shfl_sync_f32(full, mom[d], src)
+            for e in ti.static(range(3)):
+                affine[d, e] = ti.simt.warp.shfl_sync_f32(full, affine[d, e], src)
+        head = lane == 0 or ti.simt.warp.shfl_up_i32(full, key, 1) != key
+        nxt = ti.simt.warp.shfl_down_i32(full, key, 1)
+        last = lane if (lane == 31 or nxt != key) else 31  # last lane of my run: a suffix min over run ends
+        for s in ti.static([1, 2, 4, 8, 16]):
+            o = ti.simt.warp.shfl_down_i32(full, last, s)
+            if lane + s < 32:
+                last = ti.min(last, o)
+        w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1) ** 2, 0.5 * (fx - 0.5) ** 2]
+        for off in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
+            weight = w[off[0]][0] * w[off[1]][1] * w[off[2]][2]
+            val = weight * (mom + affine @ ((off.cast(ti.f32) - fx) * self.dx))
+            m = weight * mass
+            for s in ti.static([1, 2, 4, 8, 16]):  # lane + s <= last: the partner's partial sum is all in my run
+                o0 = ti.simt.warp.shfl_down_f32(full, val[0], s)
+                o1 = ti.simt.warp.shfl_down_f32(full, val[1], s)
+                o2 = ti.simt.warp.shfl_down_f32(full, val[2], s)
+                om = ti.simt.warp.shfl_down_f32(full, m, s)
+                if lane + s <= last:
+                    val += ti.Vector([o0, o1, o2])
+                    m += om
+            if head and alive:
+                self.grid_v[b, base + off] += val
+                self.grid_m[b, base + off] += m
 
     @ti.func
     def particle_update(self, b, p, step, push_accel):
