@@ -58,23 +58,33 @@ class SplitMPM(ReferenceMPM):
         self.A = ti.types.matrix(3, 3, ti.f32).field()
         fb.dense(ti.ij, (self.B, self.N)).place(self.A)
 
+    part = "all"  # ProbeMPM runs one part of it
+
     @ti.kernel
     def p2g(self):
         self.clear_grid()
-        for b, p in self.x:
-            _base, _fx, affine = self.stress_update(b, p)
-            self.A[b, p] = affine
-        for b, p in self.x:
-            Xp = self.x[b, p] * self.inv_dx
-            base = ti.cast(Xp - 0.5, ti.i32)
-            fx = Xp - base
-            affine, mom = self.A[b, p], self.mass * self.v[b, p]
-            w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1) ** 2, 0.5 * (fx - 0.5) ** 2]
-            for off in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
-                dpos = (off.cast(ti.f32) - fx) * self.dx
-                weight = w[off[0]][0] * w[off[1]][1] * w[off[2]][2]
-                self.grid_v[b, base + off] += weight * (mom + affine @ dpos)
-                self.grid_m[b, base + off] += weight * self.mass
+        if ti.static(self.part in ("all", "update")):
+            for b, p in self.x:
+                _base, _fx, affine = self.stress_update(b, p)
+                self.A[b, p] = affine
+        if ti.static(self.part in ("all", "scatter", "mass", "store")):
+            for b, p in self.x:
+                Xp = self.x[b, p] * self.inv_dx
+                base = ti.cast(Xp - 0.5, ti.i32)
+                fx = Xp - base
+                affine, mom = self.A[b, p], self.mass * self.v[b, p]
+                w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1) ** 2, 0.5 * (fx - 0.5) ** 2]
+                for off in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
+                    dpos = (off.cast(ti.f32) - fx) * self.dx
+                    weight = w[off[0]][0] * w[off[1]][1] * w[off[2]][2]
+                    if ti.static(self.part in ("all", "scatter")):
+                        self.grid_v[b, base + off] += weight * (mom + affine @ dpos)
+                        self.grid_m[b, base + off] += weight * self.mass
+                    elif ti.static(self.part == "mass"):
+                        self.grid_m[b, base + off] += weight * self.mass
+                    else:
+                        self.grid_v[b, base + off] = weight * (mom + affine @ dpos)
+                        self.grid_m[b, base + off] = weight * self.mass
 
 
 @ti.data_oriented
@@ -89,32 +99,6 @@ class ProbeMPM(SplitMPM):
     def __init__(self, *args, part: str = "update", **kw):
         self.part = part
         super().__init__(*args, **kw)
-
-    @ti.kernel
-    def p2g(self):
-        self.clear_grid()
-        if ti.static(self.part == "update"):
-            for b, p in self.x:
-                _base, _fx, affine = self.stress_update(b, p)
-                self.A[b, p] = affine
-        elif ti.static(self.part != "clear"):
-            for b, p in self.x:
-                Xp = self.x[b, p] * self.inv_dx
-                base = ti.cast(Xp - 0.5, ti.i32)
-                fx = Xp - base
-                affine, mom = self.A[b, p], self.mass * self.v[b, p]
-                w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1) ** 2, 0.5 * (fx - 0.5) ** 2]
-                for off in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
-                    dpos = (off.cast(ti.f32) - fx) * self.dx
-                    weight = w[off[0]][0] * w[off[1]][1] * w[off[2]][2]
-                    if ti.static(self.part == "scatter"):
-                        self.grid_v[b, base + off] += weight * (mom + affine @ dpos)
-                        self.grid_m[b, base + off] += weight * self.mass
-                    elif ti.static(self.part == "mass"):
-                        self.grid_m[b, base + off] += weight * self.mass
-                    else:
-                        self.grid_v[b, base + off] = weight * (mom + affine @ dpos)
-                        self.grid_m[b, base + off] = weight * self.mass
 
 
 @ti.data_oriented
