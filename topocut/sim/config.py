@@ -22,6 +22,7 @@ class SimConfig:
     fuse_substeps: int = 16  # substeps per Python call in simulate() (a kernel graph); 1 = a call per phase
     core_rotation: str = "auto"  # healthy core's R: polar (Newton) | svd | auto = polar on cpu, svd on cuda
     grid_box: str = "auto"  # clear / update only the box of nodes the scatter wrote: on | off | auto = on
+    resort_every: int = 0  # substeps between reorderings of the particle slots by cell on the device; 0 = never
     warp_scatter: str = "auto"  # p2g sums a warp's same-cell stencils by shuffles: on (cuda only) | off | auto = on on cuda
     # -- materials (0: plasto-elastic core, 1: von Mises skin) -------------------
     mu: float = 2083.33
@@ -140,6 +141,8 @@ class SimConfig:
         if self.warp_scatter_enabled() and self.batch_size * self.n_grid ** 3 >= 2 ** 31:
             bad("warp_scatter", f"run keys (scene, cell) overflow 32 bits at batch_size={self.batch_size}, "
                                 f"n_grid={self.n_grid}; use fewer scenes or warp_scatter=off")
+        if self.resort_every < 0:
+            bad("resort_every", f"{self.resort_every} must be >= 0 (0: never reorder the particle slots)")
         if not 1 <= self.fuse_substeps <= 256:
             bad("fuse_substeps", f"{self.fuse_substeps} must lie in [1, 256]")
         if self.batch_size < 1:

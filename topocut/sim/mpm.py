@@ -86,9 +86,10 @@ class MPMSolver:
         self.Jp, self.sigma_y = ti.field(f32), ti.field(f32)  # B,N
         self.damage = ti.field(ti.i32)  # B,N
         self.material = ti.field(ti.i32)  # N
+        self.ids = ti.field(ti.i32)  # N: the particle each slot holds (identity until resort() reorders the slots)
         self.grid_v, self.grid_m = vec.field(), ti.field(f32)  # B,n,n,n
         fb.dense(ti.ij, (B, capacity)).place(self.x, self.v, self.C, self.F, self.Jp, self.sigma_y, self.damage)
-        fb.dense(ti.i, capacity).place(self.material)
+        fb.dense(ti.i, capacity).place(self.material, self.ids)
         fb.dense(ti.axes(0, 1, 2, 3), (B, n, n, n)).place(self.grid_v, self.grid_m)
         # knife per scene: start edge midpoint, frame (u, w, n), half extents, travel, oscillation amplitude
         self.k_o, self.k_u, self.k_w, self.k_n, self.k_half = (vec.field() for _ in range(5))
@@ -111,6 +112,8 @@ class MPMSolver:
                                 self.push_n, self.push_p, self.bad_step, self.frozen_at)
         fb.dense(ti.i, 6).place(self.box)
         self.tree = fb.finalize()
+        self._sort_tree = None
+        self.ids.from_numpy(np.arange(capacity, dtype=np.int32))
         self.bad_step.fill(2 ** 30)
         self.frozen_at.fill(2 ** 30)
         self.box.from_numpy(np.array([0, 0, 0, n, n, n], np.int32))  # a fresh grid: clear it all once
@@ -119,6 +122,45 @@ class MPMSolver:
 
     def destroy(self) -> None:
         self.tree.destroy()
+        if self._sort_tree is not None:
+            self._sort_tree.destroy()
+
+    # -- slot order (sim.resort_every) ----------------------------------------------------------------
+    def permute(self, order: np.ndarray) -> None:
+        """Slot i of every scene takes what slot order[i] holds (order: a permutation of the first n slots).
+
+        Every particle field moves, in all scenes at once (they share ``material``), through one scratch
+        field per type; ``ids`` moves with them, so CuttingEnv's states keep their particle order."""
+        if self._sort_tree is None:  # scratch fields, made on first use only
+            fb = ti.FieldsBuilder()
+            self._perm, self._tmp_i = ti.field(ti.i32), ti.field(ti.i32)
+            self._tmp = {"vec": ti.types.vector(3, ti.f32).field(), "mat": ti.types.matrix(3, 3, ti.f32).field(),
+                         "f32": ti.field(ti.f32), "i32": ti.field(ti.i32)}
+            fb.dense(ti.i, self.capacity).place(self._perm, self._tmp_i)
+            fb.dense(ti.ij, (self.B, self.capacity)).place(*self._tmp.values())
+            self._sort_tree = fb.finalize()
+        perm = np.arange(self.capacity, dtype=np.int32)
+        perm[:len(order)] = order
+        self._perm.from_numpy(perm)
+        for f, t in ((self.x, "vec"), (self.v, "vec"), (self.C, "mat"), (self.F, "mat"), (self.Jp, "f32"),
+                     (self.sigma_y, "f32"), (self.damage, "i32")):
+            self._permute(f, self._tmp[t])
+        self._permute_shared(self.material)
+        self._permute_shared(self.ids)
+
+    @ti.kernel
+    def _permute(self, f: ti.template(), tmp: ti.template()):
+        for b, i in ti.ndrange(self.B, self.capacity):
+            tmp[b, i] = f[b, self._perm[i]]
+        for b, i in ti.ndrange(self.B, self.capacity):
+            f[b, i] = tmp[b, i]
+
+    @ti.kernel
+    def _permute_shared(self, f: ti.template()):
+        for i in range(self.capacity):
+            self._tmp_i[i] = f[self._perm[i]]
+        for i in range(self.capacity):
+            f[i] = self._tmp_i[i]
 
     # -- constitutive models (Kirchhoff stress tau = P F^T) ---------------------------
     @ti.func
