@@ -156,10 +156,10 @@ class CuttingEnv:
         s = self._ensure(n)
         scenes = range(self.B) if b is None else [b]
         cap = s.capacity
-        if fresh:  # every scene anew (or other particles): slots in particle order again
+        if fresh and self._resorted:  # every scene anew (or other particles): slots in particle order again
             s.ids.from_numpy(np.arange(cap, dtype=np.int32))
-            self._resorted = False
-        ids = s.ids.to_numpy()[:n]  # slot i holds particle ids[i]
+        self._resorted = self._resorted and not fresh
+        ids = s.ids.to_numpy()[:n] if self._resorted else None  # slot i holds particle ids[i]
         defaults = {"v": np.zeros((n, 3)), "C": np.zeros((n, 3, 3)), "F": np.broadcast_to(np.eye(3), (n, 3, 3)),
                     "sigma_y": np.full(n, self.cfg.yield_stress), "damage": np.zeros(n)}
         targets = {"x": s.x, "v": s.v, "C": s.C, "F": s.F, "sigma_y": s.sigma_y, "damage": s.damage}
@@ -167,12 +167,12 @@ class CuttingEnv:
             arr = fld.to_numpy()  # B,cap,...
             val = np.asarray(state.get(key, defaults.get(key)))
             for sb in scenes:
-                arr[sb, :n] = val[ids] if val.ndim else val
+                arr[sb, :n] = val if ids is None else val[ids]
             arr[:, n:cap] = 0
             fld.from_numpy(arr)
         if "material" in state:
             mat = np.zeros(cap, np.int32)
-            mat[:n] = np.asarray(state["material"], np.int32)[ids]
+            mat[:n] = np.asarray(state["material"], np.int32)[slice(None) if ids is None else ids]
             s.material.from_numpy(mat)
         s.Jp.from_numpy(np.linalg.det(s.F.to_numpy()).astype(np.float32))
         sweeps = [KnifeSweep.fromdict(d) if isinstance(d, dict) else d for d in state.get("sweeps", [])]
