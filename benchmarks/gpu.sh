@@ -28,6 +28,17 @@ case "$phase" in
   wheels) ls /tmp/site | head -50 ;;
   bench-sim)
     python3 benchmarks/sim_throughput.py --device cuda 2>&1 | tee "$OUT/bench_sim.txt" ;;
+  warp)  # the warp scatter's CUDA check (tests/test_sim_warp_scatter.py) and the 84^3 batching gain with and
+         # without slot reordering (sim.resort_every; docs/benchmarks.md)
+    timeout 250 python3 - <<'PY' 2>&1 | grep -v -i warn | tee "$OUT/warp.txt"
+import re
+src = open("tests/test_sim_warp_scatter.py").read()
+exec(re.search(r'GPU_CHECK = r"""(.*?)"""', src, re.S).group(1))
+PY
+    for r in 0 128 256; do
+      timeout 110 python3 benchmarks/sim_throughput.py --device cuda --grids 84 --batches 1 16 --resort-every $r 2>&1 \
+        | tail -3 | tee -a "$OUT/warp.txt"
+    done ;;
   bench-topo)  # every size, cut beside it (cold Warp/Taichi caches need the long timeout)
     timeout 500 python3 benchmarks/topology.py --device cuda 2>&1 | tee "$OUT/bench_topology.txt" ;;
   bench-mppi)

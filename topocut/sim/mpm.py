@@ -112,7 +112,7 @@ class MPMSolver:
                                 self.push_n, self.push_p, self.bad_step, self.frozen_at)
         fb.dense(ti.i, 6).place(self.box)
         self.tree = fb.finalize()
-        self._sort_tree = None
+        self._slots = None  # topocut.sim.slots.SlotPermutation, made by the first permute()
         self.ids.from_numpy(np.arange(capacity, dtype=np.int32))
         self.bad_step.fill(2 ** 30)
         self.frozen_at.fill(2 ** 30)
@@ -122,45 +122,17 @@ class MPMSolver:
 
     def destroy(self) -> None:
         self.tree.destroy()
-        if self._sort_tree is not None:
-            self._sort_tree.destroy()
+        if self._slots is not None:
+            self._slots.destroy()
 
-    # -- slot order (sim.resort_every) ----------------------------------------------------------------
     def permute(self, order: np.ndarray) -> None:
-        """Slot i of every scene takes what slot order[i] holds (order: a permutation of the first n slots).
+        """Slot i of every scene takes what slot order[i] holds, every particle field and ``ids`` alike
+        (topocut.sim.slots; CuttingEnv.resort)."""
+        if self._slots is None:
+            from topocut.sim.slots import SlotPermutation
 
-        Every particle field moves, in all scenes at once (they share ``material``), through one scratch
-        field per type; ``ids`` moves with them, so CuttingEnv's states keep their particle order."""
-        if self._sort_tree is None:  # scratch fields, made on first use only
-            fb = ti.FieldsBuilder()
-            self._perm, self._tmp_i = ti.field(ti.i32), ti.field(ti.i32)
-            self._tmp = {"vec": ti.types.vector(3, ti.f32).field(), "mat": ti.types.matrix(3, 3, ti.f32).field(),
-                         "f32": ti.field(ti.f32), "i32": ti.field(ti.i32)}
-            fb.dense(ti.i, self.capacity).place(self._perm, self._tmp_i)
-            fb.dense(ti.ij, (self.B, self.capacity)).place(*self._tmp.values())
-            self._sort_tree = fb.finalize()
-        perm = np.arange(self.capacity, dtype=np.int32)
-        perm[:len(order)] = order
-        self._perm.from_numpy(perm)
-        for f, t in ((self.x, "vec"), (self.v, "vec"), (self.C, "mat"), (self.F, "mat"), (self.Jp, "f32"),
-                     (self.sigma_y, "f32"), (self.damage, "i32")):
-            self._permute(f, self._tmp[t])
-        self._permute_shared(self.material)
-        self._permute_shared(self.ids)
-
-    @ti.kernel
-    def _permute(self, f: ti.template(), tmp: ti.template()):
-        for b, i in ti.ndrange(self.B, self.capacity):
-            tmp[b, i] = f[b, self._perm[i]]
-        for b, i in ti.ndrange(self.B, self.capacity):
-            f[b, i] = tmp[b, i]
-
-    @ti.kernel
-    def _permute_shared(self, f: ti.template()):
-        for i in range(self.capacity):
-            self._tmp_i[i] = f[self._perm[i]]
-        for i in range(self.capacity):
-            f[i] = self._tmp_i[i]
+            self._slots = SlotPermutation(self)
+        self._slots.apply(order)
 
     # -- constitutive models (Kirchhoff stress tau = P F^T) ---------------------------
     @ti.func
