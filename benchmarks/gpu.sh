@@ -28,16 +28,18 @@ case "$phase" in
   wheels) ls /tmp/site | head -50 ;;
   bench-sim)
     python3 benchmarks/sim_throughput.py --device cuda 2>&1 | tee "$OUT/bench_sim.txt" ;;
-  warp)  # the warp scatter's CUDA check (tests/test_sim_warp_scatter.py) and the 84^3 batching gain with and
-         # without slot reordering (sim.resort_every; docs/benchmarks.md)
-    timeout 250 python3 - <<'PY' 2>&1 | grep -v -i warn | tee "$OUT/warp.txt"
+  warp-check)  # the warp scatter's CUDA check (the GPU part of tests/test_sim_warp_scatter.py)
+    timeout 500 python3 - <<'PY' 2>&1 | grep -v -i warn | tee "$OUT/warp_check.txt"
 import re
 src = open("tests/test_sim_warp_scatter.py").read()
 exec(re.search(r'GPU_CHECK = r"""(.*?)"""', src, re.S).group(1))
 PY
-    for r in 0 128 256; do
-      timeout 110 python3 benchmarks/sim_throughput.py --device cuda --grids 84 --batches 1 16 --resort-every $r 2>&1 \
-        | tail -3 | tee -a "$OUT/warp.txt"
+    ;;
+  warp-bench)  # the 84^3 batching gain with slot reordering (sim.resort_every) and the polar rotation
+    for extra in "--resort-every 0" "--resort-every 128" "--resort-every 256" "--rotation polar"; do
+      echo "== $extra" | tee -a "$OUT/warp_bench.txt"
+      timeout 120 python3 benchmarks/sim_throughput.py --device cuda --grids 84 --batches 1 16 $extra 2>&1 \
+        | tail -3 | tee -a "$OUT/warp_bench.txt"
     done ;;
   bench-topo)  # every size, cut beside it (cold Warp/Taichi caches need the long timeout)
     timeout 500 python3 benchmarks/topology.py --device cuda 2>&1 | tee "$OUT/bench_topology.txt" ;;
