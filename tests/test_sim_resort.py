@@ -42,6 +42,7 @@ def test_resort_is_a_permutation_states_unchanged():
     assert not np.array_equal(slots_x, state["x"])  # ... which the scrambled order was not
     ids = s.ids.to_numpy()[:env.n]
     assert sorted(ids.tolist()) == list(range(env.n))
+    np.testing.assert_array_equal(s.slots().positions(1, env.n), s.x.to_numpy()[1, :env.n])  # one scene to host
     np.testing.assert_array_equal(slots_x, state["x"][ids])
     for b in range(env.B):
         after = env.get_state(b)

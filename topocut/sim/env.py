@@ -122,8 +122,8 @@ class CuttingEnv:
         Particles drift across cell borders, which halves the GPU warp scatter's runs over a cut
         (docs/sim.md); a numpy sort of scene 0's base cells and a device gather of every particle field
         restore them.  States keep their particle order (``_ordered``)."""
-        s = self._need()
-        s.permute(cell_order(s.x.to_numpy()[0, :self.n], self.cfg.n_grid))
+        slots = self._need().slots()
+        slots.apply(cell_order(slots.positions(0, self.n), self.cfg.n_grid))
         self._resorted = True
 
     def _ordered(self, fld) -> np.ndarray:

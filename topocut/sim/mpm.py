@@ -112,7 +112,7 @@ class MPMSolver:
                                 self.push_n, self.push_p, self.bad_step, self.frozen_at)
         fb.dense(ti.i, 6).place(self.box)
         self.tree = fb.finalize()
-        self._slots = None  # topocut.sim.slots.SlotPermutation, made by the first permute()
+        self._slots = None  # topocut.sim.slots.SlotPermutation, made by the first slots()
         self.ids.from_numpy(np.arange(capacity, dtype=np.int32))
         self.bad_step.fill(2 ** 30)
         self.frozen_at.fill(2 ** 30)
@@ -125,14 +125,13 @@ class MPMSolver:
         if self._slots is not None:
             self._slots.destroy()
 
-    def permute(self, order: np.ndarray) -> None:
-        """Slot i of every scene takes what slot order[i] holds, every particle field and ``ids`` alike
-        (topocut.sim.slots; CuttingEnv.resort)."""
+    def slots(self):
+        """The slot permutation helper (topocut.sim.slots; CuttingEnv.resort), made on first use."""
         if self._slots is None:
             from topocut.sim.slots import SlotPermutation
 
             self._slots = SlotPermutation(self)
-        self._slots.apply(order)
+        return self._slots
 
     # -- constitutive models (Kirchhoff stress tau = P F^T) ---------------------------
     @ti.func

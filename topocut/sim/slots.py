@@ -17,9 +17,10 @@ class SlotPermutation:
         self.solver, self.B, self.capacity = solver, solver.B, solver.capacity
         fb = ti.FieldsBuilder()
         self.perm, self.tmp_i = ti.field(ti.i32), ti.field(ti.i32)  # cap
+        self.x_scene = ti.types.vector(3, ti.f32).field()  # cap,3: one scene's positions for the host's sort
         self.tmp = {"vec": ti.types.vector(3, ti.f32).field(), "mat": ti.types.matrix(3, 3, ti.f32).field(),
                     "f32": ti.field(ti.f32), "i32": ti.field(ti.i32)}  # B,cap,...
-        fb.dense(ti.i, self.capacity).place(self.perm, self.tmp_i)
+        fb.dense(ti.i, self.capacity).place(self.perm, self.tmp_i, self.x_scene)
         fb.dense(ti.ij, (self.B, self.capacity)).place(*self.tmp.values())
         self.tree = fb.finalize()
 
@@ -37,6 +38,16 @@ class SlotPermutation:
             self.gather(f, self.tmp[t])
         self.gather_shared(s.material)
         self.gather_shared(s.ids)
+
+    def positions(self, b: int, n: int) -> np.ndarray:
+        """Scene b's first n positions (n,3), copying one scene to the host instead of all B."""
+        self.copy_scene(b)
+        return self.x_scene.to_numpy()[:n]
+
+    @ti.kernel
+    def copy_scene(self, b: ti.i32):
+        for i in range(self.capacity):
+            self.x_scene[i] = self.solver.x[b, i]
 
     @ti.kernel
     def gather(self, f: ti.template(), tmp: ti.template()):
