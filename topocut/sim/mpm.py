@@ -86,7 +86,7 @@ class MPMSolver:
         self.Jp, self.sigma_y = ti.field(f32), ti.field(f32)  # B,N
         self.damage = ti.field(ti.i32)  # B,N
         self.material = ti.field(ti.i32)  # N
-        self.ids = ti.field(ti.i32)  # N: the particle each slot holds (identity until resort() reorders the slots)
+        self.ids = ti.field(ti.i32)  # N: the particle each slot holds (identity until CuttingEnv.resort() reorders)
         self.grid_v, self.grid_m = vec.field(), ti.field(f32)  # B,n,n,n
         fb.dense(ti.ij, (B, capacity)).place(self.x, self.v, self.C, self.F, self.Jp, self.sigma_y, self.damage)
         fb.dense(ti.i, capacity).place(self.material, self.ids)
