@@ -167,17 +167,15 @@ class ReferenceMPM:
 
 
 def full_model(n_grid: int, B: int, arch: str, fuse: int | None, rotation: str, profile: bool = False,
-               grid_box: str = "auto", warp_scatter: str = "auto", resort_every: int = 0) -> dict:
+               grid_box: str = "auto", warp_scatter: str = "auto") -> dict:
     """Rate, wall time per substep, particles, substeps and warm-up time of one batched cut through a cube."""
     kw = {} if fuse is None else {"fuse_substeps": fuse}
     t = time.perf_counter()
     env = CuttingEnv(SimConfig(n_grid=n_grid, batch_size=B, arch=arch, dwell_substeps=0, core_rotation=rotation,
-                               grid_box=grid_box, warp_scatter=warp_scatter, resort_every=resort_every, **kw))
+                               grid_box=grid_box, warp_scatter=warp_scatter, **kw))
     env.reset("cube")
     env.simulate(3)  # compile the phases
     env.cut(KnifeAction(0.5, 0.5, depth=0.002))  # knife path and the kernel graph
-    if resort_every:
-        env.resort()  # compile the slot permutation
     env.reset("cube")
     ti.sync()
     warmup = time.perf_counter() - t
@@ -200,7 +198,6 @@ def main() -> None:
     ap.add_argument("--rotation", default="auto", help="sim.core_rotation: auto | polar | svd")
     ap.add_argument("--grid-box", default="auto", help="sim.grid_box: auto | on | off")
     ap.add_argument("--warp-scatter", default="auto", help="sim.warp_scatter: auto | on | off")
-    ap.add_argument("--resort-every", type=int, default=0, help="sim.resort_every (0: never reorder the slots)")
     ap.add_argument("--profile", action="store_true", help="print Taichi's kernel profiler per case")
     args = ap.parse_args()
     if args.profile:
@@ -212,15 +209,13 @@ def main() -> None:
     print(f"device={args.device}  grids={grids}  batches={batches}  fuse={args.fuse or SimConfig().fuse_substeps}"
           f"  rotation={SimConfig(arch=args.device, core_rotation=args.rotation).core_rotation_method()}"
           f"  grid_box={SimConfig(arch=args.device, grid_box=args.grid_box).grid_box_enabled()}"
-          f"  warp_scatter={SimConfig(arch=args.device, warp_scatter=args.warp_scatter).warp_scatter_enabled()}"
-          f"  resort_every={args.resort_every}")
+          f"  warp_scatter={SimConfig(arch=args.device, warp_scatter=args.warp_scatter).warp_scatter_enabled()}")
     print(f"{'grid':>5} {'B':>3} {'N':>7} {'steps':>6} {'us/substep':>10} {'full p-st/s':>12} {'mpm3d p-st/s':>13} "
           f"{'ref3 p-st/s':>12} {'full/mpm3d':>10} {'full/ref3':>9} {'warm-up s':>9}")
     rates = {}
     for g in grids:
         for B in batches:
-            f = full_model(g, B, args.device, args.fuse, args.rotation, args.profile, args.grid_box, args.warp_scatter,
-                           args.resort_every)
+            f = full_model(g, B, args.device, args.fuse, args.rotation, args.profile, args.grid_box, args.warp_scatter)
             if args.profile:
                 print(f"-- kernel profile of the timed cut, full model, grid {g}, B {B}")
                 ti.profiler.print_kernel_profiler_info()

@@ -59,7 +59,8 @@ def test_box_is_the_stencil_bounds_of_the_last_scatter(runs):
 def test_grid_box_validation():
     with pytest.raises(ValueError, match=r"sim\.grid_box.*auto, on, off"):
         SimConfig(grid_box="maybe").validate()
-    assert SimConfig().grid_box_enabled() and SimConfig(arch="cuda").grid_box_enabled()
+    assert SimConfig().grid_box_enabled() and SimConfig(arch="cuda", batch_size=16).grid_box_enabled()
+    assert not SimConfig(arch="cuda").grid_box_enabled()  # a single GPU scene: the box's serial tasks cost more
     assert not SimConfig(arch="cuda", grid_box="off").grid_box_enabled()
 
 

@@ -21,8 +21,7 @@ class SimConfig:
     arch: str = "cpu"
     fuse_substeps: int = 16  # substeps per Python call in simulate() (a kernel graph); 1 = a call per phase
     core_rotation: str = "auto"  # healthy core's R: polar (Newton) | svd | auto = polar on cpu, svd on cuda
-    grid_box: str = "auto"  # clear / update only the box of nodes the scatter wrote: on | off | auto = on
-    resort_every: int = 0  # substeps between reorderings of the particle slots by cell on the device; 0 = never
+    grid_box: str = "auto"  # clear/update only the nodes the scatter wrote: on | off | auto (off for B=1 on cuda)
     warp_scatter: str = "auto"  # p2g sums a warp's same-cell stencils by shuffles: on (cuda only) | off | auto = on on cuda
     # -- materials (0: plasto-elastic core, 1: von Mises skin) -------------------
     mu: float = 2083.33
@@ -102,10 +101,10 @@ class SimConfig:
         """The object fills a few percent of the n^3 grid: on a CPU the whole-grid clear and update cost up to a
         third of a substep (48^3, 4 scenes), on an H100 135 of 752 us (84^3, 16 scenes).  The box's bounds are
         read on the device before its loops (3 small serial tasks, ~20 us of one scene's 60-90 us on an
-        H100), so ``off`` is a little faster for a single scene on a GPU (docs/benchmarks.md)."""
+        H100), so auto leaves it off for a single scene on a GPU (docs/benchmarks.md)."""
         if self.grid_box != "auto":
             return self.grid_box == "on"
-        return True
+        return self.arch != "cuda" or self.batch_size > 1
 
     def warp_scatter_enabled(self) -> bool:
         """The scatter is bound by its global atomics on a GPU (4 per stencil node); lanes of a warp whose
@@ -141,8 +140,6 @@ class SimConfig:
         if self.warp_scatter_enabled() and self.batch_size * self.n_grid ** 3 >= 2 ** 31:
             bad("warp_scatter", f"run keys (scene, cell) overflow 32 bits at batch_size={self.batch_size}, "
                                 f"n_grid={self.n_grid}; use fewer scenes or warp_scatter=off")
-        if self.resort_every < 0:
-            bad("resort_every", f"{self.resort_every} must be >= 0 (0: never reorder the particle slots)")
         if not 1 <= self.fuse_substeps <= 256:
             bad("fuse_substeps", f"{self.fuse_substeps} must lie in [1, 256]")
         if self.batch_size < 1:

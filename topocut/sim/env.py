@@ -77,7 +77,6 @@ class CuttingEnv:
         self.object = None
         self.sweeps: list[list[KnifeSweep]] = [[] for _ in range(self.B)]
         self.step_count = 0
-        self._resorted = False  # the solver's slots hold particles in another order (sim.resort_every)
 
     # -- particles ---------------------------------------------------------------------
     def _ensure(self, n: int) -> MPMSolver:
@@ -104,45 +103,18 @@ class CuttingEnv:
 
     # -- state -------------------------------------------------------------------------
     def state(self) -> SimState:
-        s = self._need()
-        return SimState(x=self._ordered(s.x), v=self._ordered(s.v), material=self._ordered(s.material),
-                        damage=self._ordered(s.damage).astype(bool), sweeps=[list(w) for w in self.sweeps])
+        s, n = self._need(), self.n
+        return SimState(x=s.x.to_numpy()[:, :n], v=s.v.to_numpy()[:, :n], material=s.material.to_numpy()[:n],
+                        damage=s.damage.to_numpy()[:, :n].astype(bool), sweeps=[list(w) for w in self.sweeps])
 
     def get_state(self, b: int = 0) -> dict:
-        s = self._need()
+        s, n = self._need(), self.n
         if not 0 <= b < self.B:
             raise ValueError(f"scene b={b} out of range [0, {self.B})")
-        out = {k: self._ordered(getattr(s, k))[b] for k in ("x", "v", "C", "F", "sigma_y")}
-        return {**out, "damage": self._ordered(s.damage)[b].astype(bool), "material": self._ordered(s.material),
+        return {"x": s.x.to_numpy()[b, :n], "v": s.v.to_numpy()[b, :n], "C": s.C.to_numpy()[b, :n],
+                "F": s.F.to_numpy()[b, :n], "sigma_y": s.sigma_y.to_numpy()[b, :n],
+                "damage": s.damage.to_numpy()[b, :n].astype(bool), "material": s.material.to_numpy()[:n],
                 "sweeps": [w.asdict() for w in self.sweeps[b]], "object": self.object}
-
-    def resort(self) -> None:
-        """Put the solver's slots back in cell order (scene 0's cells, the order reset() gives; sim.resort_every).
-
-        Particles drift across cell borders, which halves the GPU warp scatter's runs over a cut
-        (docs/sim.md); a numpy sort of scene 0's base cells and a device gather of every particle field
-        restore them.  States keep their particle order (``_ordered``)."""
-        slots = self._need().slots()
-        slots.apply(cell_order(slots.positions(0, self.n), self.cfg.n_grid))
-        self._resorted = True
-
-    def _ordered(self, fld) -> np.ndarray:
-        """A particle field's first n particles in particle order: (B, n, ...) or, for material, (n,).
-
-        The solver's slots hold particles in another order once ``sim.resort_every`` has reordered them;
-        ``ids`` says which particle each slot holds."""
-        s, n = self.solver, self.n
-        shared = fld is s.material
-        a = fld.to_numpy()[:n] if shared else fld.to_numpy()[:, :n]
-        if not self._resorted:
-            return a
-        out = np.empty_like(a)
-        ids = s.ids.to_numpy()[:n]
-        if shared:
-            out[ids] = a
-        else:
-            out[:, ids] = a
-        return out
 
     def set_state(self, state: dict, b: int | None = None) -> None:
         """Load a get_state() dict into scene b (None: every scene). Missing C/F/sigma_y/damage mean rest state."""
@@ -152,14 +124,9 @@ class CuttingEnv:
             raise ValueError(f"scene b={b} out of range [0, {self.B})")
         if b is not None and self.B > 1 and n != self.n:
             raise ValueError(f"state has {n} particles but the env holds {self.n}; load it with b=None")
-        fresh = b is None or n != self.n or not self._resorted or self.solver is None
         s = self._ensure(n)
         scenes = range(self.B) if b is None else [b]
         cap = s.capacity
-        if fresh and self._resorted:  # every scene anew (or other particles): slots in particle order again
-            s.ids.from_numpy(np.arange(cap, dtype=np.int32))
-        self._resorted = self._resorted and not fresh
-        ids = s.ids.to_numpy()[:n] if self._resorted else None  # slot i holds particle ids[i]
         defaults = {"v": np.zeros((n, 3)), "C": np.zeros((n, 3, 3)), "F": np.broadcast_to(np.eye(3), (n, 3, 3)),
                     "sigma_y": np.full(n, self.cfg.yield_stress), "damage": np.zeros(n)}
         targets = {"x": s.x, "v": s.v, "C": s.C, "F": s.F, "sigma_y": s.sigma_y, "damage": s.damage}
@@ -167,12 +134,12 @@ class CuttingEnv:
             arr = fld.to_numpy()  # B,cap,...
             val = np.asarray(state.get(key, defaults.get(key)))
             for sb in scenes:
-                arr[sb, :n] = val if ids is None else val[ids]
+                arr[sb, :n] = val
             arr[:, n:cap] = 0
             fld.from_numpy(arr)
         if "material" in state:
             mat = np.zeros(cap, np.int32)
-            mat[:n] = np.asarray(state["material"], np.int32)[slice(None) if ids is None else ids]
+            mat[:n] = np.asarray(state["material"], np.int32)
             s.material.from_numpy(mat)
         s.Jp.from_numpy(np.linalg.det(s.F.to_numpy()).astype(np.float32))
         sweeps = [KnifeSweep.fromdict(d) if isinstance(d, dict) else d for d in state.get("sweeps", [])]
@@ -217,9 +184,6 @@ class CuttingEnv:
             self.step_count += m
             if i // every > (i - m) // every:
                 self._check()
-            r = self.cfg.resort_every
-            if r and self.step_count // r > (self.step_count - m) // r:
-                self.resort()
         self._check()
 
     def _arm_knife(self, o, u, w, nrm, half, depth, speed, amp) -> None:

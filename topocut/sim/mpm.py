@@ -86,10 +86,9 @@ class MPMSolver:
         self.Jp, self.sigma_y = ti.field(f32), ti.field(f32)  # B,N
         self.damage = ti.field(ti.i32)  # B,N
         self.material = ti.field(ti.i32)  # N
-        self.ids = ti.field(ti.i32)  # N: the particle each slot holds (identity until CuttingEnv.resort() reorders)
         self.grid_v, self.grid_m = vec.field(), ti.field(f32)  # B,n,n,n
         fb.dense(ti.ij, (B, capacity)).place(self.x, self.v, self.C, self.F, self.Jp, self.sigma_y, self.damage)
-        fb.dense(ti.i, capacity).place(self.material, self.ids)
+        fb.dense(ti.i, capacity).place(self.material)
         fb.dense(ti.axes(0, 1, 2, 3), (B, n, n, n)).place(self.grid_v, self.grid_m)
         # knife per scene: start edge midpoint, frame (u, w, n), half extents, travel, oscillation amplitude
         self.k_o, self.k_u, self.k_w, self.k_n, self.k_half = (vec.field() for _ in range(5))
@@ -112,8 +111,6 @@ class MPMSolver:
                                 self.push_n, self.push_p, self.bad_step, self.frozen_at)
         fb.dense(ti.i, 6).place(self.box)
         self.tree = fb.finalize()
-        self._slots = None  # topocut.sim.slots.SlotPermutation, made by the first slots()
-        self.ids.from_numpy(np.arange(capacity, dtype=np.int32))
         self.bad_step.fill(2 ** 30)
         self.frozen_at.fill(2 ** 30)
         self.box.from_numpy(np.array([0, 0, 0, n, n, n], np.int32))  # a fresh grid: clear it all once
@@ -122,16 +119,6 @@ class MPMSolver:
 
     def destroy(self) -> None:
         self.tree.destroy()
-        if self._slots is not None:
-            self._slots.destroy()
-
-    def slots(self):
-        """The slot permutation helper (topocut.sim.slots; CuttingEnv.resort), made on first use."""
-        if self._slots is None:
-            from topocut.sim.slots import SlotPermutation
-
-            self._slots = SlotPermutation(self)
-        return self._slots
 
     # -- constitutive models (Kirchhoff stress tau = P F^T) ---------------------------
     @ti.func
