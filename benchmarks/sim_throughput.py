@@ -206,9 +206,10 @@ def main() -> None:
     init_taichi(args.device)
     grids = args.grids or ((24, 32) if args.quick else (64, 84, 128))
     batches = args.batches or ((1, 4) if args.quick else (1, 16))
+    box = {B: SimConfig(arch=args.device, batch_size=B, grid_box=args.grid_box).grid_box_enabled() for B in batches}
     print(f"device={args.device}  grids={grids}  batches={batches}  fuse={args.fuse or SimConfig().fuse_substeps}"
           f"  rotation={SimConfig(arch=args.device, core_rotation=args.rotation).core_rotation_method()}"
-          f"  grid_box={SimConfig(arch=args.device, grid_box=args.grid_box).grid_box_enabled()}"
+          f"  grid_box={args.grid_box} {box}"
           f"  warp_scatter={SimConfig(arch=args.device, warp_scatter=args.warp_scatter).warp_scatter_enabled()}")
     print(f"{'grid':>5} {'B':>3} {'N':>7} {'steps':>6} {'us/substep':>10} {'full p-st/s':>12} {'mpm3d p-st/s':>13} "
           f"{'ref3 p-st/s':>12} {'full/mpm3d':>10} {'full/ref3':>9} {'warm-up s':>9}")
