@@ -10,9 +10,9 @@ and as three kernels per substep ("ref3", the shape the full model's phases have
     python benchmarks/sim_throughput.py --device cpu --quick
     python benchmarks/sim_throughput.py --device cuda     # 64^3, 84^3 (~20k particles), 128^3; B = 1 and 16
 
-Prints per case the wall time per substep, particle-substeps/s, the ratios full/mpm3d
-and full/ref3, the first-run compile time (warm-up; the offline cache hides it on reruns)
-and per grid the batching gain B_max/B_1.  ``--fuse 1`` times the full model with one
+Prints per case the wall time per substep (the median of ``--repeats`` cuts, and their range),
+particle-substeps/s, the ratios full/mpm3d and full/ref3 (references timed as often), the first-run
+compile time (warm-up; the offline cache hides it on reruns) and per grid the batching gain B_max/B_1.  ``--fuse 1`` times the full model with one
 Python call per phase (the path before kernel graphs), ``--profile`` adds Taichi's
 kernel profiler (device time per offloaded task; it syncs after each launch, so the
 wall times of that run are not comparable).
@@ -147,9 +147,10 @@ class ReferenceMPM:
     def g2p(self):
         self.gather()
 
-    def run(self, steps: int, one_kernel: bool) -> float:
+    def run(self, steps: int, one_kernel: bool, repeats: int = 1) -> float:
+        """Particle-substeps/s, the median of ``repeats`` timed runs of ``steps`` substeps."""
         phases = (self.substep,) if one_kernel else (self.p2g, self.grid_op, self.g2p)
-        return self.B * self.N / self.time_phases(steps, phases)
+        return self.B * self.N / float(np.median([self.time_phases(steps, phases) for _ in range(repeats)]))
 
     @staticmethod
     def time_phases(steps: int, phases) -> float:
@@ -167,8 +168,9 @@ class ReferenceMPM:
 
 
 def full_model(n_grid: int, B: int, arch: str, fuse: int | None, rotation: str, profile: bool = False,
-               grid_box: str = "auto", warp_scatter: str = "auto") -> dict:
-    """Rate, wall time per substep, particles, substeps and warm-up time of one batched cut through a cube."""
+               grid_box: str = "auto", warp_scatter: str = "auto", repeats: int = 1) -> dict:
+    """Rate, wall time per substep (median over ``repeats`` cuts, and its range), particles, substeps and
+    warm-up time of a batched cut through a cube."""
     kw = {} if fuse is None else {"fuse_substeps": fuse}
     t = time.perf_counter()
     env = CuttingEnv(SimConfig(n_grid=n_grid, batch_size=B, arch=arch, dwell_substeps=0, core_rotation=rotation,
@@ -176,13 +178,17 @@ def full_model(n_grid: int, B: int, arch: str, fuse: int | None, rotation: str, 
     env.reset("cube")
     env.simulate(3)  # compile the phases
     env.cut(KnifeAction(0.5, 0.5, depth=0.002))  # knife path and the kernel graph
-    env.reset("cube")
     ti.sync()
     warmup = time.perf_counter() - t
     if profile:
         ti.profiler.clear_kernel_profiler_info()
-    info = env.cut([KnifeAction(0.5 + 0.02 * b / max(B - 1, 1), 0.5, yaw=0.1 * b) for b in range(B)])
-    out = dict(rate=B * env.n * info.substeps / info.wall_time, us=info.wall_time / info.substeps * 1e6, n=env.n,
+    us = []
+    for _ in range(repeats):  # a single GPU scene is launch-bound: its time moves by tens of percent per run
+        env.reset("cube")
+        info = env.cut([KnifeAction(0.5 + 0.02 * b / max(B - 1, 1), 0.5, yaw=0.1 * b) for b in range(B)])
+        us.append(info.wall_time / info.substeps * 1e6)
+    med = float(np.median(us))
+    out = dict(rate=B * env.n / (med * 1e-6), us=med, us_min=min(us), us_max=max(us), n=env.n,
                steps=info.substeps, warmup=warmup)
     env.solver.destroy()
     return out
@@ -199,6 +205,7 @@ def main() -> None:
     ap.add_argument("--grid-box", default="auto", help="sim.grid_box: auto | on | off")
     ap.add_argument("--warp-scatter", default="auto", help="sim.warp_scatter: auto | on | off")
     ap.add_argument("--profile", action="store_true", help="print Taichi's kernel profiler per case")
+    ap.add_argument("--repeats", type=int, default=3, help="timed runs per case; the median is reported")
     args = ap.parse_args()
     if args.profile:
         ti.init(arch=ti.cuda if args.device == "cuda" else ti.cpu, kernel_profiler=True, offline_cache=True,
@@ -212,11 +219,12 @@ def main() -> None:
           f"  grid_box={args.grid_box} {box}"
           f"  warp_scatter={SimConfig(arch=args.device, warp_scatter=args.warp_scatter).warp_scatter_enabled()}")
     print(f"{'grid':>5} {'B':>3} {'N':>7} {'steps':>6} {'us/substep':>10} {'full p-st/s':>12} {'mpm3d p-st/s':>13} "
-          f"{'ref3 p-st/s':>12} {'full/mpm3d':>10} {'full/ref3':>9} {'warm-up s':>9}")
+          f"{'ref3 p-st/s':>12} {'full/mpm3d':>10} {'full/ref3':>9} {'warm-up s':>9} {'us range':>13}")
     rates = {}
     for g in grids:
         for B in batches:
-            f = full_model(g, B, args.device, args.fuse, args.rotation, args.profile, args.grid_box, args.warp_scatter)
+            f = full_model(g, B, args.device, args.fuse, args.rotation, args.profile, args.grid_box, args.warp_scatter,
+                           args.repeats)
             if args.profile:
                 print(f"-- kernel profile of the timed cut, full model, grid {g}, B {B}")
                 ti.profiler.print_kernel_profiler_info()
@@ -224,12 +232,12 @@ def main() -> None:
             x, _ = sample_object("cube", spacing=cfg.spacing)
             x = x[cell_order(x, g)]  # the full model's particles, in its order (CuttingEnv.reset)
             ref_model = ReferenceMPM(x, B, g, cfg.effective_dt(), cfg.spacing)
-            mpm3d = ref_model.run(f["steps"], one_kernel=True)
-            ref3 = ref_model.run(f["steps"], one_kernel=False)
+            mpm3d = ref_model.run(f["steps"], one_kernel=True, repeats=args.repeats)
+            ref3 = ref_model.run(f["steps"], one_kernel=False, repeats=args.repeats)
             ref_model.tree.destroy()
             rates[g, B] = (f["rate"], mpm3d, ref3)
             print(f"{g:>5} {B:>3} {f['n']:>7} {f['steps']:>6} {f['us']:>10.1f} {f['rate']:>12.3e} {mpm3d:>13.3e} "
-                  f"{ref3:>12.3e} {f['rate'] / mpm3d:>10.3f} {f['rate'] / ref3:>9.3f} {f['warmup']:>9.1f}", flush=True)
+                  f"{ref3:>12.3e} {f['rate'] / mpm3d:>10.3f} {f['rate'] / ref3:>9.3f} {f['warmup']:>9.1f} {f['us_min']:>6.1f}-{f['us_max']:<6.1f}", flush=True)
     b0, b1 = batches[0], batches[-1]
     for g in grids:
         (f0, m0, r0), (f1, m1, r1) = rates[g, b0], rates[g, b1]
