@@ -12,10 +12,10 @@ and as three kernels per substep ("ref3", the shape the full model's phases have
 
 Prints per case the wall time per substep (the median of ``--repeats`` cuts, and their range),
 particle-substeps/s, the ratios full/mpm3d and full/ref3 (references timed as often), the first-run
-compile time (warm-up; the offline cache hides it on reruns) and per grid the batching gain B_max/B_1.  ``--fuse 1`` times the full model with one
-Python call per phase (the path before kernel graphs), ``--profile`` adds Taichi's
-kernel profiler (device time per offloaded task; it syncs after each launch, so the
-wall times of that run are not comparable).
+compile time (warm-up; the offline cache hides it on reruns) and per grid the batching gain B_max/B_1.
+``--fuse 1`` times the full model with one Python call per phase (the path before kernel graphs),
+``--profile`` adds Taichi's kernel profiler (device time per offloaded task; it syncs after each
+launch, so the wall times of that run are not comparable).
 """
 import argparse
 import time
@@ -237,7 +237,8 @@ def main() -> None:
             ref_model.tree.destroy()
             rates[g, B] = (f["rate"], mpm3d, ref3)
             print(f"{g:>5} {B:>3} {f['n']:>7} {f['steps']:>6} {f['us']:>10.1f} {f['rate']:>12.3e} {mpm3d:>13.3e} "
-                  f"{ref3:>12.3e} {f['rate'] / mpm3d:>10.3f} {f['rate'] / ref3:>9.3f} {f['warmup']:>9.1f} {f['us_min']:>6.1f}-{f['us_max']:<6.1f}", flush=True)
+                  f"{ref3:>12.3e} {f['rate'] / mpm3d:>10.3f} {f['rate'] / ref3:>9.3f} {f['warmup']:>9.1f} "
+                  f"{f['us_min']:>6.1f}-{f['us_max']:<6.1f}", flush=True)
     b0, b1 = batches[0], batches[-1]
     for g in grids:
         (f0, m0, r0), (f1, m1, r1) = rates[g, b0], rates[g, b1]
