@@ -19,14 +19,36 @@ def _compose(overrides: list[str]):
         return compose(config_name="config", overrides=overrides)
 
 
-def run(ctx: RunContext, sequence: list[str]) -> dict:
+def produced_versions(stage: str, summary: dict, cfg) -> dict[str, str]:
+    """Overrides that make the next stages read exactly what ``stage`` wrote or reused, not whatever is
+    ``latest`` under that name (another run may commit a newer version meanwhile)."""
+    for key, produced_by, name_key, version_key in (("dataset", "mppi", "dataset", "version"),
+                                                    ("checkpoint", "pretrain", "encoder", "encoder_version")):
+        if stage == produced_by and summary.get(key):
+            path = Path(summary[key])
+            if path.parent.name == cfg.data[name_key]:
+                return {f"data.{version_key}": path.name}
+    return {}
+
+
+def run(ctx: RunContext, sequence: list[str], trainer=None) -> dict:
     from topocut.run import run_stage
 
+    if trainer is not None and str(trainer.strategy).startswith("ddp") and trainer.devices != 1:
+        # Lightning's DDP launcher starts every further rank by re-running this command: those ranks would run
+        # the data and eval stages again beside rank 0.  Training stages on their own handle ranks (rank 0 commits).
+        raise ValueError(f"stage=all runs in one process; trainer.strategy={trainer.strategy} with "
+                         f"trainer.devices={trainer.devices} starts several. Run the stages one by one, e.g. "
+                         "`python -m topocut.run stage=pretrain trainer=ddp` and then `stage=bc trainer=ddp`")
+
     base = [o for o in ctx.overrides if not o.split("=")[0].lstrip("+~") == "stage"]
-    summaries = {}
+    summaries, pins = {}, {}
     for name in sequence:
-        cfg = _compose(base + [f"stage={name}"])
-        summaries[name] = run_stage(cfg, ctx.run_dir / name, base + [f"stage={name}"])
+        overrides = [o for o in base if o.split("=")[0].lstrip("+~") not in pins]
+        overrides += [f"{k}={v}" for k, v in pins.items()] + [f"stage={name}"]
+        cfg = _compose(overrides)
+        summaries[name] = run_stage(cfg, ctx.run_dir / name, overrides)
+        pins.update(produced_versions(name, summaries[name], cfg))
     print_summary("pipeline: " + " -> ".join(sequence), summaries)
     table = summaries.get("eval", {}).get("table")
     if table:  # the run ends on the results table

@@ -15,7 +15,7 @@ import torch
 
 from pipelines._common import as_dict
 from topocut.utils.context import RunContext
-from topocut.utils.training import MetricHistory, build_trainer, resume_path, split_episodes
+from topocut.utils.training import MetricHistory, build_trainer, finish_fit, resume_path, split_episodes, work_dir
 
 PDDP_ENCODERS = {"pddp": "pretrained", "pddp_noperc": "none", "pddp_graphconv": "graphconv"}
 BASELINES = {"dp3": "dp3", "3dda": "3dda"}
@@ -46,11 +46,11 @@ def run(ctx: RunContext, policy, trainer, data, policies: list[str]) -> dict:
     split = {k: [i for e in v for i in range(*ds.episode_range(e))] for k, v in ep_split.items()}
     results = {}
     for name in policies:
-        inputs = {"dataset": f"dataset/{data.dataset}:{ds_path.name}"}
+        inputs = {"dataset": ctx.store.ref(ds_path)}
         encoder_ckpt = None
         if PDDP_ENCODERS.get(name) == "pretrained":
             enc_path = ctx.store.resolve("checkpoint", data.encoder, data.encoder_version)
-            inputs["encoder"] = f"checkpoint/{data.encoder}:{enc_path.name}"
+            inputs["encoder"] = ctx.store.ref(enc_path)
             encoder_ckpt = str(enc_path / "model.ckpt")
         config = as_dict(("policy", policy), ("trainer", trainer), ("kind", name), ("seed", ctx.seed))
         writer, existing = ctx.store.begin("checkpoint", name, config, inputs, extra={"seed": ctx.seed})
@@ -64,18 +64,20 @@ def run(ctx: RunContext, policy, trainer, data, policies: list[str]) -> dict:
             module, dataset = _baseline(BASELINES[name], policy, steps, split["train"], ctx.seed)
             max_epochs, clip = policy.train.max_epochs, 1.0
         train_dl, val_dl = _loaders(dataset, split, policy.train.batch_size, policy.train.num_workers)
-        history = MetricHistory()
-        work = writer.path / "work"
+        work = work_dir(writer)
+        history = MetricHistory(work / "history.json")
         fit = build_trainer(trainer, max_epochs, work, logger=ctx.logger.lightning(ctx.run_dir),
                             progress=ctx.progress, callbacks=[history],
                             gradient_clip_val=clip if name not in PDDP_ENCODERS else None)
         fit.fit(module, train_dl, val_dl, ckpt_path=resume_path(work))
-        metrics = {k: round(float(v), 5) for k, v in fit.callback_metrics.items()}
-        shutil.copyfile(work / "last.ckpt", writer.path / "model.ckpt")
-        shutil.rmtree(work)
-        history.plot(writer.path / "loss.png")
+        metrics = finish_fit(fit, writer, work, history)
+        if metrics is None:  # a DDP rank other than 0: rank 0 commits
+            results[name] = {"rank": fit.global_rank}
+            continue
+        metrics = {k: round(v, 5) for k, v in metrics.items()}
         (writer.path / "metrics.json").write_text(json.dumps({"metrics": metrics, "split": ep_split}, indent=2))
         path = writer.commit({"policy": name, **metrics})
+        shutil.rmtree(work, ignore_errors=True)
         ctx.logger.log({f"bc/{name}/{k}": v for k, v in metrics.items()})
         results[name] = {"checkpoint": str(path), **metrics}
     return results

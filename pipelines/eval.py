@@ -35,6 +35,14 @@ def task_configs(names, max_cuts: int) -> dict:
     return out
 
 
+def artifact_config(eval, sim, topology, reward, planner, observation, sampler, task_cfgs, seed: int) -> dict:
+    """What keys the eval artifact: everything an episode's numbers depend on (a changed sampler or task yaml
+    is a new evaluation, not a reused one)."""
+    return as_dict(("eval", eval), ("sim", sim), ("topology", topology), ("reward", reward), ("planner", planner),
+                   ("observation", observation), ("sampler", sampler),
+                   ("tasks", {n: dataclasses.asdict(t) for n, t in task_cfgs.items()}), ("seed", seed))
+
+
 def build_policies(ctx: RunContext, names, env, sim, planner, reward, topology, task_cfgs, sampler=None):
     from topocut.planning import HeuristicPolicy, MPPIPolicy, sim_rollout_factory
     from topocut.planning.heuristic import FixedTrajectoryPolicy
@@ -49,19 +57,18 @@ def build_policies(ctx: RunContext, names, env, sim, planner, reward, topology, 
         elif name == "heuristic":
             policies[name] = FixedTrajectoryPolicy(task_cfgs, spacing=sim.spacing, board_z=sim.board_z)
         elif name == "mppi":
-            push = any(t.push for t in task_cfgs.values())
+            push = {task: bool(t.push) for task, t in task_cfgs.items()}  # rollouts do what the episode does
             factory = sim_rollout_factory(env, reward, topology, board_z=sim.board_z, push=push)
             policies[name] = MPPIPolicy(planner, factory, seed=ctx.seed)
         else:
             path = ctx.store.resolve("checkpoint", name)
-            inputs[name] = f"checkpoint/{name}:{path.name}"
+            inputs[name] = ctx.store.ref(path)
             if name.startswith("pddp"):
+                from topocut.policies.config import SamplerConfig
                 from topocut.policies.module import PDDPPolicy
 
-                steps = sampler.steps if sampler is not None else 32
-                predictor = sampler.predictor if sampler is not None else "analytic"
-                policies[name] = PDDPPolicy(str(path / "model.ckpt"), sampler=predictor, steps=steps,
-                                            device=ctx.device)
+                policies[name] = PDDPPolicy(str(path / "model.ckpt"), sampler=sampler or SamplerConfig(),
+                                            device=ctx.device, seed=ctx.seed, board_z=sim.board_z)
             else:
                 from topocut.policies.baselines.module import load_pose_policy
 
@@ -80,8 +87,7 @@ def run(ctx: RunContext, eval, sim, topology, reward, planner, observation, data
     init_taichi(arch=ctx.device, seed=ctx.seed)
     env = CuttingEnv(sim, batch_size=max(1, sim.batch_size) if "mppi" in eval.policies else 1)
     policies, inputs = build_policies(ctx, eval.policies, env, sim, planner, reward, topology, task_cfgs, sampler)
-    config = as_dict(("eval", eval), ("sim", sim), ("topology", topology), ("reward", reward),
-                     ("planner", planner), ("observation", observation), ("seed", ctx.seed))
+    config = artifact_config(eval, sim, topology, reward, planner, observation, sampler, task_cfgs, ctx.seed)
     writer, existing = ctx.store.begin("eval", eval.name, config, inputs, extra={"seed": ctx.seed,
                                                                                 "device": ctx.device})
     if existing is not None:
@@ -144,7 +150,9 @@ def render_episodes(specs, policies, env, task_cfgs, out_dir, eval, reward, topo
     for task in eval.tasks:
         for spec in [s for s in specs if s.task == task][: eval.gifs]:
             res = evaluate_episode(spec, policies[name], rec, task_cfgs[task], reward, topology, observe_fn,
-                                   policy_name=name, max_cuts=eval.max_cuts, spacing=spacing)
+                                   policy_name=name, max_cuts=eval.max_cuts, spacing=spacing,
+                                   min_fragment_points=eval.min_fragment_points,
+                                   stop_on_success=eval.stop_on_success)
             frames, labels = [], None
             x0 = rec.frames[0][0]
             limits = (x0.min(0) - 0.03, x0.max(0) + 0.03)

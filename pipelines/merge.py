@@ -1,21 +1,38 @@
-"""stage=merge: merge the dataset shards of a multirun into one dataset version."""
+"""stage=merge: merge the dataset shards of ``data.dataset`` (written by stage=mppi multiruns) into one version.
+
+A shard is any committed dataset whose manifest says ``shard_of: <data.dataset>``; the latest version of
+each shard is merged.  Shards of every sweep that wrote to this name are included (a sweep that repeats a job's
+config reuses its shard): start a new collection under another ``data.dataset``.
+"""
 from __future__ import annotations
 
 from topocut.data.store import MissingArtifact
 from topocut.utils.context import RunContext
 
 
+def shards_of(store, dataset: str) -> dict:
+    """{shard name: path of its latest version} for the shards of ``dataset``."""
+    out = {}
+    for name in store.names("dataset"):
+        if name == dataset:
+            continue
+        path = store.resolve("dataset", name, verify=False)
+        if store.manifest(path).get("shard_of") == dataset:
+            out[name] = path
+    return out
+
+
 def run(ctx: RunContext, data) -> dict:
     from topocut.data.episodes import EpisodeDataset, merge
 
-    prefix = f"{data.dataset}-"
-    shard_names = [n for n in ctx.store.names("dataset")  # shards with a committed version (not partial ones)
-                   if n.startswith(prefix) and ctx.store.versions("dataset", n)]
-    if not shard_names:
-        raise MissingArtifact(f"no dataset shards named '{prefix}*' under {ctx.store.root / 'dataset'}; "
-                              f"run a multirun first, e.g. `python -m topocut.run -m stage=mppi task=slice,stick`")
-    shards = {name: ctx.store.resolve("dataset", name) for name in shard_names}
-    inputs = {name: f"dataset/{name}:{path.name}" for name, path in shards.items()}
+    shards = shards_of(ctx.store, data.dataset)
+    if not shards:
+        raise MissingArtifact(f"no dataset shards of {data.dataset!r} (manifest shard_of: {data.dataset}) under "
+                              f"{ctx.store.root / 'dataset'}; run a multirun first, e.g. "
+                              f"`python -m topocut.run -m stage=mppi task=slice,stick data.dataset={data.dataset}`")
+    for path in shards.values():
+        ctx.store.verify(path)
+    inputs = {name: ctx.store.ref(path) for name, path in shards.items()}
     writer, existing = ctx.store.begin("dataset", data.dataset, {"merge_of": sorted(inputs.values())}, inputs)
     if existing is not None:
         return {"dataset": str(existing), "reused": True}

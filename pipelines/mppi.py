@@ -2,8 +2,10 @@
 
 One run writes ``data.episodes`` episodes of one task and object (seeds derived from
 ``seed``).  In a Hydra multirun each job writes its own shard
-``dataset/<data.dataset>-<task>-<object>-s<seed>``; ``stage=merge`` joins them.
-Episodes are committed one by one: a killed run resumes where it stopped.
+``dataset/<data.dataset>-<task>-<object>-s<seed>-<config key>`` marked ``shard_of: <data.dataset>`` in its
+manifest (the key keeps jobs of a sweep over any other setting apart); ``stage=merge`` joins them.
+Episodes are committed one by one: a killed run resumes where it stopped, and each episode draws its MPPI
+samples from its own seed, so a resumed run writes what an uninterrupted one would.
 """
 from __future__ import annotations
 
@@ -13,6 +15,7 @@ import json
 import numpy as np
 
 from pipelines._common import as_dict, begin_sim, object_pose
+from topocut.data.store import config_key
 from topocut.utils.context import RunContext
 from topocut.utils.progress import progress_bar
 
@@ -44,11 +47,14 @@ def run(ctx: RunContext, sim, object, task, topology, reward, planner, data, com
     from topocut.planning import HeuristicPolicy, MPPIPolicy, run_episode, sim_rollout_factory
     from topocut.sim import CuttingEnv, init_taichi
 
-    name = f"{data.dataset}-{task.name}-{object.name}-s{ctx.seed}" if _is_multirun() else data.dataset
     config = as_dict(("sim", sim), ("object", object), ("task", task), ("topology", topology),
                      ("reward", reward), ("planner", planner), ("episodes", data.episodes),
                      ("points_per_step", data.points_per_step), ("seed", ctx.seed))
-    writer, existing = ctx.store.begin("dataset", name, config, extra={"seed": ctx.seed, "device": ctx.device})
+    name, extra = data.dataset, {"seed": ctx.seed, "device": ctx.device}
+    if _is_multirun():
+        name = f"{data.dataset}-{task.name}-{object.name}-s{ctx.seed}-{config_key(config)[:8]}"
+        extra["shard_of"] = data.dataset
+    writer, existing = ctx.store.begin("dataset", name, config, extra=extra)
     if existing is not None:
         return {"dataset": str(existing), "reused": True}
     sim = dataclasses.replace(sim, arch=ctx.device)  # one backend for Taichi, Warp and torch
@@ -76,21 +82,21 @@ def run(ctx: RunContext, sim, object, task, topology, reward, planner, data, com
                 record["heuristic_final_reward"] = hs["final_reward"]
             env.reset(object.name, pose, seed=seed)
             steps, summary = run_episode(env, goal, expert, reward, topology, task.max_cuts, task.push,
-                                         progress=advance, success_threshold=task.success_threshold)
+                                         progress=advance, success_threshold=task.success_threshold, seed=seed)
             meta = {"task": task.name, "object": object.name, "seed": seed, "pose": pose,
                     "task_params": task, "material": {k: getattr(sim, k) for k in ("mu", "lam", "rho_core", "rho_skin",
                                                                                     "eps_c", "eps_s", "m") if hasattr(sim, k)},
                     "goal": goal.points, "goal_labels": goal.labels, "status": summary["status"],
                     "final_reward": summary["final_reward"], "success": summary["success"]}
-            ew.add_episode(steps, meta)
             record.update({k: summary[k] for k in ("status", "num_cuts", "final_reward", "success", "rewards")})
-            with open(log_path, "a") as f:
-                f.write(json.dumps(record, default=float) + "\n")
+            with open(log_path, "a") as f:  # before the episode's commit: a crash between the two re-runs it,
+                f.write(json.dumps(record, default=float) + "\n")  # and its second record replaces the first
+            ew.add_episode(steps, meta)
             advance(task.max_cuts - summary["num_cuts"], info=f"episode {e}: reward {summary['final_reward']:.3f}")
     ds = EpisodeDataset(zpath)
     if ds.num_episodes != data.episodes:
         raise RuntimeError(f"{zpath} holds {ds.num_episodes} episodes, expected data.episodes={data.episodes}")
-    records = [json.loads(line) for line in open(log_path)] if log_path.exists() else []
+    records = read_records(log_path)
     finals = [r["final_reward"] for r in records if r.get("status") == "ok"]
     heur = [r["heuristic_final_reward"] for r in records if "heuristic_final_reward" in r]
     summary = {"episodes": ds.num_episodes, "cuts": len(ds),
@@ -153,6 +159,17 @@ def run_writing(ctx: RunContext, sim, task, topology, reward, planner, compare_s
     ctx.logger.log({f"mppi/{k}": v for k, v in summary.items() if isinstance(v, (int, float))})
     ctx.logger.log_image("mppi/writing", path / "frames" / "final.png")
     return {"artifact": str(path), **summary}
+
+
+def read_records(path) -> list[dict]:
+    """The episode log's records, one per episode (the last one written: a re-run episode logs twice)."""
+    latest = {}
+    if path.exists():
+        for line in path.read_text().splitlines():
+            if line.strip():
+                r = json.loads(line)
+                latest[r["episode"]] = r
+    return [latest[e] for e in sorted(latest)]
 
 
 def _plot_rewards(records: list[dict], path) -> None:

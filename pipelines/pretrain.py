@@ -6,7 +6,7 @@ import shutil
 
 from pipelines._common import as_dict
 from topocut.utils.context import RunContext
-from topocut.utils.training import MetricHistory, build_trainer, resume_path
+from topocut.utils.training import MetricHistory, build_trainer, finish_fit, resume_path, work_dir
 
 
 def checkpoint_name(model) -> str:
@@ -17,7 +17,7 @@ def run(ctx: RunContext, model, trainer, data) -> dict:
     from topocut.models import DynamicsModule, EpisodeDataModule
 
     ds_path = ctx.store.resolve("dataset", data.dataset, data.version)
-    inputs = {"dataset": f"dataset/{data.dataset}:{ds_path.name}"}
+    inputs = {"dataset": ctx.store.ref(ds_path)}
     config = as_dict(("model", model), ("trainer", trainer), ("seed", ctx.seed))
     name = checkpoint_name(model)
     writer, existing = ctx.store.begin("checkpoint", name, config, inputs, extra={"seed": ctx.seed,
@@ -30,19 +30,18 @@ def run(ctx: RunContext, model, trainer, data) -> dict:
                            val_fraction=trainer.val_fraction, held_out_objects=trainer.held_out_objects,
                            seed=ctx.seed)
     module = DynamicsModule(model)
-    history = MetricHistory()
-    work = writer.path / "work"  # Lightning's own checkpoints while training (resume point)
+    work = work_dir(writer)  # Lightning's own checkpoints while training (resume point)
+    history = MetricHistory(work / "history.json")
     fit = build_trainer(trainer, trainer.max_epochs, work, logger=ctx.logger.lightning(ctx.run_dir),
                         progress=ctx.progress, callbacks=[history])
     fit.fit(module, datamodule=dm, ckpt_path=resume_path(work))
-    metrics = {k: float(v) for k, v in fit.callback_metrics.items()}
-    shutil.copyfile(work / "last.ckpt", writer.path / "model.ckpt")
-    shutil.rmtree(work)
-    history.plot(writer.path / "loss.png")
-    history.dump(writer.path / "history.json")
+    metrics = finish_fit(fit, writer, work, history)
+    if metrics is None:  # a DDP rank other than 0: rank 0 commits
+        return {"rank": fit.global_rank}
     (writer.path / "metrics.json").write_text(json.dumps({"metrics": metrics, "split": dm.split}, indent=2))
     summary = {"model": model.model, "parameters": sum(p.numel() for p in module.parameters()),
                "train_episodes": len(dm.split["train"]), **{k: round(v, 5) for k, v in metrics.items()}}
     path = writer.commit(summary)
+    shutil.rmtree(work, ignore_errors=True)
     ctx.logger.log_image("pretrain/loss", path / "loss.png")
     return {"checkpoint": str(path), **summary}

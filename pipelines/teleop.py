@@ -15,6 +15,13 @@ from pipelines._common import as_dict, object_pose
 from topocut.utils.context import RunContext
 
 
+def check_task(log: dict, task: str, log_path) -> None:
+    """A log replays only under the task it was recorded for (its goal and push settings come from it)."""
+    if log.get("task", task) != task:
+        raise ValueError(f"{log_path}: the log was recorded for task {log['task']!r}, this run has task={task!r}; "
+                         f"replay it with task={log['task']}")
+
+
 def run(ctx: RunContext, sim, object, task, topology, reward, data, replay: str | None = None,
         backend: str = "auto") -> dict:
     from topocut.data.episodes import EpisodeDataset, EpisodeWriter
@@ -24,6 +31,12 @@ def run(ctx: RunContext, sim, object, task, topology, reward, data, replay: str 
     from topocut.sim import CuttingEnv, init_taichi
     from topocut.sim.objects import ObjectPose
 
+    log_path = None
+    if replay is not None:  # checked before the simulator starts
+        log_path = Path(replay)
+        if not log_path.exists():
+            raise FileNotFoundError(f"stage.run.replay: teleop log {log_path} does not exist")
+        check_task(load_log(log_path), task.name, log_path)
     sim = dataclasses.replace(sim, arch=ctx.device)  # one backend for Taichi, Warp and torch
     init_taichi(arch=ctx.device, seed=ctx.seed)
     env = CuttingEnv(sim, batch_size=1)
@@ -34,14 +47,11 @@ def run(ctx: RunContext, sim, object, task, topology, reward, data, replay: str 
                                 task.success_threshold)
         run_window(session, backend=backend)
         log_path = session.save(ctx.run_dir / "teleop_log.json")
-    else:
-        log_path = Path(replay)
-        if not log_path.exists():
-            raise FileNotFoundError(f"stage.run.replay: teleop log {log_path} does not exist")
     log = load_log(log_path)
     pose = ObjectPose(**log["pose"]) if isinstance(log.get("pose"), dict) else ObjectPose()
     goal = make_goal(task, log["object"], pose, spacing=sim.spacing, board_z=sim.board_z)
-    config = as_dict(("sim", sim), ("task", task), ("topology", topology), ("reward", reward), ("log", log))
+    config = as_dict(("sim", sim), ("task", task), ("topology", topology), ("reward", reward), ("log", log),
+                     ("points_per_step", data.points_per_step))
     writer, existing = ctx.store.begin("dataset", f"teleop-{task.name}-{log['object']}", config)
     if existing is not None:
         return {"dataset": str(existing), "reused": True}

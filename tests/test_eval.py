@@ -144,7 +144,7 @@ def test_bad_eval_config_names_key():
 def test_episode_rewards_cut_counts_and_history_hand_computed():
     spec = smoke().validate() and episode_specs(smoke())[0]
     env, pol = BoxEnv(), PlanePolicy()
-    res = evaluate_episode(spec, pol, env, slice_task(push=True), observe_fn=lambda x, l: (x[::2], l[::2]),
+    res = evaluate_episode(spec, pol, env, slice_task(push=True), observe_fn=lambda x, l, seed: (x[::2], l[::2]),
                            policy_name="oracle", **FAKES)
     # box x-extent 0.19 matches no slab: initial 0; cuts at +0.05, 0.0, -0.05 from the centre leave
     # 1, 2, then 4 slabs of extent 0.04 (the last cut makes two at once)
@@ -286,3 +286,85 @@ def test_particle_observation_fps_keeps_labels_aligned():
     assert d(pts) > d(x[:40])
     with pytest.raises(ValueError, match="particles, depth"):
         make_observe_fn("rgb")
+
+
+def _lattice_box():
+    """Particles on a 5 mm lattice filling [0.45,0.55]^2 x [0.05,0.10]; label = (x > 0.5)."""
+    g = np.arange(21) * 0.005
+    X, Y, Z = np.meshgrid(0.45 + g, 0.45 + g, 0.05 + g[:11], indexing="ij")
+    x = np.stack([X.ravel(), Y.ravel(), Z.ravel()], 1)
+    return x, (x[:, 0] > 0.5).astype(np.int32)
+
+
+def test_depth_observation_is_the_camera_pipeline_whatever_the_observation_group_says():
+    from topocut.eval import make_observe_fn
+    from topocut.topology.observation import ObservationConfig
+
+    x, labels = _lattice_box()
+    tree = cKDTree(x)
+    particles = make_observe_fn("particles", 256, ObservationConfig(mode="depth"))(x, labels, 0)
+    assert tree.query(particles[0])[0].max() < 1e-6  # FPS picks particles themselves (float32)
+    # the observation group defaults to mode=particles; eval.observation=depth must still see through cameras
+    depth = make_observe_fn("depth", 256, ObservationConfig())
+    pts, lab = depth(x, labels, 7)
+    assert pts.shape == (256, 3) and lab.shape == (256,)
+    assert np.median(tree.query(pts)[0]) > 1e-3  # jittered carved voxels, not particle positions
+    margin = 0.004 + 0.0075  # one voxel of carving slack + the splat disc (0.75 spacing) + noise
+    assert np.all(pts >= [0.45 - margin, 0.45 - margin, 0.05 - margin])
+    assert np.all(pts <= [0.55 + margin, 0.55 + margin, 0.10 + margin])
+    away = np.abs(pts[:, 0] - 0.5) > 0.006  # off the label boundary the nearest particle's label is x > 0.5
+    np.testing.assert_array_equal(lab[away], (pts[away, 0] > 0.5).astype(np.int32))
+    # the seed drives the sensor noise: same seed, same points; another seed, other points
+    np.testing.assert_array_equal(depth(x, labels, 7)[0], pts)
+    assert not np.array_equal(depth(x, labels, 8)[0], pts)
+
+
+class SeedRecorder(PlanePolicy):
+    def reset(self, goal, seed=None):
+        super().reset(goal)
+        self.seeds = getattr(self, "seeds", []) + [seed]
+
+
+def test_observation_and_policy_seeds_depend_on_the_episode_only():
+    from topocut.eval.protocol import step_seed
+
+    specs = episode_specs(smoke())
+    seen = []
+
+    def observe(x, labels, seed):
+        seen.append(seed)
+        return x, labels
+
+    pol = SeedRecorder()
+    evaluate_episode(specs[0], pol, BoxEnv(), slice_task(), observe_fn=observe, **FAKES)
+    evaluate_episode(specs[1], pol, BoxEnv(), slice_task(), observe_fn=observe, **FAKES)
+    after_other = seen[4:]  # specs[0] observed 4 times (3 planes, then the None)
+    seen.clear()
+    evaluate_episode(specs[1], SeedRecorder(), BoxEnv(), slice_task(), observe_fn=observe, **FAKES)
+    assert seen == after_other and len(set(seen)) == 4  # one seed per cut, whatever ran before
+    assert seen == [(specs[1].seed * 7919 + k + 1) % (2**31 - 1) for k in range(4)] == \
+        [step_seed(specs[1].seed, k) for k in range(4)]
+    assert pol.seeds == [specs[0].seed, specs[1].seed]  # the policy is re-seeded from each episode
+
+
+def test_teleop_is_not_a_policy_eval_runs():
+    with pytest.raises(ValueError, match="'teleop' is not a policy.*eval.reference=teleop"):
+        EvalConfig(policies=["oracle", "teleop"]).validate()
+    EvalConfig(reference="teleop").validate()  # as the reference it is fine (replayed logs)
+
+
+def test_eval_artifact_key_covers_sampler_and_task_parameters():
+    import dataclasses
+
+    from pipelines.eval import artifact_config, task_configs
+    from topocut.data.store import config_key
+    from topocut.policies.config import SamplerConfig
+
+    tasks = task_configs(["slice"], 5)
+    args = (smoke(), None, None, None, None, None)
+    key = config_key(artifact_config(*args, SamplerConfig(), tasks, 0))
+    assert key == config_key(artifact_config(*args, SamplerConfig(), task_configs(["slice"], 5), 0))
+    assert key != config_key(artifact_config(*args, SamplerConfig(steps=8), tasks, 0))
+    assert key != config_key(artifact_config(*args, SamplerConfig(plane="lsq"), tasks, 0))
+    other = {"slice": dataclasses.replace(tasks["slice"], push=not tasks["slice"].push)}
+    assert key != config_key(artifact_config(*args, SamplerConfig(), other, 0))

@@ -137,6 +137,44 @@ def test_mppi_policy_improves_on_heuristic_and_shifts():
     assert calls == [0]
 
 
+def test_mppi_policy_reset_seed_makes_an_episode_independent_of_earlier_ones():
+    planes = [KnifeAction(0.40, 0.5), KnifeAction(0.50, 0.5)]
+    cfg = MPPIConfig(num_samples=8, horizon=2, iterations=2, noise_sigma=[0.02, 0.02, 0.1, 0.1],
+                     control_penalty=0.0, temperature=0.05, execute="best")
+    factory = lambda obs, goal: quadratic(np.array([0.43, 0.52, 1.0, 0.0]), 0.01)  # noqa: E731
+    warm = MPPIPolicy(cfg, factory, seed=3)
+    warm.reset(Goal(planes), seed=11)
+    first = warm.act({}).to_vector()  # episode 11 consumes random numbers ...
+    warm.reset(Goal(planes), seed=12)
+    after = warm.act({}).to_vector()  # ... episode 12 must not see that
+    fresh = MPPIPolicy(cfg, factory, seed=3)
+    fresh.reset(Goal(planes), seed=12)
+    np.testing.assert_array_equal(after, fresh.act({}).to_vector())
+    assert not np.array_equal(first, after)  # other episode seed, other samples
+    # without an episode seed the policy keeps one stream across episodes (the planner's own seed)
+    cont = MPPIPolicy(cfg, factory, seed=3)
+    cont.reset(Goal(planes))
+    cont.act({})
+    cont.reset(Goal(planes))
+    assert not np.array_equal(cont.act({}).to_vector(), after)
+
+
+def test_sim_rollout_factory_pushes_per_goal_task(monkeypatch):
+    import topocut.planning.rollout as rollout
+
+    seen = []
+    monkeypatch.setattr(rollout, "make_sim_rollout", lambda *a, push, **k: seen.append(push) or push)
+    obs = {"sim_state": None, "particle_labels": None}
+    factory = rollout.sim_rollout_factory(None, push={"slice": False, "dice": True})
+    for task in ("slice", "dice", "slice"):
+        factory(obs, type("G", (), {"task": task})())
+    assert seen == [False, True, False]
+    with pytest.raises(KeyError, match="no push setting for task 'stick'; known: slice, dice"):
+        factory(obs, type("G", (), {"task": "stick"})())
+    rollout.sim_rollout_factory(None, push=True)(obs, type("G", (), {"task": "slice"})())
+    assert seen[-1] is True
+
+
 # ---- the simulator rollout: needs topocut.sim, topocut.topology, topocut.reward, topocut.goals ----------
 
 def _sim_modules():

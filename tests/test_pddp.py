@@ -203,3 +203,36 @@ def test_ema_warms_up_then_reaches_its_decay():
     ema, cur = [torch.zeros(3)], [torch.ones(3)]
     ema_with_warmup(0.999)(ema, cur, torch.tensor(0))  # first update: 0.1 * 0 + 0.9 * 1
     assert torch.allclose(ema[0], torch.full((3,), 0.9))
+
+
+def test_policy_reseeds_per_episode_and_forwards_the_whole_sampler_config(one_thread):
+    from topocut.policies.config import SamplerConfig
+
+    torch.manual_seed(0)
+    tr = PolicyTrainConfig(num_points=64, num_goal_points=16)
+    module = PDDPModule(PDDPConfig(**TINY), "none", train=tr)  # untrained: masks are noise, which is the point
+    rng = np.random.default_rng(3)
+    pts, goal = box_points(rng, 64), type("Goal", (), {"points": box_points(rng, 16)})()
+    labels = np.zeros(64, np.int32)
+
+    warm = PDDPPolicy(module, steps=4, seed=1)
+    warm.reset(goal, seed=10)
+    first = warm.sample((pts, labels))[0]  # episode 10 draws from the generator ...
+    warm.reset(goal, seed=11)
+    after = warm.sample((pts, labels))[0]
+    fresh = PDDPPolicy(module, steps=4, seed=1)
+    fresh.reset(goal, seed=11)
+    np.testing.assert_array_equal(after, fresh.sample((pts, labels))[0])  # ... episode 11 does not see it
+    assert not np.array_equal(first, after)
+
+    calls = []
+    real = module.sample_masks
+    module.sample_masks = lambda batch, **kw: calls.append(kw) or real(batch, **kw)
+    cfg = SamplerConfig(predictor="euler", steps=3, denoise=False, eps=1e-3, plane="lsq", retries=0)
+    policy = PDDPPolicy(module, sampler=cfg, steps=99, plane="svm", retries=7)  # the config wins
+    policy.reset(goal, seed=0)
+    policy.sample((pts, labels))
+    assert len(calls) == 1  # retries=0: one draw
+    assert {k: calls[0][k] for k in ("steps", "predictor", "denoise", "eps")} == \
+        {"steps": 3, "predictor": "euler", "denoise": False, "eps": 1e-3}
+    assert policy.scfg.plane == "lsq"

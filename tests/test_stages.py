@@ -106,16 +106,24 @@ def test_multirun_shards_merge_into_one_dataset(tmp_path):
     sweep = _ok(topocut(tmp_path, "-m", "stage=mppi", "task=slice,stick", "object=cube,cake",
                         "hydra/launcher=basic", "data.episodes=2", *FAST, timeout=240))
     store = ArtifactStore(tmp_path)
-    expected = {f"demos-{t}-{o}-s0" for t in ("slice", "stick") for o in ("cube", "cake")}
-    assert {n for n in store.names("dataset") if n.startswith("demos-")} == expected, _output(sweep)[-2000:]
+    names = [n for n in store.names("dataset") if n.startswith("demos-")]
+    # one shard per job: <dataset>-<task>-<object>-s<seed>-<8 hex of the job's config key>
+    assert sorted(n.rsplit("-", 1)[0] for n in names) == sorted(
+        f"demos-{t}-{o}-s0" for t in ("slice", "stick") for o in ("cube", "cake")), _output(sweep)[-2000:]
+    assert all(len(n.rsplit("-", 1)[1]) == 8 for n in names)
     shard_eps, shard_steps, shard_latest = 0, 0, {}
-    for name in expected:
+    for name in names:
         path = store.resolve("dataset", name)
-        shard_latest[name] = f"dataset/{name}:{path.name}"
+        assert store.manifest(path)["shard_of"] == "demos"
+        shard_latest[name] = store.ref(path)
         ds = EpisodeDataset(path / "data.zarr")
         shard_eps += ds.num_episodes
         shard_steps += len(ds)
     assert shard_eps == 2 * 4
+    # a dataset whose name merely starts with "demos-" is not a shard of demos
+    writer, _ = store.begin("dataset", "demos-paper", {"other": 1})
+    (writer.path / "x.txt").write_text("not a shard")
+    writer.commit()
 
     _ok(topocut(tmp_path, "stage=merge", "logger=none", "progress=false"))
     merged = tmp_path / "dataset" / "demos" / "v001"
@@ -193,6 +201,22 @@ def test_tampered_dataset_is_refused_downstream(resumed, tmp_path):
     assert proc.returncode != 0, out[-3000:]
     assert str(target) in out and "sha256" in out, out[-3000:]
     assert not (root / "checkpoint").exists() or not ArtifactStore(root).versions("checkpoint", "perception")
+
+
+def test_ddp_pretrain_commits_one_version_from_rank_zero(resumed, tmp_path):
+    """trainer.strategy=ddp on 2 CPU processes (gloo): Lightning re-runs the command for rank 1; only rank 0
+    may write the version (before: both ranks copied and deleted the work area, and one crashed)."""
+    root = tmp_path / "outputs"
+    shutil.copytree(resumed["root"] / "dataset", root / "dataset")
+    proc = _ok(topocut(root, "stage=pretrain", "logger=none", "progress=false", "trainer.max_epochs=1",
+                       "trainer.accelerator=cpu", "trainer.devices=2", "trainer.strategy=ddp", timeout=240))
+    store = ArtifactStore(root)
+    assert store.versions("checkpoint", "perception") == ["v001"], _output(proc)[-3000:]
+    files = store.verify(store.resolve("checkpoint", "perception"))["files"]
+    assert {"model.ckpt", "metrics.json", "history.json", "loss.png"} <= set(files)
+    left = [p.name for p in (root / "checkpoint" / "perception").iterdir() if p.name.startswith(".")]
+    assert left == []  # no partial directory, no Lightning work area
+    assert '"rank": 1' in _output(proc)  # rank 1 ran and returned without committing
 
 
 def _pixels_of(png: Path, rgb) -> int:

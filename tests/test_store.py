@@ -99,3 +99,31 @@ def test_racing_commits_to_one_name_both_land_on_distinct_versions(tmp_path, mon
     assert (pa / "m.txt").read_text() == "a" and (pb / "m.txt").read_text() == "b"
     assert json.loads((pb / "manifest.json").read_text())["version"] == "v002"
     assert store.versions("checkpoint", "perception") == ["v001", "v002"]
+
+
+def test_ref_fingerprint_tells_a_recreated_version_number_apart(tmp_path):
+    import shutil
+
+    store = ArtifactStore(tmp_path)
+    _commit(store, "demos", "abc", {"k": 1})
+    v2 = _commit(store, "demos", "abcd", {"k": 2})
+    ref = store.ref(v2)
+    assert ref.startswith("dataset/demos:v002@") and ref == store.ref(v2)
+    w, _ = store.begin("checkpoint", "perception", {"lr": 1}, inputs={"dataset": ref})
+    (w.path / "model.ckpt").write_text("weights")
+    ckpt = w.commit()
+    shutil.rmtree(v2)  # a user deletes the newest version; the next commit takes its number again
+    v2b = _commit(store, "demos", "other data", {"k": 3})
+    assert v2b.name == "v002" and store.ref(v2b) != ref
+    writer, existing = store.begin("checkpoint", "perception", {"lr": 1}, inputs={"dataset": store.ref(v2b)})
+    assert existing is None and writer is not None  # not the checkpoint trained on the deleted data
+    assert store.begin("checkpoint", "perception", {"lr": 1}, inputs={"dataset": ref})[1] == ckpt
+
+
+def test_names_lists_only_names_with_a_committed_version(tmp_path):
+    store = ArtifactStore(tmp_path)
+    store.begin("dataset", "half-written", {"k": 1})  # a partial directory only
+    _commit(store, "demos", "abc", {"k": 1})
+    assert store.names("dataset") == ["demos"]
+    with pytest.raises(MissingArtifact, match=r"known dataset names: \['demos'\]"):
+        store.resolve("dataset", "half-written")

@@ -172,8 +172,21 @@ class ArtifactStore:
         return sorted(vs, key=lambda v: int(v[1:]))
 
     def names(self, kind: str) -> list[str]:
+        """Names with at least one committed version (a name holding only partial work is not listed)."""
         d = self.root / kind
-        return sorted(p.name for p in d.iterdir() if p.is_dir()) if d.is_dir() else []
+        return sorted(p.name for p in d.iterdir() if p.is_dir() and self.versions(kind, p.name)) if d.is_dir() else []
+
+    def ref(self, path: Path) -> str:
+        """``kind/name:version@fingerprint`` of a committed version, for a consumer's ``inputs``.
+
+        The fingerprint hashes the manifest's key and file digests: a version number that comes back after its
+        directory was deleted (numbers continue from the highest one left) names different content, and the
+        consumers keyed by it are not reused by mistake.
+        """
+        path = Path(path)
+        m = self.manifest(path)
+        blob = json.dumps({"key": m.get("key"), "files": m.get("files", {})}, sort_keys=True)
+        return f"{path.parent.parent.name}/{path.parent.name}:{path.name}@{hashlib.sha256(blob.encode()).hexdigest()[:12]}"
 
     def resolve(self, kind: str | ArtifactRef, name: str | None = None, version: str = "latest",
                 verify: bool = True) -> Path:

@@ -13,7 +13,7 @@ SPLITS = ("in", "out")  # in-distribution (seen objects) / out-of-distribution (
 TASKS = ("slice", "stick", "dice")
 OBSERVATIONS = ("particles", "depth")
 NORMALIZE_BY = ("task", "task_split")
-POLICY_NAMES = ("oracle", "heuristic", "mppi", "teleop", "dp3", "3dda", "pddp_noperc", "pddp_graphconv", "pddp")
+POLICY_NAMES = ("oracle", "heuristic", "mppi", "dp3", "3dda", "pddp_noperc", "pddp_graphconv", "pddp")
 
 
 @dataclass
@@ -55,6 +55,9 @@ class EvalConfig:
                              "must be >= 1")
         if self.scale_min > self.scale_max:
             raise ValueError(f"eval.scale_min={self.scale_min} exceeds eval.scale_max={self.scale_max}")
+        if "teleop" in self.policies:
+            raise ValueError("eval.policies: 'teleop' is not a policy the eval stage can run (a human drives it); "
+                             "replay the logs into episodes/teleop/*.json and set eval.reference=teleop")
         bad = [p for p in self.policies if p not in POLICY_NAMES]
         if bad:
             raise ValueError(f"eval.policies: unknown policy {bad[0]!r}; valid: {', '.join(POLICY_NAMES)}")

@@ -29,6 +29,7 @@ import numpy as np
 
 from topocut.data.store import write_json_atomic
 from topocut.eval.config import EvalConfig
+from topocut.policies.base import reset_policy
 from topocut.sim.action import POSE_FEATURE_DIM
 
 HISTORY_LEN = 3
@@ -115,32 +116,37 @@ def episode_specs(cfg: EvalConfig | None = None) -> list[EpisodeSpec]:
 
 # -- observations -----------------------------------------------------------------------------------
 def make_observe_fn(mode: str = "particles", num_points: int = 2048, obs_cfg=None, seed: int = 0) -> Callable:
-    """``observe(x (N,3), labels (N,)) -> (points (M,3) f32, labels (M,) i32)`` for ``eval.observation``.
+    """``observe(x (N,3), labels (N,), seed) -> (points (M,3) f32, labels (M,) i32)`` for ``eval.observation``.
 
     particles: FPS of the particles to ``num_points`` (as the dataset stores them);
-    depth: the depth-camera pipeline of topocut.topology.observation.
+    depth: the depth-camera pipeline of topocut.topology.observation with ``obs_cfg``'s cameras and noise
+    (its ``mode`` and ``num_points`` are set from ``mode`` and ``num_points`` here, so ``eval.observation``
+    decides what the policy sees whatever the ``observation`` group says).
+    ``seed`` (per call; evaluate_episode passes one per episode and cut) draws the FPS start and the
+    sensor noise, so an episode observes the same points whenever and wherever it is run.
     """
-    if mode == "particles":
-        from topocut.metrics import fps
+    import dataclasses
 
-        def observe(x, labels):
-            x = np.asarray(x, np.float32)
-            idx = fps(x, num_points, seed=seed) if len(x) > num_points else np.arange(len(x))
-            return x[idx], np.asarray(labels, np.int32)[idx]
+    from topocut.topology.observation import MODES, ObservationConfig
 
-        return observe
-    if mode == "depth":
-        from topocut.topology.observation import observe as depth_observe
+    if mode not in MODES:
+        raise ValueError(f"eval.observation={mode!r} is not valid; choose one of {', '.join(MODES)}")
+    cfg = dataclasses.replace(obs_cfg or ObservationConfig(), mode=mode, num_points=int(num_points)).validate()
+    base = int(seed)
 
-        calls = [0]
+    def observe(x, labels, seed: int = 0):
+        from topocut.topology.observation import observe as observe_points
 
-        def observe(x, labels):
-            calls[0] += 1  # fresh sensor noise per step, reproducible per episode
-            pts, lab = depth_observe(np.asarray(x), np.asarray(labels), obs_cfg, seed + calls[0])
-            return np.asarray(pts, np.float32), np.asarray(lab, np.int32)
+        s = (base * 1_000_003 + int(seed)) % (2**31 - 1)
+        pts, lab = observe_points(np.asarray(x), np.asarray(labels), cfg, s)
+        return np.asarray(pts, np.float32), np.asarray(lab, np.int32)
 
-        return observe
-    raise ValueError(f"eval.observation={mode!r} is not valid; choose one of particles, depth")
+    return observe
+
+
+def step_seed(episode_seed: int, cut: int) -> int:
+    """Seed of the observation before cut ``cut`` (0-based) of an episode."""
+    return (int(episode_seed) * 7919 + int(cut) + 1) % (2**31 - 1)
 
 
 # -- one episode ---------------------------------------------------------------------------------------
@@ -199,7 +205,7 @@ def evaluate_episode(spec: EpisodeSpec, policy, env, task_cfg, reward_cfg=None, 
     board_z = _board_z(env)
     goal_fn, discover_fn, reward_fn = (goal_fn or functools.partial(_default_goal_fn, board_z=board_z),
                                        discover_fn or _default_discover, reward_fn or _default_reward)
-    observe_fn = observe_fn or (lambda x, labels: (np.asarray(x, np.float32), np.asarray(labels, np.int32)))
+    observe_fn = observe_fn or (lambda x, labels, seed: (np.asarray(x, np.float32), np.asarray(labels, np.int32)))
     Diverged = _diverged_type()
     t0 = time.perf_counter()
     result = EpisodeResult(spec=spec.asdict(), policy=policy_name)
@@ -212,12 +218,12 @@ def evaluate_episode(spec: EpisodeSpec, policy, env, task_cfg, reward_cfg=None, 
     x = np.asarray(st.x[0])  # N,3
     labels = discover_fn(x, np.asarray(st.damage[0], bool), None, None, topo_cfg)
     result.initial_reward = float(reward_fn(_fragments(x, labels, min_fragment_points), goal_frags, reward_cfg).total)
-    policy.reset(goal)
+    reset_policy(policy, goal, seed=spec.seed)
     history = deque([np.zeros(POSE_FEATURE_DIM, np.float32)] * HISTORY_LEN, maxlen=HISTORY_LEN)
     push = bool(getattr(task_cfg, "push", False))
     threshold = getattr(task_cfg, "success_threshold", None)
-    for _ in range(max_cuts):
-        points, obs_labels = observe_fn(x, labels)
+    for k in range(max_cuts):
+        points, obs_labels = observe_fn(x, labels, step_seed(spec.seed, k))
         obs = {"points": points, "labels": obs_labels, "history": np.stack(list(history)),  # 3,7 oldest first
                "goal": np.asarray(goal.points, np.float32), "goal_labels": np.asarray(goal.labels, np.int32),
                "particle_labels": labels}

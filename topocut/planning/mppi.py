@@ -117,14 +117,18 @@ class MPPIPolicy:
         if rollout_factory is None:
             raise ValueError("MPPIPolicy needs rollout_factory(obs, goal) -> rollout (K,H,4) -> (K,)")
         self.rollout_factory = rollout_factory
+        self.seed = int(seed)
         self.rng = np.random.default_rng(seed)
         self.last_info: dict = {}
         if goal is not None:
             self.reset(goal)
 
-    def reset(self, goal) -> None:
+    def reset(self, goal, seed: int | None = None) -> None:
         from topocut.planning.heuristic import HeuristicPolicy
+        from topocut.policies.base import mix_seed
 
+        if seed is not None:  # an episode's samples do not depend on the episodes planned before it
+            self.rng = np.random.default_rng(mix_seed(self.seed, seed))
         self.goal = goal
         self.heuristic = HeuristicPolicy(goal)
         self.t = 0

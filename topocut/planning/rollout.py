@@ -8,9 +8,11 @@ from __future__ import annotations
 
 import time
 from collections import deque
+from collections.abc import Mapping
 
 import numpy as np
 
+from topocut.policies.base import reset_policy
 from topocut.sim.action import POSE_FEATURE_DIM, KnifeAction, cut_mask
 
 HISTORY_LEN = 3
@@ -127,15 +129,27 @@ def make_sim_rollout(env, state_dict: dict, goal, reward_cfg=None, topo_cfg=None
     return rollout
 
 
-def sim_rollout_factory(env, reward_cfg=None, topo_cfg=None, board_z: float = 0.05, push: bool = False):
-    """``factory(obs, goal) -> rollout`` for MPPIPolicy: plans from obs['sim_state'] / obs['particle_labels']."""
+def sim_rollout_factory(env, reward_cfg=None, topo_cfg=None, board_z: float = 0.05,
+                        push: bool | Mapping[str, bool] = False):
+    """``factory(obs, goal) -> rollout`` for MPPIPolicy: plans from obs['sim_state'] / obs['particle_labels'].
+
+    ``push``: whether a rollout pushes after its cuts; a mapping {task: push} follows the goal's task, so
+    that the rollouts of an evaluation over several tasks do what the executed episode does.
+    """
 
     def factory(obs: dict, goal):
         for k in ("sim_state", "particle_labels"):
             if k not in obs:
                 raise KeyError(f"MPPI needs obs[{k!r}] (set by run_episode); obs has {', '.join(obs)}")
+        if isinstance(push, Mapping):
+            task = getattr(goal, "task", None)
+            if task not in push:
+                raise KeyError(f"sim_rollout_factory: no push setting for task {task!r}; known: {', '.join(push)}")
+            do_push = bool(push[task])
+        else:
+            do_push = bool(push)
         return make_sim_rollout(env, obs["sim_state"], goal, reward_cfg, topo_cfg, board_z,
-                                labels=obs["particle_labels"], push=push)
+                                labels=obs["particle_labels"], push=do_push)
 
     return factory
 
@@ -160,8 +174,10 @@ def env_board_z(env, default: float = 0.05) -> float:
 
 def run_episode(env, goal, planner, reward_cfg=None, topo_cfg=None, max_cuts: int = 5, push: bool = False,
                 observe_fn=None, progress=None, success_threshold: float | None = None,
-                scorer: Scorer | None = None) -> tuple[list[dict], dict]:
+                scorer: Scorer | None = None, seed: int | None = None) -> tuple[list[dict], dict]:
     """Execute ``planner`` (Policy) in ``env`` (already reset, scene 0) until success or max_cuts cuts.
+
+    ``seed`` (the episode's) re-seeds a stochastic planner at its reset (topocut.policies.base.reset_policy).
 
     Returns the step records and a summary; a SimulationDiverged marks the
     episode ``failed`` and keeps the steps recorded before it.
@@ -174,7 +190,7 @@ def run_episode(env, goal, planner, reward_cfg=None, topo_cfg=None, max_cuts: in
     st = env.state()
     x = np.asarray(st.x[0])  # N,3
     labels = scorer.labels(x, st.damage[0], None, None)
-    planner.reset(goal)
+    reset_policy(planner, goal, seed=seed)
     history = empty_history()
     steps, status, error = [], "ok", None
     for t in range(max_cuts):

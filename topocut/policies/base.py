@@ -5,6 +5,7 @@ zeros before the first cut), goal (g,3), goal_labels (g,).
 """
 from __future__ import annotations
 
+import inspect
 from typing import Protocol, runtime_checkable
 
 import numpy as np
@@ -17,11 +18,32 @@ OBS_KEYS = ("points", "labels", "history", "goal", "goal_labels")
 
 @runtime_checkable
 class Policy(Protocol):
-    def reset(self, goal) -> None:
-        """Start an episode towards ``goal`` (topocut.goals.Goal)."""
+    def reset(self, goal, seed: int | None = None) -> None:
+        """Start an episode towards ``goal`` (topocut.goals.Goal).
+
+        A stochastic policy re-seeds its sampler from ``seed`` (the episode's seed) so that an
+        episode's actions do not depend on which episodes ran before it in the same process.
+        """
 
     def act(self, obs: dict) -> KnifeAction:
         """The next cut for an observation dict with OBS_KEYS."""
+
+
+def reset_policy(policy, goal, seed: int | None = None) -> None:
+    """``policy.reset(goal, seed=seed)``; policies written against the older ``reset(goal)`` get the goal only."""
+    try:
+        takes_seed = "seed" in inspect.signature(policy.reset).parameters
+    except (TypeError, ValueError):  # a builtin or C-implemented reset
+        takes_seed = False
+    if takes_seed:
+        policy.reset(goal, seed=seed)
+    else:
+        policy.reset(goal)
+
+
+def mix_seed(seed: int, episode_seed: int | None) -> int:
+    """A policy's own seed combined with an episode's (stable across processes)."""
+    return int(seed) if episode_seed is None else (int(seed) * 1_000_003 + int(episode_seed)) % (2**31 - 1)
 
 
 def history_from_actions(actions: list[KnifeAction], board_z: float = 0.05, history_len: int = HISTORY_LEN):

@@ -145,7 +145,8 @@ class PDDPModule(L.LightningModule):
 
     @torch.no_grad()
     def sample_masks(self, batch, steps: int = 32, predictor: str = "analytic", use_ema: bool = True,
-                     generator: torch.Generator | None = None) -> torch.Tensor:
+                     generator: torch.Generator | None = None, denoise: bool = True,
+                     eps: float = 1e-5) -> torch.Tensor:
         """Masks (B,N) long sampled by the reverse chain."""
         model = self.ema.module if use_ema else self.model
         was_training = model.training
@@ -153,7 +154,7 @@ class PDDPModule(L.LightningModule):
         ctx = self._context(model, batch)
         B, N = batch["points"].shape[:2]
         x = sample(model, self.graph, self.noise, (B, N), cond=ctx, steps=steps, predictor=predictor,
-                   device=batch["points"].device, generator=generator)
+                   denoise=denoise, eps=eps, device=batch["points"].device, generator=generator)
         model.train(was_training)
         return x
 
@@ -184,22 +185,29 @@ class PDDPPolicy:
     act() returns None ("no cut") when no sampled mask within ``retries`` tries splits the points.
     """
 
-    def __init__(self, module_or_ckpt, sampler: str = "analytic", steps: int = 32, device: str = "cpu",
-                 plane: str = "svm", seed: int = 0, board_z: float = 0.05, retries: int = 3,
+    def __init__(self, module_or_ckpt, sampler: str | SamplerConfig = "analytic", steps: int = 32,
+                 device: str = "cpu", plane: str = "svm", seed: int = 0, board_z: float = 0.05, retries: int = 3,
                  use_ema: bool = True):
-        self.scfg = SamplerConfig(predictor=sampler, steps=steps, plane=plane, retries=retries).validate()
+        # a SamplerConfig (the `policy.sampler` group) carries every sampling setting; a predictor name
+        # with steps/plane/retries is the short form
+        self.scfg = (sampler if isinstance(sampler, SamplerConfig)
+                     else SamplerConfig(predictor=sampler, steps=steps, plane=plane, retries=retries)).validate()
         if isinstance(module_or_ckpt, PDDPModule):
             module = module_or_ckpt
         else:
             module = PDDPModule.load_from_checkpoint(str(module_or_ckpt), map_location=device)
         self.module = module.to(device).eval()
-        self.device, self.board_z, self.use_ema = torch.device(device), board_z, use_ema
-        self.generator = torch.Generator(device=self.device).manual_seed(seed)
+        self.device, self.board_z, self.use_ema, self.seed = torch.device(device), board_z, use_ema, int(seed)
+        self.generator = torch.Generator(device=self.device).manual_seed(self.seed)
         self.goal = None
         self.last_mask = None
 
-    def reset(self, goal) -> None:
+    def reset(self, goal, seed: int | None = None) -> None:
+        from topocut.policies.base import mix_seed
+
         self.goal = np.asarray(goal.points if hasattr(goal, "points") else goal, np.float32)
+        if seed is not None:  # an episode's masks do not depend on the episodes sampled before it
+            self.generator = torch.Generator(device=self.device).manual_seed(mix_seed(self.seed, seed))
 
     def act(self, obs: dict):
         obs = check_obs(obs)
@@ -234,7 +242,8 @@ class PDDPPolicy:
             seed = int(torch.randint(0, 2**31 - 1, (1,), generator=self.generator, device=self.device))
             batch, idx = self._batch(points, labels, goal, history, seed)
             mask = self.module.sample_masks(batch, steps=self.scfg.steps, predictor=self.scfg.predictor,
-                                            use_ema=self.use_ema, generator=self.generator)[0].cpu().numpy()
+                                            use_ema=self.use_ema, generator=self.generator,
+                                            denoise=self.scfg.denoise, eps=self.scfg.eps)[0].cpu().numpy()
             sub = points[idx]
             action = action_from_mask(sub, mask, self.scfg.plane, board_z=self.board_z)
             if len(points) <= len(idx):  # every point was seen (some twice)

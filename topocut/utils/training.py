@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -9,10 +10,15 @@ from lightning.pytorch.callbacks import Callback
 
 
 class MetricHistory(Callback):
-    """Epoch-level copies of the logged scalars, for plots and metrics.json."""
+    """Epoch-level copies of the logged scalars, for plots and metrics.json.
 
-    def __init__(self):
-        self.rows: list[dict] = []
+    With ``path`` the rows are saved after every epoch (rank 0) and loaded again by the next run, so a resumed
+    fit keeps the epochs trained before the interruption (a repeated epoch replaces its earlier row).
+    """
+
+    def __init__(self, path: Path | None = None):
+        self.path = Path(path) if path is not None else None
+        self.rows: list[dict] = json.loads(self.path.read_text()) if self.path and self.path.exists() else []
 
     def _record(self, trainer, phase: str) -> None:
         row = {"epoch": trainer.current_epoch, "phase": phase}
@@ -21,7 +27,9 @@ class MetricHistory(Callback):
                 row[k] = float(v)
             except (TypeError, ValueError):
                 continue
-        self.rows.append(row)
+        self.rows = [r for r in self.rows if (r["epoch"], r["phase"]) != (row["epoch"], phase)] + [row]
+        if self.path is not None and trainer.is_global_zero:
+            self.dump(self.path)
 
     def on_train_epoch_end(self, trainer, pl_module) -> None:
         self._record(trainer, "train")
@@ -42,14 +50,17 @@ class MetricHistory(Callback):
                 ax.plot(*zip(*pts), marker=".", label=key)
         ax.set_xlabel("epoch")
         ax.set_ylabel("loss")
-        ax.legend()
+        if ax.lines:
+            ax.legend()
         fig.tight_layout()
         fig.savefig(path, dpi=120)
         plt.close(fig)
         return Path(path)
 
     def dump(self, path: Path) -> None:
-        Path(path).write_text(json.dumps(self.rows, indent=1))
+        from topocut.data.store import write_json_atomic
+
+        write_json_atomic(Path(path), self.rows)
 
 
 def build_trainer(trainer_cfg, max_epochs: int, ckpt_dir: Path, logger=False, progress: bool = True,
@@ -64,6 +75,29 @@ def build_trainer(trainer_cfg, max_epochs: int, ckpt_dir: Path, logger=False, pr
                      logger=logger, callbacks=[ckpt, *callbacks], enable_progress_bar=progress,
                      log_every_n_steps=trainer_cfg.log_every_n_steps, default_root_dir=str(ckpt_dir),
                      gradient_clip_val=gradient_clip_val, enable_model_summary=False, deterministic=False)
+
+
+def work_dir(writer) -> Path:
+    """Lightning's checkpoints while a version is trained: beside its partial directory, not inside it, so that
+    they are not part of the committed files and survive until the version is committed (the resume point)."""
+    return writer.path.parent / f".work-{writer.key}"
+
+
+def finish_fit(fit, writer, work: Path, history: MetricHistory) -> dict | None:
+    """After ``fit.fit``: on global rank 0, copy the last checkpoint to ``model.ckpt`` in the version and write
+    ``loss.png`` and ``history.json``; returns the final metrics (the last epoch's row of ``history``
+    when the fit was resumed from a checkpoint that had already finished).  Other DDP ranks return None and
+    touch no file: under Lightning's DDP launcher every rank runs the stage's code, and only rank 0 commits.
+    """
+    if not fit.is_global_zero:
+        return None
+    metrics = {k: float(v) for k, v in fit.callback_metrics.items()}
+    if not metrics:  # resumed after its last epoch: this process trained and logged nothing
+        metrics = {k: v for k, v in history.last().items() if k != "epoch"}
+    shutil.copyfile(Path(work) / "last.ckpt", writer.path / "model.ckpt")
+    history.plot(writer.path / "loss.png")
+    history.dump(writer.path / "history.json")
+    return metrics
 
 
 def resume_path(ckpt_dir: Path) -> str | None:

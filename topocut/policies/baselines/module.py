@@ -232,7 +232,8 @@ def pose_errors(pred, target, pos_scale: float) -> dict:
 class PosePolicy:
     """Policy protocol over a trained PoseDiffusionModule: ``reset(goal)``, ``act(obs) -> KnifeAction``.
 
-    Sampling noise comes from a generator re-seeded at every reset, so an episode is reproducible.
+    Sampling noise comes from a generator re-seeded at every reset (from the policy's seed and the
+    episode's), so an episode is reproducible and episodes do not share their noise.
     """
 
     def __init__(self, module: PoseDiffusionModule, seed: int = 0, device: str = "cpu", steps: int | None = None):
@@ -240,9 +241,11 @@ class PosePolicy:
         self.device = torch.device(device)
         self.goal, self.generator = None, None
 
-    def reset(self, goal) -> None:
+    def reset(self, goal, seed: int | None = None) -> None:
+        from topocut.policies.base import mix_seed
+
         self.goal = goal
-        self.generator = torch.Generator(self.device).manual_seed(self.seed)
+        self.generator = torch.Generator(self.device).manual_seed(mix_seed(self.seed, seed))
 
     def act(self, obs: dict) -> KnifeAction:
         if self.generator is None:
