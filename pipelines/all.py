@@ -28,6 +28,9 @@ def produced_versions(stage: str, summary: dict, cfg) -> dict[str, str]:
             path = Path(summary[key])
             if path.parent.name == cfg.data[name_key]:
                 return {f"data.{version_key}": path.name}
+    if stage == "bc":  # one checkpoint per policy: {name: {"checkpoint": .../<name>/vNNN, ...}}
+        return {f"++eval.checkpoints.{name}": Path(out["checkpoint"]).name for name, out in summary.items()
+                if isinstance(out, dict) and out.get("checkpoint") and Path(out["checkpoint"]).parent.name == name}
     return {}
 
 
@@ -44,7 +47,8 @@ def run(ctx: RunContext, sequence: list[str], trainer=None) -> dict:
     base = [o for o in ctx.overrides if not o.split("=")[0].lstrip("+~") == "stage"]
     summaries, pins = {}, {}
     for name in sequence:
-        overrides = [o for o in base if o.split("=")[0].lstrip("+~") not in pins]
+        pinned = {k.lstrip("+") for k in pins}
+        overrides = [o for o in base if o.split("=")[0].lstrip("+~") not in pinned]
         overrides += [f"{k}={v}" for k, v in pins.items()] + [f"stage={name}"]
         cfg = _compose(overrides)
         summaries[name] = run_stage(cfg, ctx.run_dir / name, overrides)

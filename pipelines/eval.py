@@ -2,7 +2,8 @@
 
 Policies: ``oracle`` (the goal's ideal planes for the true pose: the R̂ reference), ``heuristic``
 (the same planes for the nominal pose, open loop), ``mppi`` (the expert), ``pddp``, ``pddp_noperc``,
-``pddp_graphconv``, ``dp3``, ``3dda`` (checkpoints from the bc stage, latest versions).
+``pddp_graphconv``, ``dp3``, ``3dda`` (checkpoints from the bc stage: the versions in
+``eval.checkpoints``, latest for the others).
 Episodes are committed one by one; an interrupted evaluation resumes.
 """
 from __future__ import annotations
@@ -13,10 +14,10 @@ from pathlib import Path
 from omegaconf import OmegaConf
 
 from pipelines._common import as_dict
+from topocut.eval.config import LEARNED
 from topocut.utils.context import RunContext
 
 CONF_TASKS = Path(__file__).resolve().parent.parent / "conf" / "task"
-LEARNED = ("pddp", "pddp_noperc", "pddp_graphconv", "dp3", "3dda")
 SCRIPTED = ("oracle", "heuristic", "mppi")
 
 
@@ -43,7 +44,8 @@ def artifact_config(eval, sim, topology, reward, planner, observation, sampler, 
                    ("tasks", {n: dataclasses.asdict(t) for n, t in task_cfgs.items()}), ("seed", seed))
 
 
-def build_policies(ctx: RunContext, names, env, sim, planner, reward, topology, task_cfgs, sampler=None):
+def build_policies(ctx: RunContext, names, env, sim, planner, reward, topology, task_cfgs, sampler=None,
+                   versions=None):
     from topocut.planning import HeuristicPolicy, MPPIPolicy, sim_rollout_factory
     from topocut.planning.heuristic import FixedTrajectoryPolicy
 
@@ -61,7 +63,7 @@ def build_policies(ctx: RunContext, names, env, sim, planner, reward, topology, 
             factory = sim_rollout_factory(env, reward, topology, board_z=sim.board_z, push=push)
             policies[name] = MPPIPolicy(planner, factory, seed=ctx.seed)
         else:
-            path = ctx.store.resolve("checkpoint", name)
+            path = ctx.store.resolve("checkpoint", name, (versions or {}).get(name, "latest"))
             inputs[name] = ctx.store.ref(path)
             if name.startswith("pddp"):
                 from topocut.policies.config import SamplerConfig
@@ -86,7 +88,8 @@ def run(ctx: RunContext, eval, sim, topology, reward, planner, observation, data
     sim = dataclasses.replace(sim, arch=ctx.device)  # one backend for Taichi, Warp and torch
     init_taichi(arch=ctx.device, seed=ctx.seed)
     env = CuttingEnv(sim, batch_size=max(1, sim.batch_size) if "mppi" in eval.policies else 1)
-    policies, inputs = build_policies(ctx, eval.policies, env, sim, planner, reward, topology, task_cfgs, sampler)
+    policies, inputs = build_policies(ctx, eval.policies, env, sim, planner, reward, topology, task_cfgs, sampler,
+                                      versions=eval.checkpoints)
     config = artifact_config(eval, sim, topology, reward, planner, observation, sampler, task_cfgs, ctx.seed)
     writer, existing = ctx.store.begin("eval", eval.name, config, inputs, extra={"seed": ctx.seed,
                                                                                 "device": ctx.device})

@@ -136,6 +136,9 @@ def test_bad_eval_config_names_key():
         EvalConfig(observation="rgb").validate()
     with pytest.raises(ValueError, match="eval.policies: unknown policy 'dp4'.*dp3"):
         EvalConfig(policies=["oracle", "dp4"]).validate()
+    with pytest.raises(ValueError, match="eval.checkpoints.mppi: only learned policies"):
+        EvalConfig(policies=["oracle", "mppi"], checkpoints={"mppi": "v001"}).validate()
+    EvalConfig(policies=["oracle", "pddp"], checkpoints={"pddp": "v001"}).validate()
     with pytest.raises(ValueError, match="eval.reference='heuristic'"):
         EvalConfig(reference="heuristic").validate()
 

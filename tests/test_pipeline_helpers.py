@@ -19,6 +19,27 @@ def test_stage_all_pins_the_versions_its_stages_produced():
     # a checkpoint under another name (perception-pointnet) is not the encoder bc reads: no pin
     assert produced_versions("pretrain", {"checkpoint": "/o/checkpoint/perception-pointnet/v001"}, cfg) == {}
     assert produced_versions("simulate", {"artifact": "/o/sim/x/v001"}, cfg) == {}
+    bc = {"pddp": {"checkpoint": "/o/checkpoint/pddp/v004", "val/loss": 0.1},
+          "dp3": {"checkpoint": "/o/checkpoint/dp3/v002", "reused": True}, "3dda": {"rank": 1}}
+    assert produced_versions("bc", bc, cfg) == {"++eval.checkpoints.pddp": "v004", "++eval.checkpoints.dp3": "v002"}
+
+
+def test_eval_loads_the_pinned_checkpoint_version_and_records_it(tmp_path, monkeypatch):
+    import topocut.policies.baselines.module as baselines
+    from pipelines.eval import build_policies
+
+    store = ArtifactStore(tmp_path)
+    for i in range(3):  # checkpoint/dp3/v001..v003
+        w, _ = store.begin("checkpoint", "dp3", {"i": i})
+        (w.path / "model.ckpt").write_bytes(bytes([i]))
+        w.commit()
+    monkeypatch.setattr(baselines, "load_pose_policy", lambda path, **kw: Path(path).read_bytes())
+    ctx = SimpleNamespace(store=store, seed=0, device="cpu")
+    args = (None, None, None, None, None, {})
+    policies, inputs = build_policies(ctx, ["dp3"], *args, versions={"dp3": "v002"})
+    assert policies["dp3"] == bytes([1]) and inputs["dp3"].startswith("checkpoint/dp3:v002@")
+    policies, inputs = build_policies(ctx, ["dp3"], *args)  # unpinned: the latest
+    assert policies["dp3"] == bytes([2]) and inputs["dp3"].startswith("checkpoint/dp3:v003@")
 
 
 def test_stage_all_refuses_a_multi_process_trainer():

@@ -14,6 +14,7 @@ TASKS = ("slice", "stick", "dice")
 OBSERVATIONS = ("particles", "depth")
 NORMALIZE_BY = ("task", "task_split")
 POLICY_NAMES = ("oracle", "heuristic", "mppi", "dp3", "3dda", "pddp_noperc", "pddp_graphconv", "pddp")
+LEARNED = ("dp3", "3dda", "pddp_noperc", "pddp_graphconv", "pddp")  # loaded from bc checkpoints
 
 
 @dataclass
@@ -41,6 +42,9 @@ class EvalConfig:
     min_fragment_points: int = 4  # smaller labelled clusters are debris, not pieces
     stop_on_success: bool = False  # the paper runs all five cuts; True stops once the task's threshold is met
     gifs: int = 0  # episodes per policy rendered to GIF by the eval stage
+    # checkpoint version per learned policy (`+eval.checkpoints.pddp=v003`); a policy not named here loads its latest
+    # version (stage=all pins what its bc stage wrote)
+    checkpoints: dict[str, str] = field(default_factory=dict)
 
     def validate(self) -> EvalConfig:
         for key, value, valid in (("eval.observation", self.observation, OBSERVATIONS),
@@ -61,6 +65,10 @@ class EvalConfig:
         bad = [p for p in self.policies if p not in POLICY_NAMES]
         if bad:
             raise ValueError(f"eval.policies: unknown policy {bad[0]!r}; valid: {', '.join(POLICY_NAMES)}")
+        bad = [p for p in self.checkpoints if p not in self.policies or p not in LEARNED]
+        if bad:
+            raise ValueError(f"eval.checkpoints.{bad[0]}: only learned policies in eval.policies load checkpoints "
+                             f"({', '.join(p for p in self.policies if p in LEARNED) or 'none here'})")
         if self.reference not in self.policies and self.reference != "teleop":
             raise ValueError(f"eval.reference={self.reference!r} must be one of eval.policies "
                              f"({', '.join(self.policies)}) or 'teleop' (replayed human logs)")
