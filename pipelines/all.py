@@ -29,9 +29,16 @@ def produced_versions(stage: str, summary: dict, cfg) -> dict[str, str]:
             if path.parent.name == cfg.data[name_key]:
                 return {f"data.{version_key}": path.name}
     if stage == "bc":  # one checkpoint per policy: {name: {"checkpoint": .../<name>/vNNN, ...}}
-        return {f"++eval.checkpoints.{name}": Path(out["checkpoint"]).name for name, out in summary.items()
-                if isinstance(out, dict) and out.get("checkpoint") and Path(out["checkpoint"]).parent.name == name}
+        versions = {name: Path(out["checkpoint"]).name for name, out in summary.items()
+                    if isinstance(out, dict) and out.get("checkpoint") and Path(out["checkpoint"]).parent.name == name}
+        if versions:  # one dict override: a key like `eval.checkpoints.3dda` is not valid override grammar
+            return {"++eval.checkpoints": "{" + ",".join(f"{k}:{v}" for k, v in versions.items()) + "}"}
     return {}
+
+
+def _under(key: str, pinned: tuple[str, ...]) -> bool:
+    """A user's override of a pinned key or of anything inside it (eval.checkpoints.pddp under eval.checkpoints)."""
+    return any(key == p or key.startswith(p + ".") for p in pinned)
 
 
 def run(ctx: RunContext, sequence: list[str], trainer=None) -> dict:
@@ -47,8 +54,8 @@ def run(ctx: RunContext, sequence: list[str], trainer=None) -> dict:
     base = [o for o in ctx.overrides if not o.split("=")[0].lstrip("+~") == "stage"]
     summaries, pins = {}, {}
     for name in sequence:
-        pinned = {k.lstrip("+") for k in pins}
-        overrides = [o for o in base if o.split("=")[0].lstrip("+~") not in pinned]
+        pinned = tuple(k.lstrip("+") for k in pins)
+        overrides = [o for o in base if not _under(o.split("=")[0].lstrip("+~"), pinned)]
         overrides += [f"{k}={v}" for k, v in pins.items()] + [f"stage={name}"]
         cfg = _compose(overrides)
         summaries[name] = run_stage(cfg, ctx.run_dir / name, overrides)

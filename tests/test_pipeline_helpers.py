@@ -21,7 +21,25 @@ def test_stage_all_pins_the_versions_its_stages_produced():
     assert produced_versions("simulate", {"artifact": "/o/sim/x/v001"}, cfg) == {}
     bc = {"pddp": {"checkpoint": "/o/checkpoint/pddp/v004", "val/loss": 0.1},
           "dp3": {"checkpoint": "/o/checkpoint/dp3/v002", "reused": True}, "3dda": {"rank": 1}}
-    assert produced_versions("bc", bc, cfg) == {"++eval.checkpoints.pddp": "v004", "++eval.checkpoints.dp3": "v002"}
+    pins = produced_versions("bc", bc, cfg)
+    assert pins == {"++eval.checkpoints": "{pddp:v004,dp3:v002}"}
+    assert produced_versions("bc", {"3dda": {"rank": 1}}, cfg) == {}
+
+
+def test_stage_all_pins_parse_as_hydra_overrides():
+    """3dda is not a valid key in a dotted override; the one dict override parses and sets every version."""
+    import os
+
+    from hydra import compose, initialize_config_dir
+
+    from pipelines.all import CONF_DIR
+    from topocut.config import register_configs
+
+    register_configs()
+    pins = {"++eval.checkpoints": "{3dda:v001,pddp:v004}"}
+    with initialize_config_dir(config_dir=os.fspath(CONF_DIR), version_base="1.3"):
+        cfg = compose(config_name="config", overrides=[f"{k}={v}" for k, v in pins.items()] + ["stage=eval"])
+    assert dict(cfg.eval.checkpoints) == {"3dda": "v001", "pddp": "v004"}
 
 
 def test_eval_loads_the_pinned_checkpoint_version_and_records_it(tmp_path, monkeypatch):
