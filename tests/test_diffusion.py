@@ -38,7 +38,7 @@ def test_rates_and_transitions_match_expm(graph):
     Q = dense_Q(graph)
     np.testing.assert_allclose(graph.rate_matrix().numpy(), Q)
     d = graph.dim
-    states = torch.arange(d - 1 if graph.absorb else d)
+    states = torch.arange(d)  # every state, the absorbing graph's mask included (its column: stay w.p. 1)
     for sigma in (0.05, 0.7, 3.0):
         P = scipy.linalg.expm(sigma * Q)  # P[y, x] = p(x_t = y | x_0 = x)
         s = torch.full((len(states),), sigma, dtype=torch.float64)

@@ -82,5 +82,21 @@ def test_goal_points_and_labels():
     assert set(np.unique(g.labels)) <= {0, 1, 2} and (g.labels > 0).any()
     with pytest.raises(ValueError, match="task.name"):
         make_goal(TaskConfig(name="julienne"), "cake")
+    with pytest.raises(ValueError, match=r"task.max_cuts=1: task 'dice' needs at least 2"):
+        make_goal(TaskConfig(name="dice", max_cuts=1), "cube")
+    with pytest.raises(ValueError, match=r"task.size=0.5 exceeds"):
+        make_goal(TaskConfig(name="dice", size=0.5), "cube")
+
+
+def test_goal_labels_name_the_fragments_when_a_plane_catches_nothing():
+    """Slabs thinner than the particle spacing: some planes fall between particle layers and cut off nothing.
+    Label i + 1 must still be fragments[i] (renumbered), with no label past the last fragment."""
+    g = make_goal(TaskConfig(name="slice", thickness=0.003, max_cuts=8, num_goal_points=0), "cube", ObjectPose(),
+                  0.008)
+    assert len(g.planes) == 8 and len(g.fragments) < 8  # at least one plane caught no particle
+    assert g.labels.max() == len(g.fragments)
+    assert [int((g.labels == i + 1).sum()) for i in range(len(g.fragments))] == [len(f) for f in g.fragments]
+    for i, f in enumerate(g.fragments):
+        np.testing.assert_array_equal(g.points[g.labels == i + 1], f)
     with pytest.raises(KeyError, match="cake"):
         make_goal(TaskConfig(), "pizza")

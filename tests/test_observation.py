@@ -89,3 +89,15 @@ def test_observation_config_errors():
         ObservationConfig(mode="lidar").validate()
     with pytest.raises(ValueError, match="labels"):
         observe(box(), np.zeros(3), ObservationConfig())
+
+
+@pytest.mark.parametrize("mode", ["particles", "depth"])
+def test_no_points_or_one_point_observe_nothing_without_crashing(mode):
+    cfg = ObservationConfig(mode=mode, num_points=64)
+    for n in (0, 1) if mode == "depth" else (0,):
+        pts, lab = observe(np.full((n, 3), 0.5), np.zeros(n, int), cfg)
+        assert pts.shape == (0, 3) and pts.dtype == np.float32 and lab.shape == (0,) and lab.dtype == np.int32
+    # a cloud behind every camera renders background only
+    cam = make_cameras(ObservationConfig())[0]
+    far = cam.t - 5.0 * cam.R[2]  # behind the camera along its viewing axis
+    assert np.isinf(render_depth(far[None], cam, 0.01)).all()

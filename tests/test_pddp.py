@@ -46,6 +46,25 @@ def test_plane_round_trip(method):
         assert ((pts - p) @ n > 0).astype(np.uint8)[mask == 1].mean() > 0.97  # normal points to class 1
 
 
+@pytest.mark.parametrize("method", ["svm", "lsq"])
+def test_plane_on_a_flat_sheet_and_a_line_of_points(method):
+    """A sheet (all points at one height) and a line of points cut at x=0.5: the boundary of
+    the mask is a segment or a single gap, whose smallest principal axis is not the cut's
+    normal; the recovered plane must still be x=0.5 (vertical) and split the points as the mask does."""
+    rng = np.random.default_rng(3)
+    box = rng.uniform([0.4, 0.42, 0.05], [0.6, 0.58, 0.13], (256, 3))
+    sheet = box.copy()
+    sheet[:, 2] = 0.06
+    line = np.stack([np.linspace(0.41, 0.59, 50), np.full(50, 0.5), np.full(50, 0.08)], 1)
+    for pts in (box, sheet, line):
+        mask = (pts[:, 0] > 0.5).astype(np.uint8)
+        n, p = fit_plane(pts, mask, method)
+        assert (((pts - p) @ n > 0) == mask.astype(bool)).mean() >= 0.98
+        assert abs(n[0]) > 0.9  # the normal is (close to) the x axis
+        a = action_from_mask(pts, mask, method)
+        assert a is not None and abs(np.degrees(a.tilt)) < 30.0
+
+
 def test_plane_degenerate_masks():
     pts = box_points(np.random.default_rng(1), 200)
     assert action_from_mask(pts, np.zeros(200, np.uint8)) is None

@@ -8,6 +8,7 @@ from topocut.reward import (
     descriptor,
     match,
     piecewise_reward,
+    reward_from_distances,
     spectral_descriptors,
     spectral_distance,
     spectral_reward,
@@ -126,6 +127,34 @@ def test_wrong_cut_that_crosses_a_good_slab_lowers_the_total():
     assert len(wrong[1]) < len(right[1])  # the yawed plane took material off the second slab
     r = {k: spectral_reward(v, goal, CFG).total for k, v in (("before", before), ("right", right), ("wrong", wrong))}
     assert r["right"] > r["before"] + 0.2 and r["wrong"] < r["before"] - 0.05
+
+
+def test_bad_points_name_the_fragment():
+    goal = [box(0.02, 0.02, 0.02)]
+    frag = box(0.02, 0.02, 0.02)
+    frag[5, 1] = np.nan
+    with pytest.raises(ValueError, match=r"fragments\[1\] has 1 point\(s\) with NaN"):
+        spectral_reward([box(0.02, 0.02, 0.02), frag], goal, CFG)
+    with pytest.raises(ValueError, match=r"goal_fragments\[0\] has 1 point"):
+        spectral_reward([goal[0]], [frag], CFG)
+    with pytest.raises(ValueError, match="reference_sigma.*distinct points"):
+        spectral_reward([goal[0]], [np.zeros((40, 3))], CFG)
+
+
+def test_matching_maximises_reward_not_closeness():
+    """A far-off extra fragment (R = 0 wherever it goes) must not pull a perfect one off its goal piece."""
+    cfg = RewardConfig()
+    D = np.array([[0.0, 0.3], [0.3, 1.0]])  # fragment 0 is goal 0 exactly; 0.3 and 1.0 both earn R = 0
+    assert match(D, cfg) == [(0, 0), (1, 1)]  # summed distance 1.0 (minimising it would pick 0.6, reward 0)
+    assert reward_from_distances(D, 2, cfg).total == pytest.approx(cfg.r_max / 2)  # kappa = 1/2, R(0) = r_max
+    assert reward_from_distances(D[:1], 2, cfg).total == pytest.approx(cfg.r_max / 2)  # the extra piece costs 0
+    # an inf pair counts as no pair: it must not push fragment 0 onto its worse goal piece
+    D = np.array([[0.01, 0.05], [0.5, np.inf]])
+    assert match(D, cfg) == [(0, 0)]  # (1, 1) is inf: dropped; minimising distance picked (0, 1), (1, 0)
+    R = lambda d: cfg.r_max - cfg.gamma * d  # noqa: E731  (d <= tau)
+    assert reward_from_distances(D, 2, cfg).total == pytest.approx(R(0.01) / 2)
+    # among equal rewards, the smaller summed distance
+    assert match(np.array([[0.5, 0.9], [0.6, 2.0]]), cfg) == [(0, 1), (1, 0)]
 
 
 def test_matching_is_order_invariant_and_bounded():

@@ -169,6 +169,13 @@ def test_match_labels_hungarian_and_fresh_ids():
     raw = np.array([1, 1, 1, 1, 2, 2, 0, 0, 0, -1])  # old 0 splits 4/2; old 1 unchanged
     labels, id_of, nxt = match_labels(raw, prev)
     assert labels.tolist() == [0, 0, 0, 0, 2, 2, 1, 1, 1, -1] and nxt == 3
+    # P: 450 of old 0 + 550 of old 1 (merged); Q: 300 of old 0 alone; S: 500 of old 1 alone. Maximum overlap
+    # over all pairs gives P old 0 (450) and S old 1 (950 > 850): P then fails the half share (45%) and Q,
+    # wholly old 0, lost id 0 too. Among eligible pairs (P-1 55%, Q-0, S-1) the most overlap is P-1 + Q-0.
+    prev = np.r_[np.zeros(450), np.ones(550), np.zeros(300), np.ones(500)].astype(int)
+    raw = np.r_[np.zeros(1000), np.ones(300), np.full(500, 2)].astype(int)
+    labels, id_of, nxt = match_labels(raw, prev)
+    assert id_of.tolist() == [1, 0, 2] and nxt == 3  # Q keeps 0; S, the smaller claim on 1, is new
     # no previous labels: ids by decreasing size
     labels, _, nxt = match_labels(np.array([1, 0, 0, 1, 1]))
     assert labels.tolist() == [0, 1, 1, 0, 0] and nxt == 2

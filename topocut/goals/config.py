@@ -83,6 +83,8 @@ class TaskConfig:
                 raise ValueError(f"task.{k}={getattr(self, k)} must be > 0")
         if self.max_cuts < 1:
             raise ValueError(f"task.max_cuts={self.max_cuts} must be >= 1")
+        if self.name in ("stick", "dice") and self.max_cuts < 2:  # one cut frees the slab, the next the first piece
+            raise ValueError(f"task.max_cuts={self.max_cuts}: task {self.name!r} needs at least 2 (a slab, then its pieces)")
         if self.num_goal_points < 0:
             raise ValueError(f"task.num_goal_points={self.num_goal_points} must be >= 0")
         if self.stage:

@@ -71,10 +71,10 @@ def _slices(pts, axes, step, count, board_z, pad):
     return planes, labels
 
 
-def _sticks(pts, axes, thickness, width, max_cuts, board_z, pad):
+def _sticks(pts, axes, thickness, width, max_cuts, board_z, pad, key="task.thickness"):
     slab_planes, slab = _slices(pts, axes, thickness, 1, board_z, pad)
     if not slab_planes:
-        raise ValueError(f"task.thickness={thickness} exceeds the object's extent")
+        raise ValueError(f"{key}={thickness} exceeds the object's extent")
     in_slab = slab == 1
     s2 = pts @ axes[1]
     hi, lo = (s2 + pad)[in_slab].max(), s2[in_slab].min()
@@ -117,7 +117,7 @@ def make_goal(task: TaskConfig | None, object: str, pose=None, spacing: float = 
     elif task.name == "stick":
         planes, labels = _sticks(p64, axes, task.thickness, task.width, task.max_cuts, board_z, pad)
     elif task.name == "dice":
-        planes, labels = _sticks(p64, axes, task.size, task.size, task.max_cuts, board_z, pad)
+        planes, labels = _sticks(p64, axes, task.size, task.size, task.max_cuts, board_z, pad, key="task.size")
     elif task.name == "pyramid":
         planes, labels = _pyramid(p64, axes, task.size, board_z, pad)
     else:
@@ -127,6 +127,9 @@ def make_goal(task: TaskConfig | None, object: str, pose=None, spacing: float = 
         raise ValueError(f"task {task.name!r} produced no goal piece on {object!r} at spacing {spacing}: "
                          f"increase task.thickness/width/size or decrease spacing")
     fragments = [pts[labels == i] for i in ids]
+    remap = np.zeros(labels.max() + 1, np.int32)  # a plane that caught no particle leaves an empty label:
+    remap[ids] = np.arange(1, len(ids) + 1)  # renumber so that label i + 1 is fragments[i]
+    labels = remap[labels]
     keep = np.arange(len(pts))
     if 0 < task.num_goal_points < len(pts):
         keep = fps(p64, task.num_goal_points)

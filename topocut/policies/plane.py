@@ -9,8 +9,12 @@ is recovered by a linear classifier:
          normalised coordinates so that angles are preserved;
   "lsq": total least squares through the class boundary: the midpoints of each
          point and its k nearest opposite-class points lie within half a gap of
-         the cut; the normal is the smallest principal axis of the tightest such
-         midpoints (weighted by inverse gap).
+         the cut; the normal is a principal axis of the tightest such midpoints
+         (weighted by inverse gap).  The smallest axis is the plane's normal when
+         the boundary spans two directions; on a flat sheet or a line of points
+         the boundary is a segment or a point and its smallest axes include the
+         sheet's own normal, so the axes are tried smallest first and the first
+         whose plane classifies the points (nearly) as well as the best one wins.
 
 A mask with one class only (or too few points of one) has no plane: the
 functions return None, meaning "no cut".
@@ -62,10 +66,16 @@ def _lsq_plane(points, mask, keep: float, k: int = 3):
     # a midpoint's offset from the plane is at most half its gap: weight close pairs more
     w = 1.0 / (g + 0.1 * np.median(g) + 1e-12)
     point = (w[:, None] * m).sum(0) / w.sum()
-    n = np.linalg.svd((m - point) * np.sqrt(w)[:, None], full_matrices=False)[2][-1]
-    if n @ (b.mean(0) - a.mean(0)) < 0:  # orient towards class 1
-        n = -n
-    return n, point
+    axes = np.linalg.svd((m - point) * np.sqrt(w)[:, None], full_matrices=True)[2][::-1]  # smallest variance first
+    side = mask.astype(bool)
+    scores = []
+    for n in axes:
+        if n @ (b.mean(0) - a.mean(0)) < 0:  # orient towards class 1
+            n = -n
+        scores.append((float((((points - point) @ n > 0) == side).mean()), n))
+    top = max(acc for acc, _ in scores)
+    best = next(n for acc, n in scores if acc >= top - 0.01)  # degenerate boundaries: the first axis that separates
+    return best, point
 
 
 def fit_plane(points, mask, method: str = "svm", min_points: int = 3, C: float = 100.0, keep: float = 0.1):

@@ -6,8 +6,10 @@ R(d) is the paper's piecewise-linear map (appendix, "Pose-Invariant Shape Evalua
     R(d) = R_max - gamma tau - delta (d - tau)      for d >  tau        (delta > gamma)
 
 clipped below at 0 (the main text's max(0, .)), so 0 <= R <= R_max.  Fragments are
-assigned to goal pieces one-to-one by the Hungarian algorithm on the distance matrix;
-goal pieces left without a fragment score 0.  total = kappa * sum_g R(d_g), with
+assigned to goal pieces one-to-one by the Hungarian algorithm maximising the summed reward
+(the distance only breaks ties: minimising summed distance instead lets a far-off extra
+fragment, which earns 0 anyway, pull a perfect fragment off its goal piece); goal pieces
+left without a fragment score 0.  total = kappa * sum_g R(d_g), with
 kappa = 1 / G by default so that 0 <= total <= R_max whatever the number G of goal pieces.
 """
 from __future__ import annotations
@@ -32,14 +34,22 @@ def piecewise_reward(d, cfg: RewardConfig | None = None):
     return float(r) if r.ndim == 0 else r
 
 
-def match(distances) -> list[tuple[int, int]]:
-    """Minimum-cost one-to-one (fragment, goal) pairs of an (F,G) matrix; pairs at inf are left out."""
+def match(distances, cfg: RewardConfig | None = None) -> list[tuple[int, int]]:
+    """One-to-one (fragment, goal) pairs of an (F,G) distance matrix with the largest summed R(d); among
+    assignments of equal reward (e.g. fragments all past R's zero) the smallest summed distance.
+    Pairs at inf are left out."""
     D = np.asarray(distances, dtype=np.float64)
     if D.size == 0:
         return []
     finite = np.isfinite(D)
-    big = (D[finite].max() + 1.0) * (D.size + 1) if finite.any() else 1.0  # worse than any finite assignment
-    rows, cols = linear_sum_assignment(np.where(finite, D, big))
+    if not finite.any():
+        return []
+    Df = np.where(finite, D, 0.0)
+    # tie-break: all distance terms together stay below 1e-9, far below any reward difference that matters
+    eps = 1e-9 / (Df.max() * D.size + 1e-300)
+    # an inf pair is worth what no pair is (0: it is dropped), a hair worse than any finite pair of reward 0
+    cost = np.where(finite, -piecewise_reward(Df, cfg) + eps * Df, 1e-9)
+    rows, cols = linear_sum_assignment(cost)
     return sorted((int(r), int(c)) for r, c in zip(rows, cols) if finite[r, c])
 
 
@@ -134,7 +144,7 @@ def distance_matrices(fragment_sets, goal_fragments, cfg: RewardConfig | None = 
 
 def reward_from_distances(D: np.ndarray, G: int, cfg: RewardConfig) -> RewardResult:
     """Matching, R(d) per goal piece, total and N_C from an (F,G) distance matrix (spectral_reward's last step)."""
-    pairs = match(D)
+    pairs = match(D, cfg)
     per_goal = np.zeros(G)
     success = cfg.tau if cfg.success_distance is None else cfg.success_distance
     cut_count = 0

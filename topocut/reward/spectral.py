@@ -32,6 +32,9 @@ def _points(x, name: str = "points") -> np.ndarray:
     x = np.asarray(x, dtype=np.float64)
     if x.ndim != 2 or x.shape[1] != 3:
         raise ValueError(f"{name} must be an (n,3) point array, got shape {x.shape}")
+    if not np.isfinite(x).all():
+        bad = int((~np.isfinite(x)).any(1).sum())
+        raise ValueError(f"{name} has {bad} point(s) with NaN or inf coordinates (of {len(x)})")
     return x
 
 
@@ -54,7 +57,11 @@ def reference_sigma(goals, cfg: RewardConfig | None = None) -> float:
     cfg = _cfg(cfg)
     if cfg.sigma is not None:
         return float(cfg.sigma)
-    return cfg.sigma_scale * float(np.mean([mean_knn_distance(resample(g, cfg), cfg.knn) for g in goals]))
+    sigma = cfg.sigma_scale * float(np.mean([mean_knn_distance(resample(g, cfg), cfg.knn) for g in goals]))
+    if not sigma > 0:  # every goal piece collapsed onto one point: no graph width to compare shapes with
+        raise ValueError(f"reference_sigma: the goal pieces' mean kNN distance is {sigma}; goal pieces need "
+                         "distinct points (or set reward.sigma)")
+    return sigma
 
 
 def laplacian(points: np.ndarray, sigma: float, knn: int) -> sp.csr_matrix:

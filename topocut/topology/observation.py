@@ -124,6 +124,8 @@ def render_depth(x: np.ndarray, cam: Camera, radius: float) -> np.ndarray:
     u, v, z = cam.project(x)
     ok = np.isfinite(u) & (z > radius)
     u, v, z = u[ok], v[ok], z[ok]
+    if not len(z):  # nothing in front of the camera
+        return np.full((cam.height, cam.width), np.inf)
     rp = np.maximum(cam.f * radius / z, 0.5)  # N, disc radius in pixels (at least half a pixel: no holes)
     reach = int(np.ceil(rp.max()))
     img = np.full(cam.height * cam.width, np.inf)
@@ -178,11 +180,16 @@ def observe(positions, labels, cfg: ObservationConfig | None = None, seed: int =
     lab = np.asarray(labels).reshape(-1)
     if lab.shape[0] != len(x):
         raise ValueError(f"labels has {lab.shape[0]} entries, positions has {len(x)}")
+    empty = np.zeros((0, 3), np.float32), np.zeros(0, np.int32)
+    if not len(x):
+        return empty
     if cfg.mode == "particles":
         idx = _fps(x, cfg.num_points, seed)
         return x[idx].astype(np.float32), lab[idx].astype(np.int32)
     rng = np.random.default_rng(seed)
     radius = cfg.splat_radius if cfg.splat_radius > 0 else 0.75 * _spacing(x)
+    if not np.isfinite(radius):  # one particle has no spacing to size its splat: nothing a camera would resolve
+        return empty
     cams = make_cameras(cfg)
     depths = []
     for cam in cams:

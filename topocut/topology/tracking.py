@@ -35,11 +35,14 @@ def assign_ids(counts: np.ndarray, sum_x: np.ndarray | None, overlap: np.ndarray
     id_of = np.full(k, -1, np.int64)
     if overlap is not None and k:
         ov = np.asarray(overlap, np.int64).reshape(k, -1)
-        cols = np.flatnonzero(ov.sum(0) > 0)  # the previous ids that still own particles of some piece
+        # only pairs where the old cluster holds >= min_share of the piece may keep its id: filtering after the
+        # matching would let a merged piece win an old id, fail the share, and take the id from a pure piece too
+        ov = np.where(ov >= min_share * counts[:, None], ov, 0)
+        cols = np.flatnonzero(ov.sum(0) > 0)  # the previous ids some piece may keep
         if len(cols):
             rows, c = linear_sum_assignment(-ov[:, cols])
             o = ov[rows, cols[c]]
-            ok = (o > 0) & (o >= min_share * counts[rows])
+            ok = o > 0
             id_of[rows[ok]] = cols[c[ok]] if old_ids is None else np.asarray(old_ids)[cols[c[ok]]]
     cx = np.zeros(k) if sum_x is None else np.asarray(sum_x, np.float64) / np.maximum(counts, 1)
     order = np.lexsort((cx, -counts))

@@ -211,7 +211,7 @@ class Absorbing(Graph):
     def transition(self, i, sigma):
         keep = torch.exp(-sigma).expand(i.shape)[..., None]
         p = F.one_hot(i, self.dim).to(keep) * keep
-        p[..., self.mask] += (1.0 - keep[..., 0]) * (i != self.mask)
+        p[..., self.mask] += 1.0 - keep[..., 0]  # data states: masked w.p. 1 - e^-s; the mask: keep + 1 - keep = 1
         return p
 
     def transp_transition(self, i, sigma):
