@@ -85,11 +85,17 @@ def run(ctx: RunContext, eval, sim, topology, reward, planner, observation, data
 
     specs = episode_specs(eval)
     task_cfgs = task_configs(eval.tasks, eval.max_cuts)
+    teleop = []
+    if eval.reference == "teleop":  # checked before the simulator starts: a missing log is an error, not NaN R̂
+        from topocut.eval.teleop import teleop_references
+
+        teleop = teleop_references(ctx.store, eval.tasks, eval.unseen, eval.max_cuts)
     sim = dataclasses.replace(sim, arch=ctx.device)  # one backend for Taichi, Warp and torch
     init_taichi(arch=ctx.device, seed=ctx.seed)
     env = CuttingEnv(sim, batch_size=max(1, sim.batch_size) if "mppi" in eval.policies else 1)
     policies, inputs = build_policies(ctx, eval.policies, env, sim, planner, reward, topology, task_cfgs, sampler,
                                       versions=eval.checkpoints)
+    inputs.update({f"teleop/{t.spec.key}": t.ref for t in teleop})
     config = artifact_config(eval, sim, topology, reward, planner, observation, sampler, task_cfgs, ctx.seed)
     writer, existing = ctx.store.begin("eval", eval.name, config, inputs, extra={"seed": ctx.seed,
                                                                                 "device": ctx.device})
@@ -98,15 +104,20 @@ def run(ctx: RunContext, eval, sim, topology, reward, planner, observation, data
     observe_fn = make_observe_fn(eval.observation, eval.num_points, observation, seed=eval.seed)
     run_evaluation(specs, policies, env, task_cfgs, writer.path, reward, topology, observe_fn, cfg=eval,
                    progress=ctx.progress, logger=ctx.logger, spacing=sim.spacing)
+    for t in teleop:  # the human reference: each committed log replayed like a policy, one episode each
+        from topocut.eval.teleop import TeleopReplay
+
+        run_evaluation([t.spec], {"teleop": TeleopReplay(t.cuts)}, env, task_cfgs, writer.path, reward, topology,
+                       observe_fn, cfg=eval, progress=False, logger=ctx.logger, spacing=sim.spacing)
     if eval.gifs > 0:
         render_episodes(specs, policies, env, task_cfgs, writer.path / "gifs", eval, reward, topology,
                         observe_fn, sim.spacing)
     report = write_report(writer.path, reference=eval.reference, normalize_by=eval.normalize_by)
     rows = report["rows"]
-    path = writer.commit({"episodes": len(specs) * len(policies), "policies": list(policies)})
+    path = writer.commit({"episodes": len(specs) * len(policies) + len(teleop), "policies": list(policies)})
     ctx.logger.log_image("eval/results", path / "results.png")
     print((path / "results.md").read_text())
-    return {"eval": str(path), "episodes": len(specs) * len(policies), "rows": len(rows),
+    return {"eval": str(path), "episodes": len(specs) * len(policies) + len(teleop), "rows": len(rows),
             "table": str(path / "results.md")}
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 
 import numpy as np
 
@@ -30,8 +31,39 @@ def _is_multirun() -> bool:
         return False
 
 
+SAMPLED_TILT_MAX = 1.2  # rad: |tilt| bound when a task samples tilt (as topocut.planning.experiments' pyramid MPPI)
+
+
 def episode_seed(run_seed: int, e: int) -> int:
-    return run_seed * 1000 + e
+    """Episode e's seed: distinct for every (run seed, episode) pair in range (run_seed * 1000 + e was not:
+    seed 0 episode 1000 = seed 1 episode 0)."""
+    from topocut.policies.base import mix_seed
+
+    return mix_seed(run_seed, e)
+
+
+def planner_for_task(planner, task):
+    """The MPPI config a task runs with: a task whose goal plane is tilted (task.sample_tilt, the pyramid's
+    35 deg) samples tilt, and |tilt| may reach SAMPLED_TILT_MAX; clipping at the default planner.tilt_max
+    (0.6 rad) would move even the initial guess off the goal plane."""
+    if not task.sample_tilt:
+        return planner
+    dims = list(planner.sampled_dims) + ([] if "tilt" in planner.sampled_dims else ["tilt"])
+    return dataclasses.replace(planner, sampled_dims=dims, tilt_max=max(planner.tilt_max, SAMPLED_TILT_MAX))
+
+
+def episode_scene(object, task, sim, seed: int, planner=None):
+    """(pose, goal) of one episode: the goal on the simulator's board (sim.board_z), as env.reset places the
+    object; with ``planner``, a goal plane tilted beyond planner.tilt_max raises instead of being clipped."""
+    from topocut.goals import make_goal
+
+    pose = object_pose(object, seed)
+    goal = make_goal(task, object.name, pose, spacing=sim.spacing, board_z=sim.board_z)
+    need = max((abs(p.tilt) for p in goal.planes), default=0.0)
+    if planner is not None and need > planner.tilt_max:
+        raise ValueError(f"task={task.name}: the goal's planes tilt up to {need:.4f} rad, beyond "
+                         f"planner.tilt_max={planner.tilt_max}; raise planner.tilt_max")
+    return pose, goal
 
 
 def run(ctx: RunContext, sim, object, task, topology, reward, planner, data, compare_heuristic: bool = True) -> dict:
@@ -40,10 +72,8 @@ def run(ctx: RunContext, sim, object, task, topology, reward, planner, data, com
     if task.name == "scooping":
         raise ValueError("task=scooping has no MPPI stage (the spoon primitive is scripted); valid tasks for "
                          "stage=mppi: slice, stick, dice, pyramid, cream_writing")
-    if task.sample_tilt and "tilt" not in planner.sampled_dims:  # pyramid: the goal plane is tilted
-        planner = dataclasses.replace(planner, sampled_dims=[*planner.sampled_dims, "tilt"])
+    planner = planner_for_task(planner, task)  # pyramid: the goal plane is tilted
     from topocut.data.episodes import EpisodeDataset, EpisodeWriter
-    from topocut.goals import make_goal
     from topocut.planning import HeuristicPolicy, MPPIPolicy, run_episode, sim_rollout_factory
     from topocut.sim import CuttingEnv, init_taichi
 
@@ -66,14 +96,14 @@ def run(ctx: RunContext, sim, object, task, topology, reward, planner, data, com
     factory = sim_rollout_factory(env, reward, topology, board_z=sim.board_z, push=task.push)
     expert = MPPIPolicy(planner, factory, seed=ctx.seed)
     log_path = writer.path / "episodes.jsonl"
+    read_records(log_path, repair=True)  # a run killed while logging left a torn last line: drop it
     with progress_bar(f"mppi {task.name}/{object.name}", data.episodes * task.max_cuts, ctx.progress) as advance:
         for e in range(data.episodes):
             seed = episode_seed(ctx.seed, e)
             if ew.episode_key({"task": task.name, "object": object.name, "seed": seed}) in done:
                 advance(task.max_cuts, info=f"episode {e} already committed")
                 continue
-            pose = object_pose(object, seed)
-            goal = make_goal(task, object.name, pose, spacing=sim.spacing)
+            pose, goal = episode_scene(object, task, sim, seed, planner)
             record = {"episode": e, "seed": seed}
             if compare_heuristic:  # the same episode under the heuristic, for docs/data.md's comparison
                 env.reset(object.name, pose, seed=seed)
@@ -161,14 +191,36 @@ def run_writing(ctx: RunContext, sim, task, topology, reward, planner, compare_s
     return {"artifact": str(path), **summary}
 
 
-def read_records(path) -> list[dict]:
-    """The episode log's records, one per episode (the last one written: a re-run episode logs twice)."""
+def read_records(path, repair: bool = False) -> list[dict]:
+    """The episode log's records, one per episode (the last one written: a re-run episode logs twice).
+
+    A record is logged before its episode is committed, so a run killed while writing one leaves a torn last
+    line whose episode is not committed and runs again: that line is dropped (``repair``: from the file too,
+    so that the next record starts on a line of its own).  An unreadable line before the last raises,
+    naming the file and the line.
+    """
     latest = {}
-    if path.exists():
-        for line in path.read_text().splitlines():
-            if line.strip():
-                r = json.loads(line)
-                latest[r["episode"]] = r
+    if not path.exists():
+        return []
+    text = path.read_text()
+    lines = text.splitlines()
+    last = max((i for i, line in enumerate(lines) if line.strip()), default=-1)
+    keep = len(lines)
+    for i, line in enumerate(lines):
+        if not line.strip():
+            continue
+        try:
+            r = json.loads(line)
+            latest[r["episode"]] = r
+        except (json.JSONDecodeError, KeyError, TypeError) as e:
+            if i != last:
+                raise ValueError(f"{path}, line {i + 1}: not an episode record ({e}); only the last line may be "
+                                 f"torn (a killed run): fix or delete this one") from e
+            keep = i
+    if repair and (keep < len(lines) or (text and not text.endswith("\n"))):
+        tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+        tmp.write_text("".join(line + "\n" for line in lines[:keep]))
+        os.replace(tmp, path)
     return [latest[e] for e in sorted(latest)]
 
 

@@ -22,11 +22,23 @@ def check_task(log: dict, task: str, log_path) -> None:
                          f"replay it with task={log['task']}")
 
 
+def record_session(session, path, backend: str = "auto") -> Path:
+    """Run the live window; the action log is saved to ``path`` (atomically: temp file + rename) however the
+    session ends, so that an error or Ctrl-C in the window loses none of the recorded actions."""
+    from topocut.planning.teleop import run_window
+
+    try:
+        run_window(session, backend=backend)
+    finally:
+        saved = session.save(path)
+    return saved
+
+
 def run(ctx: RunContext, sim, object, task, topology, reward, data, replay: str | None = None,
         backend: str = "auto") -> dict:
     from topocut.data.episodes import EpisodeDataset, EpisodeWriter
     from topocut.goals import make_goal
-    from topocut.planning.teleop import TeleopSession, load_log, run_window
+    from topocut.planning.teleop import TeleopSession, load_log
     from topocut.planning.teleop import replay as replay_log
     from topocut.sim import CuttingEnv, init_taichi
     from topocut.sim.objects import ObjectPose
@@ -45,8 +57,7 @@ def run(ctx: RunContext, sim, object, task, topology, reward, data, replay: str 
         goal = make_goal(task, object.name, pose, spacing=sim.spacing, board_z=sim.board_z)
         session = TeleopSession(env, goal, object.name, pose, ctx.seed, task.name, reward, topology,
                                 task.success_threshold)
-        run_window(session, backend=backend)
-        log_path = session.save(ctx.run_dir / "teleop_log.json")
+        log_path = record_session(session, ctx.run_dir / "teleop_log.json", backend)
     log = load_log(log_path)
     pose = ObjectPose(**log["pose"]) if isinstance(log.get("pose"), dict) else ObjectPose()
     goal = make_goal(task, log["object"], pose, spacing=sim.spacing, board_z=sim.board_z)

@@ -100,3 +100,27 @@ def test_stick_with_one_cut_is_refused_naming_the_key():
     cfg = _compose("task=stick", "task.max_cuts=1")
     with pytest.raises(ConfigError, match=r"task\.max_cuts.*at least 2"):
         validate(cfg)
+
+
+@pytest.mark.parametrize("override, key", [
+    ("eval.seen=[cake,bagel]", r"eval\.seen: unknown object 'bagel'"),
+    ("eval.unseen=[donut,Steak]", r"eval\.unseen: unknown object 'Steak'"),
+    ("trainer.held_out_objects=[donuts]", r"trainer\.held_out_objects: unknown object 'donuts'"),
+    ("data.episodes=0", r"data\.episodes: 0 .*>= 1"),
+    ("data.points_per_step=-5", r"data\.points_per_step: -5 .*>= 1"),
+    ("trainer.max_epochs=0", r"trainer\.max_epochs: 0 "),
+    ("trainer.batch_size=0", r"trainer\.batch_size: 0 .*>= 1"),
+    ("seed=-1", r"seed: -1 .*2\*\*31 - 1"),
+    ("seed=2147483647", r"seed: 2147483647 "),
+    ("trainer.max_steps=0", r"trainer\.max_steps: 0 "),
+])
+def test_out_of_range_values_fail_up_front_naming_the_key(override, key):
+    """Caught at composition, before a simulator or a dataset is touched (they failed deep in a stage before)."""
+    cfg = _compose("stage=eval", override)
+    with pytest.raises(ConfigError, match=key):
+        validate(cfg)
+
+
+def test_boundary_values_pass():
+    validate(_compose("stage=eval", "data.episodes=1", "trainer.batch_size=1", "seed=2147483646",
+                      "trainer.max_epochs=-1", "trainer.max_steps=10", "eval.unseen=[tomato]"))

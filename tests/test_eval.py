@@ -371,3 +371,56 @@ def test_eval_artifact_key_covers_sampler_and_task_parameters():
     assert key != config_key(artifact_config(*args, SamplerConfig(plane="lsq"), tasks, 0))
     other = {"slice": dataclasses.replace(tasks["slice"], push=not tasks["slice"].push)}
     assert key != config_key(artifact_config(*args, SamplerConfig(), other, 0))
+
+
+# -- teleop as the reference ------------------------------------------------------------------------------
+def _commit_teleop_log(store, task, obj, actions, seed=0, pose=None, replay_config=0):
+    w, _ = store.begin("dataset", f"teleop-{task}-{obj}", {"actions": actions, "seed": seed, "sim": replay_config})
+    log = {"object": obj, "task": task, "seed": seed, "pose": pose or {"x": 0.5, "y": 0.5}, "actions": actions}
+    (w.path / "teleop_log.json").write_text(json.dumps(log))
+    return w.commit()
+
+
+def test_teleop_reference_replays_committed_logs_like_a_policy(tmp_path):
+    """eval.reference=teleop: each committed teleop log becomes one reference episode (undos applied), scored by
+    the same evaluate_episode as the policies it normalises; a task without a log fails before any episode."""
+    from topocut.data.store import ArtifactStore
+    from topocut.eval.teleop import TeleopReplay, effective_cuts, teleop_references
+    from topocut.sim.objects import ObjectPose
+
+    pose = {"x": 0.5, "y": 0.5, "yaw": 0.0, "scale": 1.0}
+    x0 = 0.5 - 0.1  # the fake goal's planes are at x0 + 0.05 k (k = 3, 2, 1)
+    cut = lambda k: {"type": "cut", "action": [x0 + 0.05 * k, 0.5, 0.0, 0.0]}  # noqa: E731
+    wrong = {"type": "cut", "action": [x0 + 0.013, 0.5, 0.0, 0.0]}
+    # the human cuts a wrong slice, undoes it, then makes the three goal cuts with a push in between
+    full = [cut(3), wrong, {"type": "undo", "action": None}, cut(2), {"type": "push", "action": None}, cut(1)]
+    assert effective_cuts({"actions": full}) == [c["action"] for c in (cut(3), cut(2), cut(1))]
+    with pytest.raises(ValueError, match=r"my.json: actions\[1\] is a cut without"):
+        effective_cuts({"actions": [cut(3), {"type": "cut"}]}, "my.json")
+
+    store = ArtifactStore(tmp_path / "store")
+    with pytest.raises(ValueError, match="no teleop log for task 'slice'.*stage=teleop task=slice"):
+        teleop_references(store, ["slice"])
+    _commit_teleop_log(store, "slice", "cube", full, seed=5, pose=pose)
+    _commit_teleop_log(store, "slice", "cube", full, seed=5, pose=pose, replay_config=1)  # same log, replayed again
+    _commit_teleop_log(store, "slice", "donut", [cut(3)], seed=6, pose=pose)  # one of three cuts
+    _commit_teleop_log(store, "stick", "cube", [cut(3)], pose=pose)  # not an evaluated task here
+    refs = teleop_references(store, ["slice"], unseen=["donut"])
+    assert [(r.spec.object, r.spec.split, r.spec.seed, len(r.cuts)) for r in refs] == [("cube", "in", 5, 3),
+                                                                                       ("donut", "out", 6, 1)]
+    assert refs[0].spec.pose == ObjectPose(**pose) and refs[0].ref.startswith("dataset/teleop-slice-cube:v002@")
+    with pytest.warns(UserWarning, match="made 3 cuts; the protocol replays the first 2"):
+        assert len(teleop_references(store, ["slice"], max_cuts=2)[0].cuts) == 3  # the policy stops at max_cuts
+    with pytest.raises(ValueError, match="no teleop log for task 'dice'"):
+        teleop_references(store, ["slice", "dice"])
+
+    env, tasks = BoxEnv(), {"slice": slice_task()}
+    for r in refs:
+        run_evaluation([r.spec], {"teleop": TeleopReplay(r.cuts)}, env, tasks, tmp_path, progress=False, **FAKES)
+    assert [(o, s) for o, _, s in env.resets] == [("cube", 5), ("donut", 6)]
+    eps = {e["spec"]["object"]: e for e in load_episodes(tmp_path)}
+    # three goal cuts make four 0.04 slabs: all four match (R = 1); one cut leaves one matching slab (R = 1/4)
+    assert (eps["cube"]["final_reward"], eps["cube"]["final_cut_count"], eps["cube"]["num_cuts"]) == (1.0, 4, 3)
+    assert (eps["donut"]["final_reward"], eps["donut"]["final_cut_count"]) == (0.25, 1)
+    rows = {r["split"]: r for r in summarize(load_episodes(tmp_path), "teleop")}
+    assert rows["in"]["reference_R_mean"] == pytest.approx((1.0 + 0.25) / 2)  # one mean per task, both splits

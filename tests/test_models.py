@@ -248,6 +248,19 @@ def test_config_errors_name_key_and_valid_values():
         DynamicsModule({"hiden": 32})
 
 
+@pytest.mark.parametrize("value", [0.0, -0.1, float("nan")])
+def test_pos_scale_must_be_positive(value):
+    """pos_scale divides every point-set distance: 0 gave inf/NaN losses (and an EMD ValueError), < 0 flipped
+    the sign of the loss."""
+    with pytest.raises(ValueError, match=r"model\.pos_scale=.* must be > 0"):
+        DynamicsConfig(pos_scale=value).validate()
+    with pytest.raises(ValueError, match=r"model\.coord_scale=0.0 must be > 0"):
+        DynamicsConfig(coord_scale=0.0).validate()
+    with pytest.raises(ValueError, match=r"model\.lr=-1.0 must be >= 0"):
+        DynamicsConfig(lr=-1.0).validate()
+    assert DynamicsConfig(pos_scale=1e-3, noise_std=0.0).validate().pos_scale == 1e-3
+
+
 def test_validation_logs_the_mask_rule_floor():
     """val/mask_rule_acc: split each input cluster by the cut mask. Truth = that split -> 1; truth = no split
     of a half/half mask -> 1/2 (Hungarian keeps the better half); truth = a split at 3/4 of the points -> 3/4
@@ -263,5 +276,6 @@ def test_validation_logs_the_mask_rule_floor():
         batch = {"x_t": x, "f_t": torch.zeros(2, N, dtype=torch.long), "mask": mask, "x_t1": x, "f_t1": f_t1,
                  "seen": torch.tensor([True, False])}
         module.validation_step(batch, 0)
+        module.on_validation_epoch_end()  # epoch means (EpochMeans), then reset
         assert logged["val/mask_rule_acc"] == pytest.approx(want)
         assert logged["val/mask_rule_acc_seen"] == logged["val/mask_rule_acc_unseen"] == pytest.approx(want)

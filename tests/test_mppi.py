@@ -263,3 +263,103 @@ def test_plane_scorer_matches_the_rollout_and_survives_divergence(monkeypatch):
 
     monkeypatch.setattr(env, "cut", diverge)
     assert np.isinf(scorer.rollout(seqs)).all()
+
+
+# ---- review fixes: executed = evaluated plane, the stage's tilt bound, goal board height, episode log, seeds ----
+
+def test_mppi_policy_executes_exactly_the_float32_plane_its_rollouts_evaluated():
+    from topocut.planning.rollout import _as_actions
+
+    # plane 0 at yaw = pi/2 exactly: float32(pi/2) > pi/2, so the rollout ran the canonical yaw ~ -pi/2
+    planes = [KnifeAction(0.43, 0.5, np.pi / 2), KnifeAction(0.47, 0.5, 1.2)]
+    for best in (0, 1):  # 0: the unperturbed mean (include_mean); 1: a perturbed float64 sample
+        seen = []
+
+        def factory(obs, goal, seen=seen, best=best):
+            def rollout(seqs):
+                seen.append(seqs.copy())
+                return np.where(np.arange(len(seqs)) == best, -1.0, 0.0)
+            return rollout
+
+        pol = MPPIPolicy(MPPIConfig(num_samples=4, iterations=1), factory, seed=0, goal=Goal(planes))
+        a = pol.act({})
+        evaluated = seen[0][best, 0]
+        assert seen[0].dtype == np.float32
+        ran = _as_actions(np.asarray(seen[0], np.float64)[:, 0])[best]  # as make_sim_rollout turns it into a cut
+        assert a == ran  # every field bit-for-bit, not the float64 sample ~1e-8 away
+        np.testing.assert_array_equal(a.to_vector(), ran.to_vector())
+        if best == 1:
+            np.testing.assert_array_equal(a.to_vector(), evaluated)
+        else:  # the wrapped yaw: same plane as float32(pi/2), normal reversed to the canonical side
+            assert float(evaluated[2]) > np.pi / 2 and -np.pi / 2 < a.yaw < -np.pi / 2 + 1e-6
+            np.testing.assert_allclose(a.normal, [0, -1, 0], atol=1e-6)
+
+
+def _compose(*overrides):
+    from hydra import compose, initialize_config_dir
+
+    from topocut.config import register_configs, to_dataclass
+
+    register_configs()
+    conf = str(__import__("pathlib").Path(__file__).resolve().parents[1] / "conf")
+    with initialize_config_dir(config_dir=conf, version_base="1.3"):
+        cfg = compose(config_name="config", overrides=["stage=mppi", "logger=none", *overrides])
+    return {k: to_dataclass(cfg[k]) for k in ("sim", "object", "task", "planner")}
+
+
+def test_mppi_stage_planner_covers_the_pyramid_goal_tilt():
+    from pipelines.mppi import episode_scene, planner_for_task
+
+    cfg = _compose("task=pyramid", "object=cube", "object.randomize_pose=false")
+    task, planner = cfg["task"], cfg["planner"]
+    stage_planner = planner_for_task(planner, task)
+    _, goal = episode_scene(cfg["object"], task, cfg["sim"], 0, stage_planner)
+    tilt = goal.planes[0].tilt
+    assert tilt == pytest.approx(np.arcsin(1 / np.sqrt(3)), abs=2e-3)  # corner face normal (1,1,1)/sqrt(3): 35.26 deg
+    assert planner.tilt_max < tilt <= stage_planner.tilt_max and "tilt" in stage_planner.sampled_dims
+    start = HeuristicPolicy(goal).sequence(0, 1)
+    assert MPPI(stage_planner, lambda s: np.zeros(len(s))).clip(start)[0, 3] == start[0, 3]  # not clipped
+    with pytest.raises(ValueError, match=r"tilt up to 0\.61.*planner\.tilt_max=0\.6"):
+        episode_scene(cfg["object"], task, cfg["sim"], 0, planner)  # the bound the stage used to plan with
+    assert planner_for_task(planner, _compose("task=slice")["task"]) is planner
+
+
+def test_mppi_stage_goal_sits_on_the_configured_board():
+    from pipelines.mppi import episode_scene
+
+    for board_z in (0.05, 0.12):
+        cfg = _compose("task=slice", "object=cube", "object.randomize_pose=false", "sim.n_grid=32",
+                       f"sim.board_z={board_z}")
+        _, goal = episode_scene(cfg["object"], cfg["task"], cfg["sim"], 0)
+        z0 = goal.points[:, 2].min()
+        assert board_z <= z0 <= board_z + cfg["sim"].spacing  # the object rests on the board, as env.reset puts it
+
+
+def test_mppi_episode_log_drops_a_torn_last_line_and_names_a_corrupt_one(tmp_path):
+    import json
+
+    from pipelines.mppi import read_records
+
+    log = tmp_path / "episodes.jsonl"
+    ep0, ep1, ep2 = ({"episode": e, "final_reward": r} for e, r in ((0, 0.9), (1, 0.8), (2, 0.7)))
+    log.write_text(json.dumps(ep0) + "\n" + '{"episode": 1, "final_rew')  # killed while logging episode 1
+    assert read_records(log) == [ep0]
+    assert log.read_text().endswith("final_rew")  # reading alone leaves the file as it is
+    assert read_records(log, repair=True) == [ep0]  # what the stage does before running episodes
+    assert log.read_text() == json.dumps(ep0) + "\n"
+    with open(log, "a") as f:  # the resumed run logs episodes 1 (again) and 2
+        f.write(json.dumps(ep1) + "\n" + json.dumps(ep2) + "\n")
+    assert read_records(log) == [ep0, ep1, ep2]
+    log.write_text(json.dumps(ep0) + "\n" + '{"episode": 1, "final_rew' + "\n" + json.dumps(ep2) + "\n")
+    with pytest.raises(ValueError, match=rf"{__import__('re').escape(str(log))}, line 2: not an episode record"):
+        read_records(log, repair=True)
+    assert "final_rew\n" in log.read_text()  # nothing dropped from a log that is corrupt in the middle
+
+
+def test_mppi_episode_seeds_never_collide():
+    from pipelines.mppi import episode_seed
+
+    assert episode_seed(0, 1000) != episode_seed(1, 0)
+    seeds = [episode_seed(s, e) for s in range(5) for e in range(3000)]
+    assert len(set(seeds)) == len(seeds) and 0 <= min(seeds) and max(seeds) < 2**31
+    assert episode_seed(7, 2) == 7 * 1_000_003 + 2  # mix_seed, as the MPPI policy mixes its own seed

@@ -149,7 +149,7 @@ def test_killed_mppi_resumes_without_redoing_episodes(resumed):
     ds = EpisodeDataset(path / "data.zarr")
     assert ds.num_episodes == RESUME_EPISODES
     seeds = [ds.meta(e)["seed"] for e in range(ds.num_episodes)]
-    assert sorted(seeds) == [RESUME_SEED * 1000 + e for e in range(RESUME_EPISODES)]
+    assert sorted(seeds) == [RESUME_SEED * 1_000_003 + e for e in range(RESUME_EPISODES)]  # mix_seed(seed, e)
     # episode 0 was written by the killed run and kept, not recomputed (bytes identical)
     x0 = ds[0]["x_t"]
     assert x0.dtype == resumed["first_x"].dtype and x0.shape == resumed["first_x"].shape

@@ -127,3 +127,42 @@ def test_names_lists_only_names_with_a_committed_version(tmp_path):
     assert store.names("dataset") == ["demos"]
     with pytest.raises(MissingArtifact, match=r"known dataset names: \['demos'\]"):
         store.resolve("dataset", "half-written")
+
+
+def test_a_second_process_writing_the_same_version_is_refused_and_the_first_lands(tmp_path):
+    """Two identical runs at once would interleave files in one .partial-<key>; the second must stop clearly."""
+    store = ArtifactStore(tmp_path)
+    writer, _ = store.begin("dataset", "demos", {"k": 7})
+    (writer.path / "a.txt").write_text("first")
+    script = textwrap.dedent(f"""
+        import sys
+        from topocut.data.store import ArtifactBusy, ArtifactStore
+        try:
+            ArtifactStore({str(tmp_path)!r}).begin("dataset", "demos", {{"k": 7}})
+        except ArtifactBusy as e:
+            print(e)
+            sys.exit(3)
+    """)
+    r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    assert r.returncode == 3 and "dataset/demos" in r.stdout and "locked" in r.stdout
+    other = subprocess.run([sys.executable, "-c", script.replace('"k": 7', '"k": 8')], capture_output=True, text=True)
+    assert other.returncode == 0, other.stderr  # a different config is a different version: not blocked
+    path = writer.commit()
+    assert (path / "a.txt").read_text() == "first"
+    r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    assert r.returncode == 0, r.stdout + r.stderr  # committed: the lock is released, the version is reused
+    assert store.begin("dataset", "demos", {"k": 7}) == (None, path)
+
+
+def test_ddp_ranks_above_zero_do_not_take_the_lock_and_locks_stay_out_of_versions(tmp_path, monkeypatch):
+    """Lightning re-runs the stage on ranks 1..N-1 while rank 0 holds the lock: they must not be refused."""
+    store = ArtifactStore(tmp_path)
+    w0, _ = store.begin("checkpoint", "perception", {"k": 1})  # rank 0 (no rank variables) holds the lock
+    monkeypatch.setenv("LOCAL_RANK", "1")
+    w1, _ = store.begin("checkpoint", "perception", {"k": 1})
+    assert w1.path == w0.path and w1._lock is None
+    monkeypatch.delenv("LOCAL_RANK")
+    (w0.path / "m.txt").write_text("rank 0")
+    final = w0.commit()
+    left = sorted(p.name for p in (tmp_path / "checkpoint" / "perception").iterdir())
+    assert left == ["v001"] and sorted(json.loads((final / "manifest.json").read_text())["files"]) == ["m.txt"]

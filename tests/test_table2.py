@@ -30,3 +30,40 @@ def test_rows_follow_configs_and_reruns_keep_the_newest(tmp_path):
     assert rows[2]["parameters"] == 99 and rows[0]["chamfer"] == 0.004
     text = markdown(rows)
     assert text.count("\n") == 2 + 3 and "| pointnet | yes | yes | 512 | 0.800 | 0.750 | — | — |" in text
+
+
+def _run(store, model, trainer, metrics, seed=0):
+    w, _ = store.begin("checkpoint", "perception", {"model": model, "trainer": trainer, "seed": seed},
+                       {"dataset": "dataset/demos:v001"})
+    (w.path / "metrics.json").write_text(json.dumps({"metrics": metrics}))
+    return w.commit({"parameters": 10})
+
+
+def test_runs_differing_in_any_setting_get_their_own_rows_and_noise_means_jitter(tmp_path):
+    store = ArtifactStore(tmp_path)
+    g = {"model": "graph_transformer", "sort": True, "noise": True, "noise_std": 0.002, "num_points": 256}
+    t = {"max_epochs": 20, "held_out_objects": ["donut", "burger"], "batch_size": 16, "num_workers": 0}
+    _run(store, g, t, {"val/cluster_acc_seen": 0.5})  # v001
+    _run(store, g, {**t, "max_epochs": 40}, {"val/cluster_acc_seen": 0.6})  # v002: longer
+    _run(store, g, {**t, "held_out_objects": []}, {"val/cluster_acc_seen": 0.7})  # v003: nothing held out
+    _run(store, {**g, "hidden": 64}, t, {"val/cluster_acc_seen": 0.8})  # v004: a smaller network
+    _run(store, {**g, "noise_std": 0.0}, t, {"val/cluster_acc_seen": 0.3})  # v005: noise on, but std 0
+    _run(store, {**g, "noise": False}, t, {"val/cluster_acc_seen": 0.35})  # v006: the same run as v005
+    _run(store, g, {**t, "num_workers": 4}, {"val/cluster_acc_seen": 0.55}, seed=1)  # v007: rerun of v001
+    rows = collect(tmp_path)
+    got = {r["version"]: (r["noise"], r["held_out"], r["epochs"], r["other"], r["seen"]) for r in rows}
+    assert got == {
+        "perception/v002": (True, "burger,donut", 40, "model.hidden=96", 0.6),
+        "perception/v003": (True, "none", 20, "model.hidden=96", 0.7),
+        "perception/v004": (True, "burger,donut", 20, "model.hidden=64", 0.8),
+        "perception/v006": (False, "burger,donut", 20, "model.hidden=96", 0.35),
+        "perception/v007": (True, "burger,donut", 20, "model.hidden=96", 0.55)}
+    assert "| graph_transformer | yes | no | 256 | 0.350 |" in markdown(rows)
+
+
+def test_noise_std_is_listed_when_noisy_runs_differ_in_it(tmp_path):
+    store = ArtifactStore(tmp_path)
+    g = {"model": "graph_transformer", "sort": True, "noise": True, "noise_std": 0.002, "num_points": 256}
+    _run(store, g, {}, {})
+    _run(store, {**g, "noise_std": 0.01}, {}, {})
+    assert sorted(r["other"] for r in collect(tmp_path)) == ["model.noise_std=0.002", "model.noise_std=0.01"]

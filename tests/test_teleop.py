@@ -5,12 +5,14 @@ a cut moves the particles on the +n side of the plane by 0.01 along n, a push
 lowers everything by 0.005; the fake scorer splits clusters by cut planes.
 """
 import json
+import re
 from dataclasses import dataclass
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
+import topocut.planning.teleop as teleop
 from topocut.planning.rollout import run_episode
 from topocut.planning.teleop import Key, MouseMove, TeleopConfig, TeleopSession, Wheel, load_log, replay
 from topocut.sim.action import KnifeAction, cut_mask
@@ -29,6 +31,7 @@ class FakeEnv:
     def __init__(self, batch_size=1, n=80):
         self.batch_size, self.n, self.cfg = batch_size, n, SimpleNamespace(board_z=0.05)
         self.raise_on_cut = None
+        self.executed = []  # the actions of every cut, as the simulator received them
 
     def reset(self, object, pose=None, seed=0):
         rng = np.random.default_rng(seed)
@@ -40,6 +43,7 @@ class FakeEnv:
         if self.raise_on_cut is not None:
             raise self.raise_on_cut
         acts = action if isinstance(action, list) else [action]
+        self.executed.append(acts[0])
         for b, a in enumerate(acts):
             side = cut_mask(self.x[b], a).astype(np.float32)
             self.x[b] += (0.01 * side[:, None] * a.normal).astype(np.float32)
@@ -254,3 +258,135 @@ def test_sim_rollout_chunks_restore_state_and_score_on_fake_env():
         results.append(costs)
     np.testing.assert_array_equal(results[0], results[1])
     np.testing.assert_array_equal(results[0], results[2])
+
+
+# ---- review fixes: failed cuts, window fallback, log safety, entry errors, float32 planes ------------------
+
+def _diverged():
+    from topocut.sim import SimulationDiverged
+
+    return SimulationDiverged(812, 0)
+
+
+def test_failed_cut_is_reported_and_changes_nothing(tmp_path):
+    s = session(tmp_path)
+    x0 = s.env.get_state(0)["x"].copy()
+    s.handle(MouseMove(0.45, 0.5))
+    s.handle(Key("c"))
+    x1, labels1, log1 = s.env.get_state(0)["x"].copy(), s.labels.copy(), json.dumps(s.log)
+    cut = s.env.cut
+
+    def cut_then_diverge(action):  # the simulator moved particles before it noticed the NaN
+        cut(action)
+        raise _diverged()
+
+    s.env.cut = cut_then_diverge
+    s.handle(MouseMove(0.55, 0.5))
+    msg = s.handle(Key("c"))  # reported to the operator, the session goes on
+    assert msg.startswith("cut failed, scene restored") and "substep 812" in msg and not s.done
+    with pytest.raises(type(_diverged()), match="substep 812"):  # called directly: raised as itself
+        s.cut()
+    assert len(s.steps) == 1 and len(s._snapshots) == 1 and json.dumps(s.log) == log1
+    np.testing.assert_array_equal(s.env.get_state(0)["x"], x1)  # the scene before the failed cut
+    np.testing.assert_array_equal(s.labels, labels1)
+    s.env.cut = cut
+    s.handle(Key("u"))  # undoes the one cut that happened, not the failed one
+    assert len(s.steps) == 0
+    np.testing.assert_array_equal(s.env.get_state(0)["x"], x0)
+    s.env.raise_on_cut = ValueError("scorer bug")  # anything but a divergence propagates as itself
+    with pytest.raises(ValueError, match="scorer bug"):
+        s.handle(Key("c"))
+
+
+def test_window_fallback_covers_only_opening_a_window(monkeypatch, tmp_path):
+    opened, looped = [], []
+
+    def open_window(kind, res):
+        opened.append(kind)
+        if kind in fail:
+            raise RuntimeError(f"no {kind} here")
+        return kind
+
+    def loop(kind):
+        def run(session, window):
+            looped.append(kind)
+            session.handle(MouseMove(0.45, 0.5))
+            session.handle(Key("c"))
+            if kind == "ggui":
+                raise KeyError("bug in the loop")
+        return run
+
+    monkeypatch.setattr(teleop, "_ensure_taichi", lambda: None)
+    monkeypatch.setattr(teleop, "_open_window", open_window)
+    monkeypatch.setattr(teleop, "_loop_ggui", loop("ggui"))
+    monkeypatch.setattr(teleop, "_loop_cpu_gui", loop("gui"))
+    fail = set()
+    s = session(tmp_path)
+    with pytest.raises(KeyError, match="bug in the loop"):  # not "cannot open a teleop window", no second GUI
+        teleop.run_window(s, backend="auto")
+    assert opened == ["ggui"] and looped == ["ggui"] and len(s.steps) == 1
+    opened.clear()
+    looped.clear()
+    fail = {"ggui"}
+    assert teleop.run_window(session(tmp_path), backend="auto").steps  # no Vulkan: the CPU GUI runs the session
+    assert opened == ["ggui", "gui"] and looped == ["gui"]
+    with pytest.raises(RuntimeError, match="GGUI window unavailable.*no ggui here"):
+        teleop.run_window(session(tmp_path), backend="ggui")
+    fail = {"ggui", "gui"}
+    with pytest.raises(RuntimeError, match="cannot open a teleop window.*no gui here.*stage.run.replay"):
+        teleop.run_window(session(tmp_path), backend="auto")
+
+
+def test_live_log_is_saved_when_the_session_fails(monkeypatch, tmp_path):
+    from pipelines.teleop import record_session
+
+    def window(session, backend):
+        session.handle(MouseMove(0.45, 0.5))
+        session.handle(Key("c"))
+        raise KeyboardInterrupt  # Ctrl-C in the terminal, or any error in the window
+
+    monkeypatch.setattr(teleop, "run_window", window)
+    s, path = session(tmp_path), tmp_path / "run" / "teleop_log.json"
+    with pytest.raises(KeyboardInterrupt):
+        record_session(s, path)
+    assert load_log(path)["actions"] == [{"type": "cut", "action": [0.44999998807907104, 0.5, 0.0, 0.0]}]
+    assert [p.name for p in path.parent.iterdir()] == ["teleop_log.json"]  # written via a temp file + rename
+    monkeypatch.setattr(teleop, "run_window", lambda session, backend: session.handle(Key("p")))
+    assert record_session(s, path) == path and [a["type"] for a in load_log(path)["actions"]] == ["cut", "push"]
+
+
+def test_bad_log_entries_name_the_file_and_the_index(tmp_path):
+    path = tmp_path / "log.json"
+    ok = {"type": "cut", "action": [0.45, 0.5, 0.0, 0.0]}
+    for actions, needle in [([ok, {"type": "cut"}], "entry 1: a cut has no 'action'"),
+                            ([ok, {"type": "push"}, {"type": "cut", "action": [0.5, 0.5]}], "entry 2: .*4 finite"),
+                            ([{"type": "slice"}], "entry 0: entry type 'slice'; valid: cut, push, undo")]:
+        path.write_text(json.dumps({"object": "cube", "seed": 0, "task": "slice", "actions": actions}))
+        for call in (lambda: load_log(path), lambda: replay(path, FakeEnv(), GOAL, scorer=FakeScorer())):
+            with pytest.raises(ValueError, match=f"teleop log {re.escape(str(path))}, {needle}"):
+                call()
+        with pytest.raises(ValueError, match=f"teleop log, {needle}"):  # a dict: checked before any cut runs
+            replay(json.loads(path.read_text()), FakeEnv(), GOAL, scorer=FakeScorer())
+    path.write_text('{"object": "cube", "seed": 0, "actions": [')  # torn file
+    with pytest.raises(ValueError, match=f"teleop log {re.escape(str(path))} is not valid JSON.*line 1"):
+        replay(path, FakeEnv(), GOAL, scorer=FakeScorer())
+
+
+def test_stored_action_is_the_plane_that_was_executed():
+    """yaw = pi/2 exactly: float32(pi/2) > pi/2 wraps to -pi/2 with the normal reversed, so a record that
+    stored float32 of the executed float64 action would describe the opposite half-space."""
+    a = KnifeAction(0.5, 0.5, yaw=np.pi / 2)
+    env = FakeEnv()
+    env.reset("cube", None, seed=0)
+    steps, _ = run_episode(env, GOAL, Scripted([a]), max_cuts=1, scorer=FakeScorer(9))
+    s = TeleopSession(FakeEnv(), GOAL, "cube", None, 0, "slice", scorer=FakeScorer(9))
+    s.apply({"type": "cut", "action": [0.5, 0.5, np.pi / 2, 0.0]})
+    for step, executed in ((steps[0], env.executed[0]), (s.steps[0], s.env.executed[0])):
+        stored = KnifeAction.from_vector(step["action"])
+        assert stored == executed
+        np.testing.assert_array_equal(step["pose"], executed.to_matrix(0.05).astype(np.float32))
+        moved = np.any(step["x_t1"] != step["x_t"], axis=1)  # the fake moves the +n side by 0.01 n
+        assert 0 < moved.sum() < len(moved)
+        np.testing.assert_array_equal(moved, cut_mask(step["x_t"], stored).astype(bool))
+        shift = (step["x_t1"] - step["x_t"])[moved] / 0.01  # the pose's normal: where the particles moved
+        np.testing.assert_allclose(shift, np.tile(step["pose"][:3, 2], (len(shift), 1)), atol=1e-4)

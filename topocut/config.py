@@ -124,6 +124,18 @@ def validate(cfg: DictConfig) -> None:
     _check(cfg.object.scale_min <= cfg.object.scale_max, "object.scale_min",
            f"{cfg.object.scale_min} exceeds object.scale_max={cfg.object.scale_max}")
     _check(0.0 <= cfg.trainer.val_fraction < 1.0, "trainer.val_fraction", "must lie in [0, 1)")
+    bad = [o for o in cfg.trainer.held_out_objects if o not in OBJECTS]
+    _check(not bad, "trainer.held_out_objects", f"unknown object {bad[0]!r}; valid: {', '.join(OBJECTS)}" if bad else "")
+    for key, value, lo in (("data.episodes", cfg.data.episodes, 1), ("data.points_per_step", cfg.data.points_per_step, 1),
+                           ("trainer.batch_size", cfg.trainer.batch_size, 1),
+                           ("trainer.num_workers", cfg.trainer.num_workers, 0)):
+        _check(value >= lo, key, f"{value} is not valid; must be >= {lo}")
+    _check(cfg.trainer.max_epochs >= 1 or (cfg.trainer.max_epochs == -1 and cfg.trainer.max_steps > 0),
+           "trainer.max_epochs", f"{cfg.trainer.max_epochs} is not valid; must be >= 1 (or -1 with trainer.max_steps > 0)")
+    _check(cfg.trainer.max_steps == -1 or cfg.trainer.max_steps >= 1, "trainer.max_steps",
+           f"{cfg.trainer.max_steps} is not valid; -1 (no limit) or >= 1")
+    # Taichi's random_seed is an int32 and episode seeds are mixed modulo 2**31 - 1 (mix_seed)
+    _check(0 <= cfg.seed < 2 ** 31 - 1, "seed", f"{cfg.seed} is not valid; must lie in [0, 2**31 - 1)")
     _check(cfg.task.name not in ("stick", "dice") or cfg.task.max_cuts >= 2, "task.max_cuts",
            f"task={cfg.task.name} needs at least 2 cuts (the slab, then its width); got {cfg.task.max_cuts}")
     sim = OmegaConf.to_object(cfg.sim)

@@ -37,6 +37,10 @@ class MissingArtifact(FileNotFoundError):
     """A requested artifact (kind/name/version) does not exist."""
 
 
+class ArtifactBusy(RuntimeError):
+    """Another process is writing the same version (same kind, name and key) right now."""
+
+
 class CorruptArtifact(RuntimeError):
     """A committed artifact's files do not match its manifest."""
 
@@ -115,14 +119,23 @@ def provenance() -> dict:
     }
 
 
+def _distributed_rank() -> int:
+    """This process's global rank as Lightning's launchers and Slurm set it (0 outside distributed runs)."""
+    for var in ("RANK", "LOCAL_RANK", "SLURM_PROCID"):
+        if os.environ.get(var, "").isdigit():
+            return int(os.environ[var])
+    return 0
+
+
 class VersionWriter:
     """Work area for one new version; ``commit()`` hashes, writes the manifest and renames."""
 
     def __init__(self, store: ArtifactStore, kind: str, name: str, key: str, config: Any,
-                 inputs: dict[str, str], extra: dict | None = None):
+                 inputs: dict[str, str], extra: dict | None = None, lock=None):
         self.store, self.kind, self.name, self.key = store, kind, name, key
         self.config, self.inputs, self.extra = config, inputs, dict(extra or {})
         self.path = store.root / kind / name / f".partial-{key}"
+        self._lock = lock  # held until commit/abandon; the OS drops it if the process dies (resume works)
         self.resumed = self.path.exists()
         self.path.mkdir(parents=True, exist_ok=True)
         self.committed: Path | None = None
@@ -150,11 +163,18 @@ class VersionWriter:
                     continue
                 raise
             self.committed = final
+            self._release()
             return final
         raise RuntimeError(f"could not commit {self.kind}/{self.name}: no free version after 1000 tries")
 
     def abandon(self) -> None:
         shutil.rmtree(self.path, ignore_errors=True)
+        self._release()
+
+    def _release(self) -> None:
+        if self._lock is not None:
+            self._lock.release(force=True)
+            self._lock = None
 
 
 class ArtifactStore:
@@ -252,4 +272,25 @@ class ArtifactStore:
         existing = self.find_by_key(kind, name, key)
         if existing is not None:
             return None, existing
-        return VersionWriter(self, kind, name, key, config, inputs, extra), None
+        if _distributed_rank() > 0:  # a DDP rank re-running the stage: rank 0 holds the lock and commits
+            return VersionWriter(self, kind, name, key, config, inputs, extra), None
+        # Two identical runs (a re-launched sweep beside the first) would write one .partial-<key> at once.
+        # An OS file lock (filelock: flock/LockFileEx) refuses the second; a killed run's lock dies with it.
+        # Lock files live in <root>/.locks, outside every version directory (filelock leaves them on disk).
+        # One instance per path in this process (is_singleton), so a stage retried in-process re-enters it.
+        from filelock import FileLock, Timeout
+
+        lock_path = self.root / ".locks" / f"{kind}-{name}-{key}.lock"
+        lock_path.parent.mkdir(parents=True, exist_ok=True)
+        lock = FileLock(lock_path, is_singleton=True)
+        try:
+            lock.acquire(timeout=0)
+        except Timeout:
+            raise ArtifactBusy(f"{kind}/{name}: another process is writing this version (.partial-{key}; "
+                               f"{lock_path} is locked); wait for it to finish (its result will then be reused) "
+                               "or give this run a different config or seed") from None
+        existing = self.find_by_key(kind, name, key)  # committed while we took the lock
+        if existing is not None:
+            lock.release(force=True)
+            return None, existing
+        return VersionWriter(self, kind, name, key, config, inputs, extra, lock=lock), None

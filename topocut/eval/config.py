@@ -72,6 +72,12 @@ class EvalConfig:
         if self.reference not in self.policies and self.reference != "teleop":
             raise ValueError(f"eval.reference={self.reference!r} must be one of eval.policies "
                              f"({', '.join(self.policies)}) or 'teleop' (replayed human logs)")
+        from topocut.sim.objects import OBJECTS  # pure numpy: no Taichi import here
+
+        for key, names in (("eval.seen", self.seen), ("eval.unseen", self.unseen)):
+            bad = [o for o in names if o not in OBJECTS]
+            if bad:
+                raise ValueError(f"{key}: unknown object {bad[0]!r}; valid: {', '.join(OBJECTS)}")
         overlap = set(self.seen) & set(self.unseen)
         if overlap:
             raise ValueError(f"eval.seen and eval.unseen share objects {sorted(overlap)}")

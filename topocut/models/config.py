@@ -62,6 +62,10 @@ class DynamicsConfig:
         bad = [d for d in self.pointnet_dims if d % self.num_heads]
         if bad:
             raise ValueError(f"model.pointnet_dims: width {bad[0]} is not divisible by model.num_heads={self.num_heads}")
-        if min(self.noise_std, self.coord_scale, self.pos_scale, self.lr) < 0 or self.coord_scale == 0:
-            raise ValueError("model.noise_std, model.pos_scale and model.lr must be >= 0 and model.coord_scale > 0")
+        for name in ("coord_scale", "pos_scale"):  # lengths that divide positions / point-set distances
+            if not getattr(self, name) > 0:
+                raise ValueError(f"model.{name}={getattr(self, name)} must be > 0 (a length in scene units)")
+        for name in ("noise_std", "lr"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"model.{name}={getattr(self, name)} must be >= 0")
         return self

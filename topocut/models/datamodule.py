@@ -4,7 +4,8 @@
 into fixed-size tensors:
   1. farthest point sampling of x_t to ``num_points`` (indices cached; applied to x_t1, labels and
      mask alike, since row j of x_t and x_t1 is the same particle); clouds with fewer points are
-     padded by repeating points;
+     padded by repeating points, and ``valid`` marks each particle's first row: losses and metrics
+     count only those (a padding copy would weigh its particle twice);
   2. optional sort along x (Table 2 "With Sort");
   3. cluster ids of f_t and f_t1 renamed jointly to 0..K-1 (consistent between t and t+1; ids past
      ``num_labels`` merged into the last, -1 = unassigned kept);
@@ -46,7 +47,8 @@ class TransitionDataset(Dataset):
     def __len__(self) -> int:
         return len(self.steps)
 
-    def _indices(self, i: int, x: np.ndarray) -> np.ndarray:
+    def _indices(self, i: int, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Row indices into the step's points and, per row, whether it is the particle's first row."""
         if i not in self._idx_cache:
             from topocut.metrics import fps
 
@@ -58,7 +60,9 @@ class TransitionDataset(Dataset):
                 idx = np.resize(np.arange(n), self.num_points)
             if self.sort:
                 idx = idx[np.argsort(x[idx, 0], kind="stable")]
-            self._idx_cache[i] = idx
+            valid = np.zeros(len(idx), dtype=bool)
+            valid[np.unique(idx, return_index=True)[1]] = True
+            self._idx_cache[i] = idx, valid
         return self._idx_cache[i]
 
     def __getitem__(self, i: int) -> dict:
@@ -69,14 +73,14 @@ class TransitionDataset(Dataset):
         x = np.asarray(s["x_t"], dtype=np.float32)
         if len(x) == 0:
             raise ValueError(f"step {i} has an empty point cloud x_t")
-        idx = self._indices(i, x)
+        idx, valid = self._indices(i, x)
         f_t, f_t1 = relabel(np.asarray(s["f_t"])[idx], np.asarray(s["f_t1"])[idx], self.num_labels)
         x_t = torch.from_numpy(x[idx])  # N,3
         if self.train and self.noise_std > 0:
             x_t = x_t + self.noise_std * torch.randn_like(x_t)
         return {"x_t": x_t, "f_t": torch.from_numpy(f_t), "mask": torch.from_numpy(np.asarray(s["mask"])[idx]).long(),
                 "x_t1": torch.from_numpy(np.asarray(s["x_t1"], dtype=np.float32)[idx]),
-                "f_t1": torch.from_numpy(f_t1), "seen": torch.tensor(self.seen)}
+                "f_t1": torch.from_numpy(f_t1), "seen": torch.tensor(self.seen), "valid": torch.from_numpy(valid)}
 
 
 class EpisodeDataModule(L.LightningDataModule):

@@ -80,26 +80,45 @@ def cluster_accuracy(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return acc.to(pred.device)
 
 
-def position_losses(pred: torch.Tensor, target: torch.Tensor, scale: float = 1.0) -> dict[str, torch.Tensor]:
+def masked_targets(target: torch.Tensor, valid: torch.Tensor | None) -> torch.Tensor:
+    """Cluster ids with the rows outside ``valid`` (B,N bool; padding copies) set to -1, which losses ignore."""
+    return target if valid is None else torch.where(valid.bool(), target, torch.full_like(target, -1))
+
+
+def per_sample(fn, a: torch.Tensor, b: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
+    """``fn(a, b)`` -> (B,) of batched point sets (B,N,3), each sample restricted to its ``valid`` rows (B,N)."""
+    if valid is None or bool(valid.all()):
+        return fn(a, b)
+    valid = valid.bool()
+    return torch.cat([fn(a[i][valid[i]][None], b[i][valid[i]][None]) for i in range(a.shape[0])])
+
+
+def position_losses(pred: torch.Tensor, target: torch.Tensor, scale: float = 1.0,
+                    valid: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
     """Chamfer, EMD and Hausdorff of pred vs target (B,N,3), in units of ``scale``; each (B,).
 
-    Computed in float64 around the target centroid: cdist's matmul formulation loses sqrt(float32
-    rounding) ~ 3e-4 of the coordinate magnitude, which would floor the loss and add gradient noise.
+    ``valid`` (B,N bool): the rows that are distinct particles; padding copies (TransitionDataset) are left
+    out so that a particle counts once.  Computed in float64 around the target centroid: cdist's matmul
+    formulation loses sqrt(float32 rounding) ~ 3e-4 of the coordinate magnitude, which would floor the loss
+    and add gradient noise.
     """
     from topocut.metrics import chamfer, emd, hausdorff
 
     c = target.mean(dim=1, keepdim=True).detach()
     p, t = ((pred - c) / scale).double(), ((target - c) / scale).double()
-    out = {"chamfer": chamfer(p, t), "emd": emd(p, t), "hausdorff": hausdorff(p, t)}
+    out = {k: per_sample(fn, p, t, valid) for k, fn in (("chamfer", chamfer), ("emd", emd), ("hausdorff", hausdorff))}
     return {k: v.to(pred.dtype) for k, v in out.items()}
 
 
 def dynamics_loss(pred_x: torch.Tensor, logits: torch.Tensor, x_t1: torch.Tensor, f_t1: torch.Tensor,
-                  cfg: DynamicsConfig | None = None) -> dict[str, torch.Tensor]:
-    """Total loss and its parts: loss, loss_pos, loss_topo, chamfer/emd/hausdorff (batch means)."""
+                  cfg: DynamicsConfig | None = None, valid: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+    """Total loss and its parts: loss, loss_pos, loss_topo, chamfer/emd/hausdorff (batch means).
+
+    ``valid`` (B,N bool, default all): rows counted by every term; padding copies of a particle are not.
+    """
     cfg = cfg or DynamicsConfig()
-    parts = {k: v.mean() for k, v in position_losses(pred_x, x_t1, cfg.pos_scale).items()}
+    parts = {k: v.mean() for k, v in position_losses(pred_x, x_t1, cfg.pos_scale, valid).items()}
     loss_pos = cfg.w_chamfer * parts["chamfer"] + cfg.w_emd * parts["emd"] + cfg.w_hausdorff * parts["hausdorff"]
-    loss_topo = hungarian_cluster_loss(logits, f_t1)
+    loss_topo = hungarian_cluster_loss(logits, masked_targets(f_t1, valid))
     return {"loss": cfg.lambda_pos * loss_pos + cfg.lambda_topo * loss_topo, "loss_pos": loss_pos,
             "loss_topo": loss_topo, **parts}

@@ -4,10 +4,12 @@
 L = λ_pos (CD + EMD + HD) + λ_topo L_topo, AdamW and a linear-warmup cosine schedule.  Only the
 plain-typed fields of ``DynamicsConfig`` are saved as hyperparameters, so a checkpoint loads without
 unpickling project classes (``torch.load(weights_only=True)``).
-Logged: train/loss, train/loss_pos, train/loss_topo, val/loss, val/cluster_acc, val/chamfer and, when
-the batch holds them, val/cluster_acc_seen and val/cluster_acc_unseen (held-out objects).  Beside them,
-val/mask_rule_acc{,_seen,_unseen}: the accuracy of a rule with no learning, "each input cluster splits
-along the cut mask" (ids f_t * 2 + mask), the floor a learned F has to beat (docs/perception.md).
+Logged: train/loss, train/loss_pos, train/loss_topo (per step and as epoch means), val/loss, val/cluster_acc,
+val/chamfer and, when the epoch held them, val/cluster_acc_seen and val/cluster_acc_unseen (held-out objects).
+Beside them, val/mask_rule_acc{,_seen,_unseen}: the accuracy of a rule with no learning, "each input cluster
+splits along the cut mask" (ids f_t * 2 + mask), the floor a learned F has to beat (docs/perception.md).
+Validation values are means over the epoch's samples on all DDP ranks (``EpochMeans``), and a batch's
+``valid`` rows (TransitionDataset: padding copies excluded) are the only ones any loss or metric counts.
 """
 from __future__ import annotations
 
@@ -19,8 +21,12 @@ import lightning as L
 import torch
 
 from topocut.models.config import DynamicsConfig
-from topocut.models.losses import cluster_accuracy, dynamics_loss
+from topocut.models.losses import cluster_accuracy, dynamics_loss, masked_targets, per_sample
 from topocut.models.pointnet import build_model
+from topocut.utils.training import EpochMeans
+
+VAL_KEYS = ("val/loss", "val/cluster_acc", "val/chamfer", "val/mask_rule_acc", "val/cluster_acc_seen",
+            "val/mask_rule_acc_seen", "val/cluster_acc_unseen", "val/mask_rule_acc_unseen")
 
 
 def _as_config(cfg) -> DynamicsConfig:
@@ -41,6 +47,7 @@ class DynamicsModule(L.LightningModule):
         self.cfg = _as_config(cfg).validate()
         self.save_hyperparameters({"cfg": dataclasses.asdict(self.cfg)})
         self.model = build_model(self.cfg)
+        self.val_means = EpochMeans(VAL_KEYS)  # no persistent state: checkpoints hold the model only
 
     @property
     def encoder(self):
@@ -53,32 +60,39 @@ class DynamicsModule(L.LightningModule):
 
     def _step(self, batch: dict):
         pred_x, logits = self(batch)
-        losses = dynamics_loss(pred_x, logits, batch["x_t1"], batch["f_t1"].long(), self.cfg)
+        losses = dynamics_loss(pred_x, logits, batch["x_t1"], batch["f_t1"].long(), self.cfg, batch.get("valid"))
         return pred_x, logits, losses
 
     def training_step(self, batch: dict, batch_idx: int):
         _, _, losses = self._step(batch)
         bs = batch["x_t"].shape[0]
-        for k in ("loss", "loss_pos", "loss_topo"):
-            self.log(f"train/{k}", losses[k], prog_bar=k == "loss", batch_size=bs)
+        for k in ("loss", "loss_pos", "loss_topo"):  # epoch means for MetricHistory (loss.png, history.json)
+            self.log(f"train/{k}", losses[k], prog_bar=k == "loss", batch_size=bs, on_step=True, on_epoch=True,
+                     sync_dist=True)
         return losses["loss"]
 
     def validation_step(self, batch: dict, batch_idx: int):
         from topocut.metrics import chamfer
 
         pred_x, logits, losses = self._step(batch)
-        bs = batch["x_t"].shape[0]
-        acc = cluster_accuracy(logits.argmax(-1), batch["f_t1"].long()).float()  # B
-        rule = cluster_accuracy(batch["f_t"].long() * 2 + batch["mask"].long(), batch["f_t1"].long()).float()  # B
-        self.log("val/loss", losses["loss"], batch_size=bs)
-        self.log("val/cluster_acc", acc.nanmean(), prog_bar=True, batch_size=bs)
-        self.log("val/chamfer", chamfer(pred_x, batch["x_t1"]).mean(), batch_size=bs)  # scene units
-        seen = batch.get("seen", torch.ones(bs, dtype=torch.bool, device=acc.device)).bool()
-        self.log("val/mask_rule_acc", rule.nanmean(), batch_size=bs)
-        for name, sel in (("seen", seen), ("unseen", ~seen)):
-            if sel.any():
-                self.log(f"val/cluster_acc_{name}", acc[sel].nanmean(), batch_size=int(sel.sum()))
-                self.log(f"val/mask_rule_acc_{name}", rule[sel].nanmean(), batch_size=int(sel.sum()))
+        bs, valid = batch["x_t"].shape[0], batch.get("valid")
+        target = masked_targets(batch["f_t1"].long(), valid)
+        acc = cluster_accuracy(logits.argmax(-1), target)  # B (NaN: no labelled point)
+        rule = cluster_accuracy(batch["f_t"].long() * 2 + batch["mask"].long(), target)  # B
+        c = batch["x_t1"].mean(dim=1, keepdim=True)  # float64 around the centroid, as in position_losses
+        cd = per_sample(chamfer, (pred_x - c).double(), (batch["x_t1"] - c).double(), valid)  # B, scene units
+        seen = batch.get("seen", torch.ones(bs, dtype=torch.bool, device=acc.device)).bool().to(acc.device)
+        m = self.val_means
+        m.update("val/loss", losses["loss"], weight=bs)
+        m.update("val/cluster_acc", acc)
+        m.update("val/chamfer", cd)
+        m.update("val/mask_rule_acc", rule)
+        for name, sel in (("seen", seen), ("unseen", ~seen)):  # every step, empty or not (DDP sync)
+            m.update(f"val/cluster_acc_{name}", acc[sel])
+            m.update(f"val/mask_rule_acc_{name}", rule[sel])
+
+    def on_validation_epoch_end(self) -> None:
+        self.val_means.log(self, prog_bar=("val/cluster_acc",))
 
     def configure_optimizers(self):
         opt = torch.optim.AdamW(self.parameters(), lr=self.cfg.lr, weight_decay=self.cfg.weight_decay)

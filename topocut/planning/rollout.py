@@ -6,6 +6,7 @@ resulting fragments against the goal's pieces.
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections import deque
 from collections.abc import Mapping
@@ -75,8 +76,26 @@ def topology_device(env) -> str:
     return "cuda" if getattr(getattr(env, "cfg", None), "arch", "cpu") == "cuda" else "cpu"
 
 
+def quantize_action(action: KnifeAction) -> KnifeAction:
+    """The canonical action that its own float32 vector (``to_vector``: what MPPI's rollouts evaluate and a
+    record stores) maps back to exactly, so that what runs, what is stored and its pose all agree.
+
+    Rounding to float32 can move a yaw across the canonical range's end: float32(pi/2) > pi/2 wraps to
+    about -pi/2 with the normal reversed (the cut mask inverted), so the vector is re-read until it is
+    stable (at most twice).  z_start and depth, which the vector does not hold, are kept.
+    """
+    v = action.to_vector()
+    for _ in range(4):
+        quantized = KnifeAction.from_vector(v)
+        w = quantized.to_vector()
+        if np.array_equal(w, v):
+            break
+        v = w
+    return dataclasses.replace(quantized, z_start=action.z_start, depth=action.depth)
+
+
 def _as_actions(vectors: np.ndarray) -> list[KnifeAction]:
-    return [KnifeAction.from_vector(v) for v in vectors]
+    return [quantize_action(KnifeAction.from_vector(v)) for v in vectors]
 
 
 def make_sim_rollout(env, state_dict: dict, goal, reward_cfg=None, topo_cfg=None, board_z: float = 0.05,
@@ -160,7 +179,12 @@ def empty_history() -> deque:
 
 def make_step(x_t, f_t, x_t1, f_t1, action: KnifeAction, history, reward: float, success: bool,
               board_z: float) -> dict:
-    """One dataset record (EpisodeWriter input); history = the 3 previous pose features, oldest first."""
+    """One dataset record (EpisodeWriter input); history = the 3 previous pose features, oldest first.
+
+    ``action`` should be the quantized one that was executed (quantize_action): the stored float32 vector and
+    the pose are both of it, so the vector read back gives the executed plane exactly.
+    """
+    action = quantize_action(action)
     return {"x_t": np.asarray(x_t, np.float32).copy(), "f_t": np.asarray(f_t, np.int32).copy(),
             "x_t1": np.asarray(x_t1, np.float32).copy(), "f_t1": np.asarray(f_t1, np.int32).copy(),
             "action": action.to_vector(), "pose": action.to_matrix(board_z).astype(np.float32),
@@ -198,7 +222,7 @@ def run_episode(env, goal, planner, reward_cfg=None, topo_cfg=None, max_cuts: in
         obs = {"points": points, "labels": obs_labels, "history": np.stack(list(history)),
                "goal": goal.points, "goal_labels": goal.labels,
                "sim_state": env.get_state(0), "particle_labels": labels}
-        action = planner.act(obs).canonical()
+        action = quantize_action(planner.act(obs))  # executed, stored and its pose: one float32-exact plane
         env.set_state(obs["sim_state"], b=None)  # MPPI's rollouts moved the scenes: execute from the real state
         try:
             env.cut([action] * B if B > 1 else action)

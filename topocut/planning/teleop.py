@@ -17,6 +17,7 @@ that cut's record (x_t1 is the pushed state), exactly as run_episode(push=True).
 from __future__ import annotations
 
 import json
+import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,11 +25,12 @@ from pathlib import Path
 import numpy as np
 
 from topocut.data.store import write_json_atomic
-from topocut.planning.rollout import Scorer, empty_history, env_board_z, make_step
+from topocut.planning.rollout import Scorer, empty_history, env_board_z, make_step, quantize_action
 from topocut.sim.action import KnifeAction
 
 LOG_VERSION = 1
 ENTRY_TYPES = ("cut", "push", "undo")
+_logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -57,18 +59,14 @@ class TeleopConfig:
     log_path: str = "teleop_log.json"
 
 
-def _pose_dict(pose) -> dict | None:
-    from topocut.data.episodes import _jsonable
-
-    return _jsonable(pose)
-
-
 class TeleopSession:
     """Knife state, history of cuts with undo snapshots, the action log and the dataset records."""
 
     def __init__(self, env, goal, object: str = "cake", pose=None, seed: int = 0, task: str = "slice",
                  reward_cfg=None, topo_cfg=None, success_threshold: float | None = None,
                  cfg: TeleopConfig | None = None, scorer: Scorer | None = None):
+        from topocut.data.episodes import _jsonable
+
         self.env, self.goal, self.cfg = env, goal, cfg or TeleopConfig()
         self.scorer = scorer or Scorer(goal, reward_cfg, topo_cfg, success_threshold)
         self.board_z = env_board_z(env)
@@ -81,7 +79,7 @@ class TeleopSession:
         self.history = empty_history()
         self.steps: list[dict] = []
         self._snapshots: list[tuple] = []  # state before each live cut, for undo
-        self.log = {"version": LOG_VERSION, "object": object, "pose": _pose_dict(pose), "seed": int(seed),
+        self.log = {"version": LOG_VERSION, "object": object, "pose": _jsonable(pose), "seed": int(seed),
                     "task": task, "actions": []}
         self.done = False
         self.message = "ready"
@@ -92,10 +90,17 @@ class TeleopSession:
         return KnifeAction.from_vector(self.knife)
 
     def cut(self, vector=None) -> None:
-        action = KnifeAction.from_vector(self.knife if vector is None else vector)
-        self._snapshots.append((self.env.get_state(0), self.x, self.labels, list(self.history), len(self.steps)))
-        self.env.cut([action] * self.B if self.B > 1 else action)
-        self._record_cut(action, self.labels, self.x, list(self.history), amend=False)
+        """Cut along the knife plane; a failed cut (SimulationDiverged) raises and changes nothing (scene restored)."""
+        # quantized: the logged float32 vector replays exactly this plane (float32(pi/2) would flip the normal)
+        action = quantize_action(KnifeAction.from_vector(self.knife if vector is None else vector))
+        snapshot = (self.env.get_state(0), self.x, self.labels, list(self.history), len(self.steps))
+        try:
+            self.env.cut([action] * self.B if self.B > 1 else action)
+            self._record_cut(action, self.labels, self.x, list(self.history), amend=False)
+        except BaseException:
+            self.env.set_state(snapshot[0], b=None)
+            raise
+        self._snapshots.append(snapshot)  # only a cut that happened can be undone
         self.history.append(action.pose_feature(self.board_z))
         self.log["actions"].append({"type": "cut", "action": [float(v) for v in action.to_vector()]})
         self.message = f"cut {len(self.steps)}: reward {self.steps[-1]['reward']:.3f}"
@@ -119,14 +124,19 @@ class TeleopSession:
         return bool(kinds) and kinds[-1] == "cut"
 
     def push(self) -> None:
-        self.env.push()
-        if self._cut_is_open():
-            # the push completes the last cut: redo its discovery on the pushed state (as run_episode does)
-            last = self.steps[-1]
-            self._record_cut(KnifeAction.from_vector(last["action"]), last["f_t"], last["x_t"],
-                             list(last["history"]), amend=True)
-        else:
-            self.x = np.asarray(self.env.state().x[0])
+        state = self.env.get_state(0)
+        try:
+            self.env.push()
+            if self._cut_is_open():
+                # the push completes the last cut: redo its discovery on the pushed state (as run_episode does)
+                last = self.steps[-1]
+                self._record_cut(KnifeAction.from_vector(last["action"]), last["f_t"], last["x_t"],
+                                 list(last["history"]), amend=True)
+            else:
+                self.x = np.asarray(self.env.state().x[0])
+        except BaseException:
+            self.env.set_state(state, b=None)  # a failed push leaves the scene as it was
+            raise
         self.log["actions"].append({"type": "push", "action": None})
         self.message = "pushed"
 
@@ -150,9 +160,10 @@ class TeleopSession:
 
     def apply(self, entry: dict) -> None:
         """Re-execute one log entry (replay)."""
-        kind = entry.get("type")
-        if kind not in ENTRY_TYPES:
-            raise ValueError(f"teleop log entry type {kind!r}; valid: {', '.join(ENTRY_TYPES)}")
+        problem = entry_problem(entry)
+        if problem:
+            raise ValueError(f"teleop log entry: {problem}")
+        kind = entry["type"]
         if kind == "cut":
             self.knife = np.asarray(entry["action"], np.float64)
             self.cut()
@@ -182,10 +193,8 @@ class TeleopSession:
                 self._rotate(rotations[name], tilt=event.shift)
             elif name in ("up", "down"):
                 self._rotate(1 if name == "up" else -1, tilt=True)
-            elif name == "c":
-                self.cut()
-            elif name == "p":
-                self.push()
+            elif name in ("c", "p"):
+                self._simulate(self.cut if name == "c" else self.push, "cut" if name == "c" else "push")
             elif name == "u":
                 self.undo()
             elif name == "s":
@@ -197,6 +206,18 @@ class TeleopSession:
             raise TypeError(f"unknown event {event!r}; expected MouseMove, Key or Wheel")
         return self.message
 
+    def _simulate(self, command, what: str) -> None:
+        """A cut/push from the keyboard: divergence is reported in the status line, the session goes on."""
+        from topocut.planning.rollout import simulation_diverged_error
+
+        try:
+            command()
+        except Exception as e:
+            if not isinstance(e, simulation_diverged_error()):
+                raise
+            self.message = f"{what} failed, scene restored: {e}"
+            _logger.warning("teleop: %s", self.message)
+
     def summary(self) -> dict:
         return {"status": "ok", "num_cuts": len(self.steps),
                 "final_reward": self.steps[-1]["reward"] if self.steps else float("nan"),
@@ -204,18 +225,60 @@ class TeleopSession:
                 "rewards": [s["reward"] for s in self.steps], "log_entries": len(self.log["actions"])}
 
 
+def entry_problem(entry) -> str | None:
+    """Why a log entry cannot be replayed, or None."""
+    if not isinstance(entry, dict):
+        return f"{entry!r} is not an entry {{type, action}}"
+    kind = entry.get("type")
+    if kind not in ENTRY_TYPES:
+        return f"entry type {kind!r}; valid: {', '.join(ENTRY_TYPES)}"
+    if kind != "cut":
+        return None
+    if "action" not in entry:
+        return "a cut has no 'action' (its [x, y, yaw, tilt])"
+    try:
+        v = np.asarray(entry["action"], np.float64)
+    except (TypeError, ValueError):
+        v = np.zeros(0)
+    if v.shape != (4,) or not np.isfinite(v).all():
+        return f"a cut's 'action' must be 4 finite numbers [x, y, yaw, tilt], got {entry['action']!r}"
+    return None
+
+
+def check_entries(actions, source: str = "teleop log") -> None:
+    """Raise ValueError naming ``source`` and the entry's index for a log entry that cannot be replayed."""
+    if not isinstance(actions, list):
+        raise ValueError(f"{source}: 'actions' must be a list of entries, got {type(actions).__name__}")
+    for i, entry in enumerate(actions):
+        problem = entry_problem(entry)
+        if problem:
+            raise ValueError(f"{source}, entry {i}: {problem}")
+
+
 def load_log(path) -> dict:
-    log = json.loads(Path(path).read_text())
+    try:
+        log = json.loads(Path(path).read_text())
+    except json.JSONDecodeError as e:
+        raise ValueError(f"teleop log {path} is not valid JSON: {e.msg} (line {e.lineno}, column {e.colno})") from e
+    if not isinstance(log, dict):
+        raise ValueError(f"teleop log {path} must hold a JSON object, got {type(log).__name__}")
     missing = [k for k in ("object", "seed", "task", "actions") if k not in log]
     if missing:
         raise KeyError(f"teleop log {path} lacks {missing[0]!r}; a log has object, pose, seed, task, actions")
+    check_entries(log["actions"], f"teleop log {path}")
     return log
 
 
 def replay(log, env, goal, reward_cfg=None, topo_cfg=None, success_threshold: float | None = None,
            scorer: Scorer | None = None) -> tuple[list[dict], dict]:
-    """Re-execute a teleop log (dict or path) in ``env``; returns (records, summary) like run_episode."""
-    log = load_log(log) if not isinstance(log, dict) else log
+    """Re-execute a teleop log (dict or path) in ``env``; returns (records, summary) like run_episode.
+
+    Every entry is checked before the first runs: a bad one raises ValueError naming the log and its index.
+    """
+    if isinstance(log, dict):
+        check_entries(log.get("actions"), "teleop log")
+    else:
+        log = load_log(log)
     pose = log.get("pose")
     if isinstance(pose, dict):
         from topocut.sim.objects import ObjectPose
@@ -250,10 +313,18 @@ def _status(session: TeleopSession) -> str:
             f"cuts={len(session.steps)} | {session.message}")
 
 
-def _run_ggui(session: TeleopSession, res: int) -> None:
+def _open_window(kind: str, res: int):
+    """A GGUI window (kind "ggui", needs Vulkan) or a CPU ti.GUI ("gui")."""
     import taichi as ti
 
-    window = ti.ui.Window("TopoCut teleop", (res, res), vsync=True)
+    if kind == "ggui":
+        return ti.ui.Window("TopoCut teleop", (res, res), vsync=True)
+    return ti.GUI("TopoCut teleop", (res, res), background_color=0xF2F2EB)
+
+
+def _loop_ggui(session: TeleopSession, window) -> None:
+    import taichi as ti
+
     canvas, n = window.get_canvas(), len(session.x)
     pos = ti.Vector.field(2, ti.f32, n)
     col = ti.Vector.field(3, ti.f32, n)
@@ -275,10 +346,9 @@ def _run_ggui(session: TeleopSession, res: int) -> None:
         window.show()
 
 
-def _run_cpu_gui(session: TeleopSession, res: int) -> None:
+def _loop_cpu_gui(session: TeleopSession, gui) -> None:
     import taichi as ti
 
-    gui = ti.GUI("TopoCut teleop", (res, res), background_color=0xF2F2EB)
     names = {ti.GUI.LEFT: "left", ti.GUI.RIGHT: "right", ti.GUI.UP: "up", ti.GUI.DOWN: "down",
              ti.GUI.ESCAPE: "escape"}
     while gui.running and not session.done:
@@ -297,25 +367,35 @@ def _run_cpu_gui(session: TeleopSession, res: int) -> None:
 
 
 def run_window(session: TeleopSession, backend: str = "auto", res: int = 720) -> TeleopSession:
-    """Drive ``session`` from a Taichi window until esc: GGUI where Vulkan works, else the CPU ti.GUI."""
+    """Drive ``session`` from a Taichi window until esc: GGUI where Vulkan works, else the CPU ti.GUI.
+
+    Only opening a window falls back or is reported as such: an error while the session runs propagates as
+    itself (a diverged cut does not end it: session.handle reports it in the status line)."""
     backends = ("auto", "ggui", "gui")
     if backend not in backends:
         raise ValueError(f"teleop backend {backend!r}; valid: {', '.join(backends)}")
+    _ensure_taichi()
+    if backend in ("auto", "ggui"):
+        try:
+            window = _open_window("ggui", res)
+        except Exception as e:  # noqa: BLE001 - no Vulkan device / no display: fall back to the CPU GUI
+            if backend == "ggui":
+                raise RuntimeError(f"GGUI window unavailable ({e}); try backend='gui'") from e
+        else:
+            _loop_ggui(session, window)
+            return session
+    try:
+        gui = _open_window("gui", res)
+    except Exception as e:  # noqa: BLE001
+        raise RuntimeError(f"cannot open a teleop window ({e}); without a display, replay a saved log "
+                           f"headlessly: stage=teleop stage.run.replay=<log.json>") from e
+    _loop_cpu_gui(session, gui)
+    return session
+
+
+def _ensure_taichi() -> None:
     import taichi as ti
     from taichi.lang import impl
 
     if impl.get_runtime().prog is None:  # never re-init: that would free the simulator's fields
         ti.init(arch=ti.cpu, offline_cache=True)
-    if backend in ("auto", "ggui"):
-        try:
-            _run_ggui(session, res)
-            return session
-        except Exception as e:  # noqa: BLE001 - no Vulkan device / no display: fall back to the CPU GUI
-            if backend == "ggui":
-                raise RuntimeError(f"GGUI window unavailable ({e}); try backend='gui'") from e
-    try:
-        _run_cpu_gui(session, res)
-    except Exception as e:  # noqa: BLE001
-        raise RuntimeError(f"cannot open a teleop window ({e}); without a display, replay a saved log "
-                           f"headlessly: stage=teleop stage.run.replay=<log.json>") from e
-    return session

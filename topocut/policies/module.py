@@ -19,6 +19,7 @@ from topocut.policies.diffusion import build_noise, get_loss, sample
 from topocut.policies.encoders import build_encoder
 from topocut.policies.pddp import PDDPNet
 from topocut.policies.plane import action_from_mask
+from topocut.utils.training import EpochMeans
 
 
 def _as(cls, value):
@@ -120,6 +121,7 @@ class PDDPModule(L.LightningModule):
         self.graph = self.model.net.graph
         self.noise = build_noise(cfg.noise, cfg.noise_eps, cfg.sigma_min, cfg.sigma_max)
         self.loss_fn = get_loss(train.loss)
+        self.val_means = EpochMeans(("val/loss", "val/mask_acc"))  # epoch means over all DDP ranks
 
     @classmethod
     def from_config(cls, cfg: PDDPConfig | None, train: PolicyTrainConfig) -> PDDPModule:
@@ -137,7 +139,8 @@ class PDDPModule(L.LightningModule):
 
     def training_step(self, batch, batch_idx):
         loss = self.loss(batch)
-        self.log("train/loss", loss, prog_bar=True, batch_size=len(batch["mask"]))
+        self.log("train/loss", loss, prog_bar=True, batch_size=len(batch["mask"]), on_step=True, on_epoch=True,
+                 sync_dist=True)
         return loss
 
     def on_train_batch_end(self, outputs, batch, batch_idx):
@@ -162,9 +165,11 @@ class PDDPModule(L.LightningModule):
         B = len(batch["mask"])
         loss = self.loss(batch, model=self.ema.module)
         masks = self.sample_masks(batch, steps=self.train_cfg.val_sample_steps)
-        acc = (masks == batch["mask"]).float().mean()
-        self.log("val/loss", loss, prog_bar=True, batch_size=B)
-        self.log("val/mask_acc", acc, prog_bar=True, batch_size=B)
+        self.val_means.update("val/loss", loss, weight=B)
+        self.val_means.update("val/mask_acc", (masks == batch["mask"]).float().mean(dim=1))  # B
+
+    def on_validation_epoch_end(self) -> None:
+        self.val_means.log(self, prog_bar=("val/loss", "val/mask_acc"))
 
     def configure_optimizers(self):
         params = [p for p in self.model.parameters() if p.requires_grad]

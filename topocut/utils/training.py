@@ -6,7 +6,66 @@ import shutil
 from pathlib import Path
 
 import numpy as np
+import torch
 from lightning.pytorch.callbacks import Callback
+
+
+def epoch_metrics(metrics) -> dict[str, float]:
+    """Scalar copies of ``trainer.callback_metrics`` without Lightning's forked names.
+
+    A value logged with on_step and on_epoch appears as ``name`` (the epoch mean once the epoch ends),
+    ``name_step`` (the last batch) and ``name_epoch``; only ``name`` is kept.
+    """
+    out = {}
+    for k, v in metrics.items():
+        base = k.rsplit("_", 1)[0]
+        if k.endswith(("_step", "_epoch")) and base in metrics:
+            continue
+        try:
+            out[k] = float(v)
+        except (TypeError, ValueError):
+            continue
+    return out
+
+
+class EpochMeans(torch.nn.Module):
+    """Sample-weighted means of scalars over an epoch and over all DDP ranks (one torchmetrics MeanMetric each).
+
+    Call ``update`` for every name at every step, with an empty tensor when a batch has no sample of that kind:
+    the metrics synchronise across ranks when computed, so every rank must hold every metric.  ``log(module)``
+    at epoch end logs the names that saw any sample (NaN values are ignored with their weight) and resets.
+    """
+
+    def __init__(self, names):
+        super().__init__()
+        from torchmetrics import MeanMetric
+
+        self.names = tuple(names)
+        self.means = torch.nn.ModuleDict({n: MeanMetric(nan_strategy="ignore") for n in self.names})
+
+    def update(self, name: str, values, weight=None) -> None:
+        """``values``: per-sample values (weight 1 each), or a batch mean with ``weight`` = the batch size."""
+        metric = self.means[name]
+        v = torch.as_tensor(values).detach().to(device=metric.device, dtype=torch.float32).reshape(-1)
+        w = torch.ones_like(v) if weight is None else torch.as_tensor(weight, dtype=torch.float32,
+                                                                      device=v.device).expand_as(v)
+        metric.update(v, w)
+
+    def compute(self) -> dict[str, torch.Tensor]:
+        """The epoch means (the same on every rank), for the names with any sample; then reset."""
+        out = {}
+        for name in self.names:  # a fixed order: each compute is a collective under DDP
+            value = self.means[name].compute()
+            self.means[name].reset()
+            if torch.isfinite(value):
+                out[name] = value
+        return out
+
+    def log(self, module, prog_bar=()) -> dict[str, torch.Tensor]:
+        values = self.compute()
+        for name, value in values.items():  # already global: sync_dist only keeps Lightning's DDP check quiet
+            module.log(name, value, prog_bar=name in prog_bar, sync_dist=True)
+        return values
 
 
 class MetricHistory(Callback):
@@ -21,12 +80,7 @@ class MetricHistory(Callback):
         self.rows: list[dict] = json.loads(self.path.read_text()) if self.path and self.path.exists() else []
 
     def _record(self, trainer, phase: str) -> None:
-        row = {"epoch": trainer.current_epoch, "phase": phase}
-        for k, v in trainer.callback_metrics.items():
-            try:
-                row[k] = float(v)
-            except (TypeError, ValueError):
-                continue
+        row = {"epoch": trainer.current_epoch, "phase": phase, **epoch_metrics(trainer.callback_metrics)}
         self.rows = [r for r in self.rows if (r["epoch"], r["phase"]) != (row["epoch"], phase)] + [row]
         if self.path is not None and trainer.is_global_zero:
             self.dump(self.path)
@@ -65,11 +119,16 @@ class MetricHistory(Callback):
 
 def build_trainer(trainer_cfg, max_epochs: int, ckpt_dir: Path, logger=False, progress: bool = True,
                   callbacks=(), gradient_clip_val: float | None = None):
-    """A Lightning Trainer from the `trainer` config group (accelerator, devices, strategy, precision)."""
+    """A Lightning Trainer from the `trainer` config group (accelerator, devices, strategy, precision).
+
+    ``ckpt_dir/last.ckpt`` is rewritten after every epoch (after its validation), the resume point of
+    ``resume_path``.  (Lightning's ``save_last=True`` with ``save_top_k=0`` writes it only when fit returns.)
+    """
     import lightning as L
     from lightning.pytorch.callbacks import ModelCheckpoint
 
-    ckpt = ModelCheckpoint(dirpath=str(ckpt_dir), save_last=True, save_top_k=0, every_n_epochs=1)
+    ckpt = ModelCheckpoint(dirpath=str(ckpt_dir), filename="last", monitor=None, save_top_k=1, every_n_epochs=1,
+                           enable_version_counter=False)
     return L.Trainer(accelerator=trainer_cfg.accelerator, devices=trainer_cfg.devices, strategy=trainer_cfg.strategy,
                      precision=trainer_cfg.precision, max_epochs=max_epochs, max_steps=trainer_cfg.max_steps,
                      logger=logger, callbacks=[ckpt, *callbacks], enable_progress_bar=progress,
@@ -91,7 +150,7 @@ def finish_fit(fit, writer, work: Path, history: MetricHistory) -> dict | None:
     """
     if not fit.is_global_zero:
         return None
-    metrics = {k: float(v) for k, v in fit.callback_metrics.items()}
+    metrics = epoch_metrics(fit.callback_metrics)
     if not metrics:  # resumed after its last epoch: this process trained and logged nothing
         metrics = {k: v for k, v in history.last().items() if k != "epoch"}
     shutil.copyfile(Path(work) / "last.ckpt", writer.path / "model.ckpt")

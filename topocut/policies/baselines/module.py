@@ -20,6 +20,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from topocut.sim.action import KnifeAction
+from topocut.utils.training import EpochMeans
 
 KINDS = ("dp3", "3dda")
 REPR_DIM = 6
@@ -177,6 +178,7 @@ class PoseDiffusionModule(L.LightningModule):
         self.eta = (0.0 if kind == "dp3" else 1.0) if eta is None else eta
         self.register_buffer("act_mid", torch.zeros(REPR_DIM))  # normalised = (r - mid) / half, in [-1, 1]
         self.register_buffer("act_half", torch.ones(REPR_DIM))
+        self.val_means = EpochMeans(("val/loss", "val/pose_err", "val/yaw_err"))  # epoch means over all DDP ranks
 
     def set_action_stats(self, reprs, min_half: float = 1e-2) -> None:
         r = torch.as_tensor(np.asarray(reprs), dtype=torch.float32)  # M,6
@@ -206,26 +208,31 @@ class PoseDiffusionModule(L.LightningModule):
 
     def training_step(self, batch, batch_idx):
         loss = self.compute_loss(batch)
-        self.log("train/loss", loss, prog_bar=True, batch_size=batch["points"].shape[0])
+        self.log("train/loss", loss, prog_bar=True, batch_size=batch["points"].shape[0], on_step=True, on_epoch=True,
+                 sync_dist=True)
         return loss
 
     def validation_step(self, batch, batch_idx):
         B = batch["points"].shape[0]
-        self.log("val/loss", self.compute_loss(batch), batch_size=B)
-        err = pose_errors(self.predict(batch), batch["action"], self.hparams.pos_scale)
-        self.log("val/pose_err", err["xy"], prog_bar=True, batch_size=B)
-        self.log("val/yaw_err", err["yaw"], batch_size=B)
+        self.val_means.update("val/loss", self.compute_loss(batch), weight=B)
+        err = pose_errors(self.predict(batch), batch["action"], self.hparams.pos_scale, mean=False)  # B each
+        self.val_means.update("val/pose_err", err["xy"])
+        self.val_means.update("val/yaw_err", err["yaw"])
+
+    def on_validation_epoch_end(self) -> None:
+        self.val_means.log(self, prog_bar=("val/pose_err",))
 
     def configure_optimizers(self):
         return torch.optim.AdamW(self.parameters(), lr=self.hparams.lr, weight_decay=self.hparams.weight_decay)
 
 
-def pose_errors(pred, target, pos_scale: float) -> dict:
-    """Mean cut-point distance (scene units) and mean angle between blade lines (rad) of (B,6) representations."""
-    xy = (pred[:, :2] - target[:, :2]).norm(dim=-1).mean() * pos_scale
+def pose_errors(pred, target, pos_scale: float, mean: bool = True) -> dict:
+    """Cut-point distance (scene units) and angle between blade lines (rad) of (B,6) representations:
+    batch means, or (B,) per sample with ``mean=False``."""
+    xy = (pred[:, :2] - target[:, :2]).norm(dim=-1) * pos_scale
     d = 0.5 * (torch.atan2(pred[:, 3], pred[:, 2]) - torch.atan2(target[:, 3], target[:, 2]))
-    yaw = torch.atan2(torch.sin(2 * d), torch.cos(2 * d)).abs().mean() / 2  # lines: difference modulo pi
-    return {"xy": xy, "yaw": yaw}
+    yaw = torch.atan2(torch.sin(2 * d), torch.cos(2 * d)).abs() / 2  # lines: difference modulo pi
+    return {"xy": xy.mean(), "yaw": yaw.mean()} if mean else {"xy": xy, "yaw": yaw}
 
 
 # -- Policy -----------------------------------------------------------------------------------------------
