@@ -209,3 +209,37 @@ def test_denoiser_parametrisation_gives_exact_scores(graph):
             exact = np.log(pt[:, b] / pt[a, b])
             keep = pt[:, b] > 0
             np.testing.assert_allclose(got[0].numpy()[keep], exact[keep], rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize("loss_fn", [dse_loss, sq_score_loss], ids=["dse", "sq"])
+def test_padding_positions_carry_no_loss(loss_fn):
+    """valid=False positions (copies FPS padding adds to a small cloud) drop out of the per-sample sum: the
+    masked loss equals the unmasked one minus exactly the padded positions' terms (same seed, same x_t)."""
+    graph, noise = Uniform(2), LogLinearNoise(1e-3)
+    B, N = 3, 5
+    x0 = torch.randint(0, 2, (B, N), generator=torch.Generator().manual_seed(0))
+    W = torch.randn(2, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    model_fn = lambda xt, sigma, cond: torch.nn.functional.one_hot(xt, 2).double() @ W  # noqa: E731
+    t = torch.tensor([0.2, 0.5, 0.9], dtype=torch.float64)
+    valid = torch.ones(B, N, dtype=torch.bool)
+    valid[0, 3:] = False  # sample 0: 3 points padded to 5
+    valid[2, 4] = False
+    run = lambda v: loss_fn(model_fn, x0, None, graph, noise, t=t, generator=torch.Generator().manual_seed(7),  # noqa: E731
+                            valid=v)
+    full, masked, pad_only = run(None), run(valid), run(~valid)
+    np.testing.assert_allclose((masked + pad_only).numpy(), full.numpy(), rtol=1e-12)
+    assert pad_only[1] == 0 and pad_only[0] > 0 and pad_only[2] > 0  # sample 1 has no padding
+
+
+def test_policy_dataset_marks_padding_copies():
+    """A 3-point cloud asked for 8 points: each real point is valid once, the 5 copies are not."""
+    from topocut.policies.module import PolicyDataset
+
+    x = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)
+    step = {"x_t": x, "f_t": np.zeros(3, np.int32), "mask": np.array([1, 0, 1]), "history": np.zeros((3, 7)),
+            "goal": np.eye(3, dtype=np.float32)}
+    item = PolicyDataset([step], num_points=8, num_goal_points=3)[0]
+    valid = item["valid"].numpy()
+    assert valid.sum() == 3 and len(valid) == 8
+    assert sorted(map(tuple, item["points"].numpy()[valid])) == sorted(map(tuple, x))
+    assert item["mask"].numpy()[valid].sum() == 2

@@ -48,13 +48,21 @@ def ema_with_warmup(decay: float):
 
 
 def subsample(n_total: int, points, n: int, seed: int) -> np.ndarray:
-    """Indices of ``n`` of the points: farthest point sampling, with repeats when there are fewer."""
+    """Indices of ``n`` of the points: farthest point sampling, with repeats when there are fewer (the first
+    ``n_total`` are then each point once: ``valid_rows`` marks them)."""
     if n_total <= n:
         rng = np.random.default_rng(seed)
         return np.concatenate([np.arange(n_total), rng.integers(0, n_total, n - n_total)])
     from topocut.metrics import fps  # lazy: the metrics package
 
     return np.asarray(fps(points, n, seed=seed, start="random"))  # random start: a fresh subset per draw
+
+
+def valid_rows(idx: np.ndarray) -> np.ndarray:
+    """True on the first occurrence of each index: padding copies carry no weight in losses and metrics."""
+    first = np.zeros(len(idx), bool)
+    first[np.unique(idx, return_index=True)[1]] = True
+    return first
 
 
 class PolicyDataset(torch.utils.data.Dataset):
@@ -82,6 +90,7 @@ class PolicyDataset(torch.utils.data.Dataset):
         gidx = subsample(len(g), g, self.num_goal_points, seed + 1)
         return {"points": torch.from_numpy(x[idx]), "labels": torch.from_numpy(np.asarray(s["f_t"])[idx]).long(),
                 "mask": torch.from_numpy(np.asarray(s["mask"])[idx]).long(),
+                "valid": torch.from_numpy(valid_rows(idx)),  # N, False on padding copies
                 "history": torch.from_numpy(np.asarray(s["history"], np.float32).reshape(-1)),
                 "goal": torch.from_numpy(g[gidx])}
 
@@ -135,7 +144,8 @@ class PDDPModule(L.LightningModule):
         """Mean per-sample loss of ``model`` (default: the trained one) on a batch."""
         model = model or self.model
         ctx = self._context(model, batch)
-        return self.loss_fn(model, batch["mask"], ctx, self.graph, self.noise, t=t, generator=generator).mean()
+        return self.loss_fn(model, batch["mask"], ctx, self.graph, self.noise, t=t, generator=generator,
+                            valid=batch.get("valid")).mean()
 
     def training_step(self, batch, batch_idx):
         loss = self.loss(batch)
@@ -166,7 +176,9 @@ class PDDPModule(L.LightningModule):
         loss = self.loss(batch, model=self.ema.module)
         masks = self.sample_masks(batch, steps=self.train_cfg.val_sample_steps)
         self.val_means.update("val/loss", loss, weight=B)
-        self.val_means.update("val/mask_acc", (masks == batch["mask"]).float().mean(dim=1))  # B
+        valid = batch.get("valid", torch.ones_like(masks, dtype=torch.bool)).to(masks.device)  # B,N
+        hits = ((masks == batch["mask"]) & valid).sum(1)
+        self.val_means.update("val/mask_acc", hits / valid.sum(1).clamp(min=1))  # B
 
     def on_validation_epoch_end(self) -> None:
         self.val_means.log(self, prog_bar=("val/loss", "val/mask_acc"))

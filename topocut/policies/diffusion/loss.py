@@ -31,24 +31,31 @@ def _perturb(x0, graph: Graph, noise: Noise, t, sampling_eps, generator):
     return xt, sigma, dsigma
 
 
+def _weights(valid, like: torch.Tensor) -> torch.Tensor | float:
+    """Per-position weights (B,N): 0 on padding copies of a point (``valid`` False), so none counts twice."""
+    return 1.0 if valid is None else valid.to(like.dtype)
+
+
 def dse_loss(model_fn, x0: torch.Tensor, cond, graph: Graph, noise: Noise, t: torch.Tensor | None = None,
-             sampling_eps: float = 1e-3, generator: torch.Generator | None = None) -> torch.Tensor:
-    """Denoising score-entropy loss per sample (B,) for clean states x0 (B,N)."""
+             sampling_eps: float = 1e-3, generator: torch.Generator | None = None,
+             valid: torch.Tensor | None = None) -> torch.Tensor:
+    """Denoising score-entropy loss per sample (B,) for clean states x0 (B,N), summed over valid positions."""
     xt, sigma, dsigma = _perturb(x0, graph, noise, t, sampling_eps, generator)
     log_score = model_fn(xt, sigma, cond)  # B,N,d
     ent = graph.score_entropy(log_score, sigma[:, None], xt, x0)  # B,N
-    return (dsigma[:, None] * ent).sum(-1)
+    return (dsigma[:, None] * ent * _weights(valid, ent)).sum(-1)
 
 
 def sq_score_loss(model_fn, x0: torch.Tensor, cond, graph: Graph, noise: Noise, t: torch.Tensor | None = None,
-                  sampling_eps: float = 1e-3, generator: torch.Generator | None = None) -> torch.Tensor:
+                  sampling_eps: float = 1e-3, generator: torch.Generator | None = None,
+                  valid: torch.Tensor | None = None) -> torch.Tensor:
     """Squared error between predicted and conditional ratios (ablation), per sample (B,)."""
     xt, sigma, dsigma = _perturb(x0, graph, noise, t, sampling_eps, generator)
     log_score = model_fn(xt, sigma, cond)  # B,N,d
     r = graph.cond_ratio(xt, x0, sigma[:, None])  # B,N,d
     w = graph.transp_rate(xt).to(r) * (1.0 - F.one_hot(xt, graph.dim).to(r))  # Q[x, y], y != x
     err = (w * (log_score.exp() - r) ** 2).sum(-1)  # B,N
-    return (dsigma[:, None] * err).sum(-1)
+    return (dsigma[:, None] * err * _weights(valid, err)).sum(-1)
 
 
 LOSSES = {"dse": dse_loss, "sq": sq_score_loss}
