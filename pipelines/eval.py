@@ -21,8 +21,9 @@ CONF_TASKS = Path(__file__).resolve().parent.parent / "conf" / "task"
 SCRIPTED = ("oracle", "heuristic", "mppi")
 
 
-def task_configs(names, max_cuts: int) -> dict:
-    """TaskConfig per task from conf/task/<name>.yaml (one source of truth for task parameters)."""
+def task_configs(names, max_cuts: int, overrides=None) -> dict:
+    """TaskConfig per task from conf/task/<name>.yaml (one source of truth for task parameters), with
+    ``overrides[name]`` (eval.task_overrides) on top."""
     from topocut.goals.config import TaskConfig
 
     out = {}
@@ -30,8 +31,10 @@ def task_configs(names, max_cuts: int) -> dict:
         f = CONF_TASKS / f"{name}.yaml"
         if not f.exists():
             raise KeyError(f"eval.tasks: unknown task {name!r}; valid: {', '.join(sorted(p.stem for p in CONF_TASKS.glob('*.yaml')))}")
-        cfg = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(TaskConfig), OmegaConf.load(f)))
+        over = (overrides or {}).get(name, {})
+        cfg = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(TaskConfig), OmegaConf.load(f), over))
         cfg.max_cuts = max_cuts
+        cfg.validate()
         out[name] = cfg
     return out
 
@@ -84,7 +87,7 @@ def run(ctx: RunContext, eval, sim, topology, reward, planner, observation, data
     from topocut.sim import CuttingEnv, init_taichi
 
     specs = episode_specs(eval)
-    task_cfgs = task_configs(eval.tasks, eval.max_cuts)
+    task_cfgs = task_configs(eval.tasks, eval.max_cuts, eval.task_overrides)
     teleop = []
     if eval.reference == "teleop":  # checked before the simulator starts: a missing log is an error, not NaN R̂
         from topocut.eval.teleop import teleop_references

@@ -424,3 +424,18 @@ def test_teleop_reference_replays_committed_logs_like_a_policy(tmp_path):
     assert (eps["donut"]["final_reward"], eps["donut"]["final_cut_count"]) == (0.25, 1)
     rows = {r["split"]: r for r in summarize(load_episodes(tmp_path), "teleop")}
     assert rows["in"]["reference_R_mean"] == pytest.approx((1.0 + 0.25) / 2)  # one mean per task, both splits
+
+
+def test_eval_task_overrides_reach_the_task_configs_and_are_checked():
+    """eval.task_overrides puts task parameters over conf/task/<task>.yaml (the smoke scale's 5 cm slabs)."""
+    from pipelines.eval import task_configs
+
+    cfgs = task_configs(["slice", "dice"], 2, {"slice": {"thickness": 0.05}})
+    assert (cfgs["slice"].thickness, cfgs["slice"].max_cuts, cfgs["slice"].push) == (0.05, 2, False)
+    assert (cfgs["dice"].thickness, cfgs["dice"].size, cfgs["dice"].push) == (0.03, 0.03, True)  # the yaml's
+    with pytest.raises(ValueError, match=r"eval\.task_overrides\.slice\.max_cuts: not a task parameter \(eval\.max_cuts"):
+        EvalConfig(task_overrides={"slice": {"max_cuts": 3}}).validate()
+    with pytest.raises(ValueError, match=r"eval\.task_overrides\.slize: unknown task"):
+        EvalConfig(task_overrides={"slize": {"thickness": 0.05}}).validate()
+    with pytest.raises(ValueError, match=r"task\.thickness=-0\.01 must be > 0"):
+        task_configs(["slice"], 2, {"slice": {"thickness": -0.01}})

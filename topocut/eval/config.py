@@ -8,6 +8,7 @@ one-object-per-split variant used by CI.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 SPLITS = ("in", "out")  # in-distribution (seen objects) / out-of-distribution (unseen objects)
 TASKS = ("slice", "stick", "dice")
@@ -45,6 +46,9 @@ class EvalConfig:
     # checkpoint version per learned policy (`+eval.checkpoints.pddp=v003`); a policy not named here loads its latest
     # version (stage=all pins what its bc stage wrote)
     checkpoints: dict[str, str] = field(default_factory=dict)
+    # task parameters over conf/task/<task>.yaml, per task (`eval.task_overrides={slice:{thickness:0.05}}`): the
+    # smoke scale's 48³ grid cannot resolve 3 cm slabs (docs/evaluation.md), so it evaluates 5 cm ones
+    task_overrides: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     def validate(self) -> EvalConfig:
         for key, value, valid in (("eval.observation", self.observation, OBSERVATIONS),
@@ -78,6 +82,17 @@ class EvalConfig:
             bad = [o for o in names if o not in OBJECTS]
             if bad:
                 raise ValueError(f"{key}: unknown object {bad[0]!r}; valid: {', '.join(OBJECTS)}")
+        from topocut.goals.config import TaskConfig
+
+        params = {f for f in TaskConfig.__dataclass_fields__ if f not in ("name", "max_cuts", "stage")}
+        for task, over in self.task_overrides.items():
+            if task not in TASKS:
+                raise ValueError(f"eval.task_overrides.{task}: unknown task; valid: {', '.join(TASKS)}")
+            bad = [k for k in over if k not in params]
+            if bad:
+                why = " (eval.max_cuts sets it)" if bad[0] == "max_cuts" else ""
+                raise ValueError(f"eval.task_overrides.{task}.{bad[0]}: not a task parameter{why}; valid: "
+                                 f"{', '.join(sorted(params))}")
         overlap = set(self.seen) & set(self.unseen)
         if overlap:
             raise ValueError(f"eval.seen and eval.unseen share objects {sorted(overlap)}")
