@@ -172,3 +172,32 @@ def test_dataset_fps_downsamples():
     center = big["x_t"].mean(0)
     np.testing.assert_allclose(item["center"], center, atol=1e-6)
     np.testing.assert_allclose(item["action"][:2], (big["action"][:2] - center[:2]) / 0.15, atol=1e-5)
+
+
+def test_3dda_attends_to_a_padded_point_once():
+    """A 5-point cloud padded to 8 rows by copies: with prepare_inputs' valid masks the network's output equals
+    its output on the 5 unique points (copies are identical keys; masking all but one is exact); unmasked, the
+    copied points weigh twice and the output moves."""
+    from topocut.policies.baselines.diffuser_actor import DiffuserActorNet
+    from topocut.policies.baselines.module import prepare_inputs
+
+    rng = np.random.default_rng(0)
+    pts, goal = rng.normal(0.5, 0.05, (5, 3)), rng.normal(0.5, 0.05, (4, 3))
+    labels, glabels, hist = np.array([0, 0, 1, 1, 2]), np.array([0, 1, 1, 2]), np.zeros((3, 7), np.float32)
+    torch.manual_seed(0)
+    net = DiffuserActorNet(dim=48, heads=2, layers=2, context_layers=2).eval()
+
+    def out(n, g, masked=True):
+        inp = prepare_inputs(pts, labels, goal, glabels, hist, num_points=n, num_goal_points=g)
+        if not masked:
+            inp.pop("valid"), inp.pop("goal_valid")
+        batch = {k: torch.as_tensor(np.asarray(v))[None] for k, v in inp.items()}
+        x = torch.full((1, 1, 6), 0.1)
+        with torch.no_grad():
+            return net.denoise(x, torch.tensor([3]), net.encode(batch), x)
+
+    padded = prepare_inputs(pts, labels, goal, glabels, hist, num_points=8, num_goal_points=6)
+    assert padded["valid"].sum() == 5 and padded["goal_valid"].sum() == 4
+    exact = out(5, 4)
+    torch.testing.assert_close(out(8, 6), exact, atol=1e-5, rtol=1e-5)
+    assert (out(8, 6, masked=False) - exact).abs().max() > 1e-4

@@ -72,3 +72,12 @@ def fps_torch(points, n: int):
             dist = torch.minimum(dist, d)
             cur = dist.argmax(1)
     return idx
+
+
+def valid_rows(idx) -> np.ndarray:
+    """True on the first occurrence of each index in ``idx`` (N,): padding copies of a point, added when a
+    cloud has fewer points than asked for, are False so that losses, metrics and attention count it once."""
+    idx = np.asarray(idx)
+    first = np.zeros(len(idx), bool)
+    first[np.unique(idx, return_index=True)[1]] = True
+    return first

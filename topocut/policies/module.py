@@ -13,6 +13,7 @@ import torch
 import torch.nn as nn
 from torch.optim.swa_utils import AveragedModel
 
+from topocut.metrics.sampling import valid_rows
 from topocut.policies.base import check_obs
 from topocut.policies.config import PDDPConfig, PolicyTrainConfig, SamplerConfig
 from topocut.policies.diffusion import build_noise, get_loss, sample
@@ -58,13 +59,6 @@ def subsample(n_total: int, points, n: int, seed: int) -> np.ndarray:
     return np.asarray(fps(points, n, seed=seed, start="random"))  # random start: a fresh subset per draw
 
 
-def valid_rows(idx: np.ndarray) -> np.ndarray:
-    """True on the first occurrence of each index: padding copies carry no weight in losses and metrics."""
-    first = np.zeros(len(idx), bool)
-    first[np.unique(idx, return_index=True)[1]] = True
-    return first
-
-
 class PolicyDataset(torch.utils.data.Dataset):
     """Step dicts (an EpisodeDataset or a list) -> fixed-size tensors for PDDP.
 
@@ -90,7 +84,7 @@ class PolicyDataset(torch.utils.data.Dataset):
         gidx = subsample(len(g), g, self.num_goal_points, seed + 1)
         return {"points": torch.from_numpy(x[idx]), "labels": torch.from_numpy(np.asarray(s["f_t"])[idx]).long(),
                 "mask": torch.from_numpy(np.asarray(s["mask"])[idx]).long(),
-                "valid": torch.from_numpy(valid_rows(idx)),  # N, False on padding copies
+                "valid": torch.from_numpy(valid_rows(idx)),  # N, False on padding copies (topocut.metrics)
                 "history": torch.from_numpy(np.asarray(s["history"], np.float32).reshape(-1)),
                 "goal": torch.from_numpy(g[gidx])}
 

@@ -50,11 +50,13 @@ class RelativeAttention(nn.Module):
         self.q, self.kv, self.out = nn.Linear(dim, dim), nn.Linear(dim, 2 * dim), nn.Linear(dim, dim)
         self.rope = Rotary3D(dim // heads, rope_base)
 
-    def forward(self, x, pos_q, ctx, pos_k):  # B,Nq,D ; B,Nq,3 ; B,Nk,D ; B,Nk,3
+    def forward(self, x, pos_q, ctx, pos_k, key_mask=None):  # B,Nq,D ; B,Nq,3 ; B,Nk,D ; B,Nk,3 ; B,Nk bool
         B, Nq, D = x.shape
         q = self.q(x).view(B, Nq, self.heads, -1).transpose(1, 2)  # B,h,Nq,Dh
         k, v = self.kv(ctx).view(B, ctx.shape[1], 2, self.heads, -1).permute(2, 0, 3, 1, 4)  # B,h,Nk,Dh each
-        o = F.scaled_dot_product_attention(self.rope(q, pos_q), self.rope(k, pos_k), v)
+        # padding copies of a point are identical keys: masking all but one attends to each point once
+        mask = None if key_mask is None else key_mask.bool()[:, None, None, :]  # B,1,1,Nk
+        o = F.scaled_dot_product_attention(self.rope(q, pos_q), self.rope(k, pos_k), v, attn_mask=mask)
         return self.out(o.transpose(1, 2).reshape(B, Nq, D))
 
 
@@ -84,9 +86,9 @@ class QueryBlock(nn.Module):
         self.self_attn = RelativeAttention(dim, heads, rope_base)
         self.mlp = nn.Sequential(nn.Linear(dim, 4 * dim), nn.GELU(), nn.Linear(4 * dim, dim))
 
-    def forward(self, q, pos_q, scene, pos_s, goal, pos_g, cond):
-        q = q + self.scene(self.norms[0](q, cond), pos_q, scene, pos_s)
-        q = q + self.goal(self.norms[1](q, cond), pos_q, goal, pos_g)
+    def forward(self, q, pos_q, scene, pos_s, goal, pos_g, cond, mask_s=None, mask_g=None):
+        q = q + self.scene(self.norms[0](q, cond), pos_q, scene, pos_s, mask_s)
+        q = q + self.goal(self.norms[1](q, cond), pos_q, goal, pos_g, mask_g)
         h = self.norms[2](q, cond)
         q = q + self.self_attn(h, pos_q, h, pos_q)
         return q + self.mlp(self.norms[3](q, cond))
@@ -101,9 +103,9 @@ class ContextBlock(nn.Module):
         self.attn = RelativeAttention(dim, heads, rope_base)
         self.mlp = nn.Sequential(nn.Linear(dim, 4 * dim), nn.GELU(), nn.Linear(4 * dim, dim))
 
-    def forward(self, x, pos):
+    def forward(self, x, pos, mask=None):
         h = self.n1(x)
-        x = x + self.attn(h, pos, h, pos)
+        x = x + self.attn(h, pos, h, pos, mask)
         return x + self.mlp(self.n2(x))
 
 
@@ -140,12 +142,14 @@ class DiffuserActorNet(nn.Module):
     def encode(self, batch: dict) -> dict:
         pts, goal = batch["points"], batch["goal"]  # B,N,3 ; B,G,3
         scene = self.scene_in(self._feats(pts, batch["labels"]))  # B,N,D
+        mask_s, mask_g = batch.get("valid"), batch.get("goal_valid")  # B,N ; B,G  (None: no padding)
         for blk in self.context:
-            scene = blk(scene, pts)
+            scene = blk(scene, pts, mask_s)
         hist = batch["history"]  # B,3,7 (positions already in the centred frame)
         return {"scene": scene, "pos_s": pts, "goal": self.goal_in(self._feats(goal, batch["goal_labels"])),
                 "pos_g": goal, "hist": self.hist_in(hist) + self.hist_pos_emb, "pos_h": hist[..., :3],
-                "hist_cond": self.hist_cond(hist.flatten(1)), "board": batch["board"]}  # board: B, board height
+                "hist_cond": self.hist_cond(hist.flatten(1)), "board": batch["board"],  # board: B, board height
+                "mask_s": mask_s, "mask_g": mask_g}
 
     def denoise(self, x, t, ctx: dict, x_raw):  # x B,1,A (normalised) ; x_raw B,1,A (centred frame)
         B = x.shape[0]
@@ -154,5 +158,6 @@ class DiffuserActorNet(nn.Module):
         pos_q = torch.cat([pos_a, ctx["pos_h"]], dim=1)  # B,1+3,3
         cond = self.step_emb(t) + ctx["hist_cond"]  # B,D
         for blk in self.blocks:
-            q = blk(q, pos_q, ctx["scene"], ctx["pos_s"], ctx["goal"], ctx["pos_g"], cond)
+            q = blk(q, pos_q, ctx["scene"], ctx["pos_s"], ctx["goal"], ctx["pos_g"], cond, ctx.get("mask_s"),
+                    ctx.get("mask_g"))
         return self.out(self.out_norm(q[:, : x.shape[1]]))  # B,1,A
