@@ -6,4 +6,4 @@
 from topocut.metrics.pointsets import MAX_EXACT_EMD, chamfer, emd, hausdorff
 from topocut.metrics.sampling import fps, fps_torch, valid_rows
 
-__all__ = ["fps", "fps_torch", "chamfer", "hausdorff", "emd", "MAX_EXACT_EMD"]
+__all__ = ["fps", "fps_torch", "valid_rows", "chamfer", "hausdorff", "emd", "MAX_EXACT_EMD"]
