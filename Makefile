@@ -64,4 +64,4 @@ table2: setup
 	$(BIN)/python -m topocut.models.table2 --root $${TOPOCUT_OUTPUTS:-outputs}
 
 clean-outputs:
-	rm -rf outputs multirun
+	rm -rf $${TOPOCUT_OUTPUTS:-outputs}

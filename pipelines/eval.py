@@ -42,6 +42,9 @@ def task_configs(names, max_cuts: int, overrides=None) -> dict:
 def artifact_config(eval, sim, topology, reward, planner, observation, sampler, task_cfgs, seed: int) -> dict:
     """What keys the eval artifact: everything an episode's numbers depend on (a changed sampler or task yaml
     is a new evaluation, not a reused one)."""
+    # eval.checkpoints only says which versions to load; their fingerprints key the artifact as inputs, so a
+    # pinned run (stage=all) and a plain one that loads the same versions share one evaluation
+    eval = dataclasses.replace(eval, checkpoints={})
     return as_dict(("eval", eval), ("sim", sim), ("topology", topology), ("reward", reward), ("planner", planner),
                    ("observation", observation), ("sampler", sampler),
                    ("tasks", {n: dataclasses.asdict(t) for n, t in task_cfgs.items()}), ("seed", seed))

@@ -371,6 +371,11 @@ def test_eval_artifact_key_covers_sampler_and_task_parameters():
     assert key != config_key(artifact_config(*args, SamplerConfig(plane="lsq"), tasks, 0))
     other = {"slice": dataclasses.replace(tasks["slice"], push=not tasks["slice"].push)}
     assert key != config_key(artifact_config(*args, SamplerConfig(), other, 0))
+    # a pin names a version; the version's fingerprint (an input) keys the artifact: pinned == unpinned config
+    pinned = (smoke(policies=["oracle", "pddp"], checkpoints={"pddp": "v001"}), *args[1:])
+    unpinned = (smoke(policies=["oracle", "pddp"]), *args[1:])
+    assert (config_key(artifact_config(*pinned, SamplerConfig(), tasks, 0))
+            == config_key(artifact_config(*unpinned, SamplerConfig(), tasks, 0)))
 
 
 # -- teleop as the reference ------------------------------------------------------------------------------

@@ -260,3 +260,19 @@ def test_simulate_slices_a_cube_into_three_labelled_pieces(tmp_path):
     assert _pixels_of(frames / "cut1.png", _PALETTE[1]) > 200
     assert _pixels_of(frames / "cut1.png", _PALETTE[2]) < 20
     assert _pixels_of(frames / "cut2.png", _PALETTE[2]) > 200
+
+
+@pytest.mark.parametrize("overrides,needle", [
+    (("seed=-3",), "ConfigError: seed: -3 is not valid"),
+    (("stage=eval", "task=stick"), "set eval.tasks=[stick]"),
+    (("stage=eval", "task=pyramid"), "task=pyramid has no evaluation protocol"),
+    (("stage=pretrain", "data.version=v999"), "MissingArtifact: no committed dataset named 'demos'"),
+])
+def test_user_errors_print_one_message_and_exit_2(tmp_path, overrides, needle):
+    """A bad value or a missing input is the user's to fix: its message, no traceback, exit status 2, and the
+    traceback kept in the run's status.json."""
+    proc = topocut(tmp_path, *overrides, "logger=none", timeout=120)
+    out = _output(proc)
+    assert proc.returncode == 2 and needle in out and "Traceback" not in out, out[-3000:]
+    status = json.loads(next((tmp_path / "runs").rglob("status.json")).read_text())
+    assert status["status"] == "failed" and "Traceback" in status["traceback"]

@@ -166,3 +166,17 @@ def test_ddp_ranks_above_zero_do_not_take_the_lock_and_locks_stay_out_of_version
     final = w0.commit()
     left = sorted(p.name for p in (tmp_path / "checkpoint" / "perception").iterdir())
     assert left == ["v001"] and sorted(json.loads((final / "manifest.json").read_text())["files"]) == ["m.txt"]
+
+
+def test_a_tampered_version_is_not_reused(tmp_path):
+    """Re-running a finished stage reuses its version only if every file still matches its sha256."""
+    store = ArtifactStore(tmp_path)
+    w, _ = store.begin("checkpoint", "pddp", {"k": 1})
+    (w.path / "model.ckpt").write_bytes(b"weights" * 100)
+    path = w.commit()
+    assert store.begin("checkpoint", "pddp", {"k": 1}) == (None, path)
+    blob = bytearray((path / "model.ckpt").read_bytes())
+    blob[10] ^= 0xFF
+    (path / "model.ckpt").write_bytes(bytes(blob))
+    with pytest.raises(CorruptArtifact, match=r"model\.ckpt does not match its sha256.*delete"):
+        store.begin("checkpoint", "pddp", {"k": 1})

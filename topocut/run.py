@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import sys
 import time
 import traceback
 from pathlib import Path
@@ -19,15 +20,18 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from topocut.config import register_configs, validate
-from topocut.data.store import ArtifactStore, write_json_atomic
+from topocut.config import ConfigError, register_configs, validate
+from topocut.data.store import ArtifactBusy, ArtifactStore, CorruptArtifact, MissingArtifact, write_json_atomic
 from topocut.utils.context import RunContext
 from topocut.utils.logger import RunLogger
 from topocut.utils.progress import print_summary
-from topocut.utils.runtime import resolve_device, seed_everything_all
+from topocut.utils.runtime import DeviceUnavailable, resolve_device, seed_everything_all
 
 log = logging.getLogger("topocut")
 register_configs()
+# A user's mistake, not a bug: a single run prints the message (which names the key or file and what is valid)
+# without a traceback and exits 2; status.json keeps the traceback.  Multirun jobs re-raise for Hydra's launcher.
+USER_ERRORS = (ConfigError, MissingArtifact, CorruptArtifact, ArtifactBusy, DeviceUnavailable)
 
 
 def run_stage(cfg: DictConfig, run_dir: Path, overrides: list[str] | None = None) -> dict:
@@ -38,6 +42,7 @@ def run_stage(cfg: DictConfig, run_dir: Path, overrides: list[str] | None = None
     logger = None
     try:
         validate(cfg)
+        check_overrides(cfg, overrides or [])
         device = resolve_device(cfg.device)
         seed_everything_all(cfg.seed)
         store = ArtifactStore(Path(cfg.outputs_root))
@@ -63,10 +68,38 @@ def run_stage(cfg: DictConfig, run_dir: Path, overrides: list[str] | None = None
             logger.finish(exit_code=0 if status["status"] == "ok" else 1)
 
 
+def check_overrides(cfg: DictConfig, overrides: list[str]) -> None:
+    """Command-line choices a stage would silently ignore."""
+    task = next((o.split("=", 1)[1] for o in overrides if o.startswith("task=")), None)
+    if cfg.stage.name == "eval" and task is not None and task not in cfg.eval.tasks:
+        from topocut.eval.config import TASKS
+
+        fix = (f"set eval.tasks=[{task}]" if task in TASKS else
+               f"task={task} has no evaluation protocol; eval.tasks takes {', '.join(TASKS)}")
+        raise ConfigError(f"task={task}: stage=eval evaluates eval.tasks={list(cfg.eval.tasks)} and ignores `task`; "
+                          f"{fix}")
+
+
 @hydra.main(version_base="1.3", config_path="../conf", config_name="config")
 def main(cfg: DictConfig) -> None:
+    from hydra.types import RunMode
+
     hc = HydraConfig.get()
-    summary = run_stage(cfg, Path(hc.runtime.output_dir), list(hc.overrides.task))
+    overrides = list(hc.overrides.task)
+    single = hc.mode == RunMode.RUN
+    try:
+        summary = run_stage(cfg, Path(hc.runtime.output_dir), overrides)
+    except USER_ERRORS as e:
+        if not single:
+            raise
+        log.error("%s: %s", type(e).__name__, e)
+        sys.exit(2)
+    except KeyboardInterrupt:
+        if not single:
+            raise
+        log.error("interrupted: committed work is kept; re-run the same command to resume (%s)",
+                  Path(hc.runtime.output_dir) / "status.json")
+        sys.exit(130)
     log.info("summary: %s", json.dumps(summary, default=str))
 
 

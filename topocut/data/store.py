@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
 import re
 import shutil
@@ -137,6 +138,9 @@ class VersionWriter:
         self.path = store.root / kind / name / f".partial-{key}"
         self._lock = lock  # held until commit/abandon; the OS drops it if the process dies (resume works)
         self.resumed = self.path.exists()
+        if self.resumed:
+            logging.getLogger("topocut").info("resuming %s/%s from %s (work an interrupted run committed is kept)",
+                                              kind, name, self.path)
         self.path.mkdir(parents=True, exist_ok=True)
         self.committed: Path | None = None
 
@@ -271,6 +275,7 @@ class ArtifactStore:
         key = config_key(config, [f"{k}={v}" for k, v in inputs.items()])
         existing = self.find_by_key(kind, name, key)
         if existing is not None:
+            self.verify(existing)  # reused only if intact: CorruptArtifact names the file and the way out
             return None, existing
         if _distributed_rank() > 0:  # a DDP rank re-running the stage: rank 0 holds the lock and commits
             return VersionWriter(self, kind, name, key, config, inputs, extra), None
