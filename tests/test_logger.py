@@ -17,3 +17,20 @@ def test_csv_metrics_and_missing_picture(tmp_path):
         RunLogger(kind, tmp_path, "t").log_image("sim/frame", png)  # exists: fine
         with pytest.raises(FileNotFoundError, match="sim/frame.*nope.png"):
             RunLogger(kind, tmp_path, "t").log_image("sim/frame", tmp_path / "nope.png")
+
+
+def test_progress_logs_a_line_per_step_when_output_is_not_a_terminal(caplog):
+    """Redirected to a file (as here: pytest captures stdout), a redrawn bar would stay blank until the end."""
+    import logging
+
+    from topocut.utils.progress import progress_bar
+
+    with caplog.at_level(logging.INFO, logger="topocut.progress"):
+        with progress_bar("eval", total=3) as advance:
+            advance(1, info="cube R=0.5")
+            advance(2)
+        with progress_bar("quiet", total=1, enabled=False) as advance:
+            advance(1, info="not shown")
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) == 2 and lines[0].startswith("eval 1/3 (") and lines[0].endswith(": cube R=0.5")
+    assert lines[1].startswith("eval 3/3 (") and "not shown" not in " ".join(lines)

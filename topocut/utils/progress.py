@@ -1,6 +1,8 @@
-"""Rich progress bars that stay quiet when output is not a terminal (CI logs)."""
+"""Rich progress bars on a terminal; one log line per step when output goes to a file or a CI log."""
 from __future__ import annotations
 
+import logging
+import time
 from contextlib import contextmanager
 
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
@@ -11,6 +13,18 @@ def progress_bar(description: str, total: int, enabled: bool = True):
     """Yield an ``advance(n=1, **fields)`` callable backed by a rich progress bar."""
     if not enabled:
         yield lambda n=1, **kw: None
+        return
+    from rich.console import Console
+
+    if not Console().is_terminal:  # a bar redrawn in place would show nothing until the end (redirected output)
+        log, done, t0 = logging.getLogger("topocut.progress"), [0], time.perf_counter()
+
+        def advance_log(n: int = 1, info: str = "") -> None:
+            done[0] += n
+            log.info("%s %d/%d (%.0f s)%s", description, done[0], total, time.perf_counter() - t0,
+                     f": {info}" if info else "")
+
+        yield advance_log
         return
     columns = (TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
                TimeElapsedColumn(), TimeRemainingColumn(), TextColumn("{task.fields[info]}"))
