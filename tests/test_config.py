@@ -124,3 +124,15 @@ def test_out_of_range_values_fail_up_front_naming_the_key(override, key):
 def test_boundary_values_pass():
     validate(_compose("stage=eval", "data.episodes=1", "trainer.batch_size=1", "seed=2147483646",
                       "trainer.max_epochs=-1", "trainer.max_steps=10", "eval.unseen=[tomato]"))
+
+
+def test_help_lists_every_group_choice_and_examples():
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-m", "topocut.run", "--help"], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    for line in ("stage: all, bc, eval, merge, mppi, pretrain, simulate, teleop",
+                 "object: burger, cake, cube, ditto, donut, ham, potato, steak, sushi, tomato",
+                 "python -m topocut.run stage=mppi task=dice object=potato seed=3"):
+        assert line in proc.stdout, proc.stdout
