@@ -172,3 +172,57 @@ def test_divergence_names_the_step(env):
     with pytest.raises(SimulationDiverged, match=rf"substep {first} \(scene 1\)") as e:
         env.simulate(5)
     assert e.value.step == first and e.value.scene == 1
+
+
+def test_damaged_skin_holds_no_shear(free_env):
+    """Skin under a shear below its yield strain: healthy skin keeps it (elastic), damaged skin (docs/sim.md:
+    zero yield stress) is returned to the von Mises surface of radius 0, i.e. to equal principal stretches."""
+    from topocut.sim.objects import SKIN
+
+    x, mat = block(free_env.cfg, z0=0.4)
+    free_env.load_particles(x, mat)
+    n, gamma = len(x), 0.01  # Hencky deviatoric norm ~0.0041 (principal stretches 1 ± gamma/2) < 0.0144 yield
+    shear = np.eye(3)
+    shear[0, 1] = gamma
+    state = free_env.get_state(0)
+    state.update(material=np.full(n, SKIN, np.int32), F=np.broadcast_to(shear, (n, 3, 3)).copy(),
+                 damage=np.arange(n) < n // 2, v=np.zeros((n, 3)), C=np.zeros((n, 3, 3)))
+    free_env.set_state(state, b=None)
+    free_env.simulate(1)
+    s = np.linalg.svd(free_env.get_state(0)["F"], compute_uv=False)  # N,3 principal stretches
+    spread = s[:, 0] / s[:, 2]
+    np.testing.assert_allclose(spread[: n // 2], 1.0, atol=1e-4)  # damaged: no deviatoric strain left
+    np.testing.assert_allclose(spread[n // 2:], (1 + gamma / 2) / (1 - gamma / 2), rtol=2e-3)  # healthy: elastic
+
+
+def test_cut_substeps_that_outrun_the_cfl_bound_are_refused(env, monkeypatch):
+    """cut_substeps sets the knife speed; at cfl=1 (dt = dx / (c + v_knife + osc)) any faster knife breaks the
+    CFL condition although it moves less than half a cell per substep."""
+    cfg = env.cfg
+    env.load_particles(*block(cfg))
+    monkeypatch.setattr(env, "dt", cfg.cfl_bound())  # as sim.cfl=1
+    monkeypatch.setattr(cfg, "cut_substeps", 13)
+    depth = block(cfg)[0][:, 2].max() + cfg.knife_clearance + cfg.margin - cfg.board_z
+    speed = depth / (13 * env.dt)
+    assert speed * env.dt < 0.5 * cfg.dx and speed > cfg.knife_speed  # the half-cell rule alone lets it pass
+    with pytest.raises(ValueError, match=r"sim\.cut_substeps=13 drives the knife at .* CFL bound"):
+        env.cut(KnifeAction(0.5, 0.5))
+
+
+def test_config_ranges_and_gif_timing(tmp_path):
+    for kw, key in ((dict(check_every=0), "check_every"), (dict(dwell_substeps=-1), "dwell_substeps"),
+                    (dict(j_min=1.2), "j_min"), (dict(friction=-0.1), "friction")):
+        with pytest.raises(ValueError, match=rf"sim\.{key}"):
+            SimConfig(**kw).validate()
+    from topocut.sim.env import CuttingEnv
+
+    # the batch the env is built with, not the config's default, decides the warp-scatter key range
+    with pytest.raises(ValueError, match=r"sim\.warp_scatter: run keys .* batch_size=16"):
+        CuttingEnv(SimConfig(arch="cuda", n_grid=512), batch_size=16)
+    from PIL import Image
+
+    from topocut.sim.render import write_gif
+
+    frames = [np.full((8, 8, 3), v, np.uint8) for v in (0, 120, 250)]
+    with Image.open(write_gif(frames, tmp_path / "a.gif", fps=2)) as im:
+        assert im.n_frames == 3 and im.info["duration"] == 500  # ms per frame at 2 frames/s

@@ -261,3 +261,19 @@ def test_chips_of_debris_join_the_nearest_piece():
     assert (res.labels[-len(chip):] == res.labels[len(a)]).all()  # the chip is counted with box b
     alone = discover(x, np.zeros(len(x), bool), None, cfg=TopologyConfig(resolution=64, min_piece_particles=1))
     assert alone.num_clusters == 3  # without the rule the chip is a piece of its own
+
+
+def test_an_unlabelled_particle_between_two_pieces_does_not_join_them():
+    """Two earlier pieces 3 spacings apart with one particle in the gap: labelled either way it is walled off;
+    unlabelled (-1: it was debris) it takes its nearest piece's side of the wall instead of bridging both pieces
+    into one fresh id."""
+    g = np.stack(np.meshgrid(np.arange(10), np.arange(8), np.arange(6), indexing="ij"), -1).reshape(-1, 3) * S
+    a, b = g + [0.40, 0.45, 0.055], g + [0.40 + 9 * S + 0.03, 0.45, 0.055]
+    stray = np.array([[0.40 + 9 * S + 0.012, 0.45 + 3.5 * S, 0.055 + 2 * S]])  # nearer a's face
+    x = np.concatenate([a, b, stray])
+    for stray_label in (0, -1):
+        prev = np.r_[np.zeros(len(a), int), np.ones(len(b), int), [stray_label]]
+        res = discover(x, None, None, previous_labels=prev, cfg=TopologyConfig(resolution=48))
+        assert np.array_equal(res.labels[: len(a)], np.zeros(len(a))), stray_label  # ids kept, pieces apart
+        assert np.array_equal(res.labels[len(a): -1], np.ones(len(b))), stray_label
+        assert res.num_clusters == 2

@@ -14,7 +14,7 @@ rectangle; its plane has unit normal
 
 and passes through the board point p0 = (x, y, board_z).  The blade's long
 axis u = (-sin(yaw), cos(yaw), 0) is horizontal; its travel direction
-w = n x u (unit, pointing down into the board for |tilt| < pi/2) lies in the
+w = -(n x u) (unit; n x u points up for |tilt| < pi/2, so w points down into the board) lies in the
 blade plane, so the knife always moves parallel to its own blade.
 
 Canonical form: yaw in (-pi/2, pi/2] and tilt in (-pi/2, pi/2), so that every
@@ -154,9 +154,6 @@ class KnifeSweep:
 
     {p : |n.(p-o)| <= half_thickness, |u.(p-o)| <= half_length, 0 <= w.(p-o) <= depth}
     with o the blade's lower-edge midpoint at the start of the cut.
-    ``damaged_fraction`` is the share of particles within the box that were
-    damaged during the cut (topology discovery carves only where the knife
-    actually passed through damaged material).
     """
 
     origin: tuple  # 3,

@@ -163,6 +163,15 @@ class SimConfig:
             bad("dt", f"{dt:.3g} violates the CFL bound dt <= dx / (c + v_knife) = {bound:.3g} "
                       f"(n_grid={self.n_grid}, wave speed c={self.wave_speed():.3g}); set sim.dt <= {bound:.3g} "
                       f"or sim.dt=null to use cfl * bound")
+        if self.dwell_substeps < 0:
+            bad("dwell_substeps", f"{self.dwell_substeps} must be >= 0")
+        if self.check_every < 1:
+            bad("check_every", f"{self.check_every} must be >= 1 (substeps between divergence checks)")
+        if not 0 < self.j_min < 1 < self.j_max:
+            bad("j_min", f"need 0 < j_min < 1 < j_max (got {self.j_min}, {self.j_max})")
+        for key in ("friction", "knife_friction"):
+            if getattr(self, key) < 0:
+                bad(key, f"{getattr(self, key)} must be >= 0 (a Coulomb coefficient)")
         if self.cut_substeps is not None and self.cut_substeps < 1:
             bad("cut_substeps", f"{self.cut_substeps} must be >= 1 or null")
         return self

@@ -9,6 +9,7 @@ frozen after it, so scene b's cut equals the same cut run alone.  A push
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -65,10 +66,12 @@ def cell_order(x: np.ndarray, n_grid: int) -> np.ndarray:
 
 class CuttingEnv:
     def __init__(self, cfg: SimConfig | None = None, batch_size: int | None = None):
-        self.cfg = (cfg or SimConfig()).validate()
-        self.B = self.batch_size = int(batch_size or self.cfg.batch_size)
+        cfg = cfg or SimConfig()
+        self.B = self.batch_size = int(batch_size or cfg.batch_size)
         if self.B < 1:
             raise ValueError(f"batch_size must be >= 1, got {self.B}")
+        # the config's checks and switches (grid box, warp-scatter key range) must see the B actually built
+        self.cfg = dataclasses.replace(cfg, batch_size=self.B).validate()
         init_taichi(self.cfg.arch)
         self.dt = self.cfg.effective_dt()
         self.fuse = self.cfg.fuse_substeps
@@ -228,6 +231,13 @@ class CuttingEnv:
             if (speed * self.dt > 0.5 * cfg.dx).any():
                 raise ValueError(f"sim.cut_substeps={cfg.cut_substeps} moves the knife more than half a cell "
                                  f"per substep; raise it above {int(depth.max() / (0.5 * cfg.dx)) + 1}")
+            osc = 2 * math.pi * cfg.osc_frequency * cfg.osc_amplitude
+            bound = cfg.dx / (cfg.wave_speed() + float(speed.max()) + osc)  # the CFL bound at this knife speed
+            if self.dt > bound:  # speed <= dx/dt - c - osc  <=>  cut_substeps >= depth / (dx - dt (c + osc))
+                need = int(math.ceil(float(depth.max()) / (cfg.dx - self.dt * (cfg.wave_speed() + osc))))
+                raise ValueError(f"sim.cut_substeps={cfg.cut_substeps} drives the knife at {speed.max():.3g} units/s, "
+                                 f"so sim.dt={self.dt:.3g} exceeds the CFL bound {bound:.3g} at that speed; "
+                                 f"use sim.cut_substeps >= {need} or a smaller sim.dt")
         else:
             speed = np.full(self.B, cfg.knife_speed)
         # each scene's own budget (cut_substeps exactly: ceil(depth / (speed dt)) may round up by one)

@@ -140,6 +140,8 @@ class MPMSolver:
         dev = eps - eps.sum() / 3.0
         norm = dev.norm() + 1e-12
         sy = ti.max(self.sigma_y[b, p], 0.0)
+        if self.damage[b, p]:  # damaged skin (softened to zero, or torn by the J rule) holds no shear
+            sy = 0.0
         dgamma = norm - sy / (2 * self.cfg.mu * scale)
         if dgamma > 0:
             eps -= dgamma / norm * dev

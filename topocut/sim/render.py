@@ -81,7 +81,7 @@ def write_gif(frames, path, fps: float = 8.0) -> Path:
         padded.append(canvas)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    imageio.mimsave(path, padded, duration=1.0 / fps, loop=0)
+    imageio.mimsave(path, padded, duration=1000.0 / fps, loop=0)  # ms per frame (imageio >= 2.28)
     return path
 
 

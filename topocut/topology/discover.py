@@ -116,6 +116,20 @@ def snap_to_board(s: KnifeSweep, board_z: float | None, tol: float) -> KnifeSwee
     return s
 
 
+def _wall_owners(x, prev_idx: np.ndarray) -> np.ndarray:
+    """Each particle's earlier piece for the walls between pieces; unlabelled particles (-1) take their nearest
+    labelled particle's, since a node owned by -1 is walled against nothing and would join two pieces."""
+    free = prev_idx < 0
+    if not free.any() or free.all():
+        return prev_idx
+    from scipy.spatial import cKDTree
+
+    owners = prev_idx.copy()
+    labelled = np.flatnonzero(~free)
+    owners[free] = prev_idx[labelled[cKDTree(x[labelled]).query(x[free])[1]]]
+    return owners
+
+
 def _previous(previous_labels, n: int, preserve_splits: bool):
     """-> (prev (N,) int64 or None, column index per particle (N,) int32, old ids (L,) or None, used, split)."""
     if previous_labels is None:
@@ -189,7 +203,11 @@ def discover(positions, damage, knife_sweep, previous_labels=None, cfg: Topology
         h_est = max(cfg.voxel_size, extent / max(cfg.max_resolution - 1 - 2 * pad, 1))
     grid = S.make_grid(lo, hi, r + pad * h_est, cfg.resolution, cfg.voxel_size, cfg.max_resolution)
     h = grid.h
-    sdf = S.particle_sdf(xd, r, grid, cfg.band_voxels * h, device, prev_d if split else None)  # nx,ny,nz
+    walls = None
+    if split:  # wall owners: an unlabelled particle (-1) between two earlier pieces must not bridge their wall
+        owners = _wall_owners(x, prev_idx)
+        walls = prev_d if owners is prev_idx else wp.array(owners, dtype=wp.int32, device=device)
+    sdf = S.particle_sdf(xd, r, grid, cfg.band_voxels * h, device, walls)  # nx,ny,nz
     lap("sdf")
 
     # --- board clip, knife carving through damaged material, tiny voids ---------------------------
