@@ -50,7 +50,7 @@ class TransitionDataset(Dataset):
     def _indices(self, i: int, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Row indices into the step's points and, per row, whether it is the particle's first row."""
         if i not in self._idx_cache:
-            from topocut.metrics import fps
+            from topocut.metrics import fps, valid_rows
 
             n = len(x)
             if n >= self.num_points:
@@ -60,9 +60,7 @@ class TransitionDataset(Dataset):
                 idx = np.resize(np.arange(n), self.num_points)
             if self.sort:
                 idx = idx[np.argsort(x[idx, 0], kind="stable")]
-            valid = np.zeros(len(idx), dtype=bool)
-            valid[np.unique(idx, return_index=True)[1]] = True
-            self._idx_cache[i] = idx, valid
+            self._idx_cache[i] = idx, valid_rows(idx)
         return self._idx_cache[i]
 
     def __getitem__(self, i: int) -> dict:
