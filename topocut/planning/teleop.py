@@ -212,9 +212,7 @@ class TeleopSession:
 
         try:
             command()
-        except Exception as e:
-            if not isinstance(e, simulation_diverged_error()):
-                raise
+        except simulation_diverged_error() as e:  # anything else propagates as itself
             self.message = f"{what} failed, scene restored: {e}"
             _logger.warning("teleop: %s", self.message)
 

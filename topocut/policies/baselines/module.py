@@ -19,6 +19,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from topocut.metrics.sampling import valid_rows
 from topocut.sim.action import KnifeAction
 from topocut.utils.training import EpochMeans
 
@@ -114,8 +115,6 @@ def prepare_inputs(points, labels, goal, goal_labels, history, num_points: int =
     valid = np.abs(hist[:, 3:]).sum(axis=1) > 0  # zero-padded rows (no cut yet) have no quaternion
     hist[valid, :3] = (hist[valid, :3] - center) / pos_scale
     lab = lambda a: np.clip(np.asarray(a, np.int64) + 1, 0, num_labels - 1)  # noqa: E731  (-1 unassigned -> 0)
-    from topocut.metrics.sampling import valid_rows
-
     return {"points": ((points[idx] - center) / pos_scale).astype(np.float32), "labels": lab(labels)[idx],
             "valid": valid_rows(idx), "goal_valid": valid_rows(goal_idx),  # N ; G  False on padding copies
             "goal": ((goal[goal_idx] - center) / pos_scale).astype(np.float32), "goal_labels": lab(goal_labels)[goal_idx],
