@@ -168,13 +168,13 @@ class ReferenceMPM:
 
 
 def full_model(n_grid: int, B: int, arch: str, fuse: int | None, rotation: str, profile: bool = False,
-               grid_box: str = "auto", warp_scatter: str = "auto", repeats: int = 1) -> dict:
+               grid_box: str = "auto", warp_scatter: str = "auto", repeats: int = 1, resort: int = -1) -> dict:
     """Rate, wall time per substep (median over ``repeats`` cuts, and its range), particles, substeps and
     warm-up time of a batched cut through a cube."""
     kw = {} if fuse is None else {"fuse_substeps": fuse}
     t = time.perf_counter()
     env = CuttingEnv(SimConfig(n_grid=n_grid, batch_size=B, arch=arch, dwell_substeps=0, core_rotation=rotation,
-                               grid_box=grid_box, warp_scatter=warp_scatter, **kw))
+                               grid_box=grid_box, warp_scatter=warp_scatter, resort_every=resort, **kw))
     env.reset("cube")
     env.simulate(3)  # compile the phases
     env.cut(KnifeAction(0.5, 0.5, depth=0.002))  # knife path and the kernel graph
@@ -204,6 +204,9 @@ def main() -> None:
     ap.add_argument("--rotation", default="auto", help="sim.core_rotation: auto | polar | svd")
     ap.add_argument("--grid-box", default="auto", help="sim.grid_box: auto | on | off")
     ap.add_argument("--warp-scatter", default="auto", help="sim.warp_scatter: auto | on | off")
+    ap.add_argument("--resort", type=int, nargs="+", default=[-1],
+                    help="sim.resort_every values, each timed in this process: -1 auto | 0 never | substeps")
+    ap.add_argument("--no-ref", action="store_true", help="time the full model only (no reference kernels)")
     ap.add_argument("--profile", action="store_true", help="print Taichi's kernel profiler per case")
     ap.add_argument("--repeats", type=int, default=3, help="timed runs per case; the median is reported")
     args = ap.parse_args()
@@ -217,33 +220,37 @@ def main() -> None:
     print(f"device={args.device}  grids={grids}  batches={batches}  fuse={args.fuse or SimConfig().fuse_substeps}"
           f"  rotation={SimConfig(arch=args.device, core_rotation=args.rotation).core_rotation_method()}"
           f"  grid_box={args.grid_box} {box}"
-          f"  warp_scatter={SimConfig(arch=args.device, warp_scatter=args.warp_scatter).warp_scatter_enabled()}")
-    print(f"{'grid':>5} {'B':>3} {'N':>7} {'steps':>6} {'us/substep':>10} {'full p-st/s':>12} {'mpm3d p-st/s':>13} "
-          f"{'ref3 p-st/s':>12} {'full/mpm3d':>10} {'full/ref3':>9} {'warm-up s':>9} {'us range':>13}")
+          f"  warp_scatter={SimConfig(arch=args.device, warp_scatter=args.warp_scatter).warp_scatter_enabled()}"
+          f"  resort_every={[SimConfig(arch=args.device, warp_scatter=args.warp_scatter, resort_every=r).resort_interval() for r in args.resort]}")
+    print(f"{'grid':>5} {'B':>3} {'resort':>6} {'N':>7} {'steps':>6} {'us/substep':>10} {'full p-st/s':>12} "
+          f"{'mpm3d p-st/s':>13} {'ref3 p-st/s':>12} {'full/mpm3d':>10} {'full/ref3':>9} {'warm-up s':>9} {'us range':>13}")
     rates = {}
     for g in grids:
         for B in batches:
-            f = full_model(g, B, args.device, args.fuse, args.rotation, args.profile, args.grid_box, args.warp_scatter,
-                           args.repeats)
-            if args.profile:
-                print(f"-- kernel profile of the timed cut, full model, grid {g}, B {B}")
-                ti.profiler.print_kernel_profiler_info()
-            cfg = SimConfig(n_grid=g)
-            x, _ = sample_object("cube", spacing=cfg.spacing)
-            x = x[cell_order(x, g)]  # the full model's particles, in its order (CuttingEnv.reset)
-            ref_model = ReferenceMPM(x, B, g, cfg.effective_dt(), cfg.spacing)
-            mpm3d = ref_model.run(f["steps"], one_kernel=True, repeats=args.repeats)
-            ref3 = ref_model.run(f["steps"], one_kernel=False, repeats=args.repeats)
-            ref_model.tree.destroy()
-            rates[g, B] = (f["rate"], mpm3d, ref3)
-            print(f"{g:>5} {B:>3} {f['n']:>7} {f['steps']:>6} {f['us']:>10.1f} {f['rate']:>12.3e} {mpm3d:>13.3e} "
-                  f"{ref3:>12.3e} {f['rate'] / mpm3d:>10.3f} {f['rate'] / ref3:>9.3f} {f['warmup']:>9.1f} "
-                  f"{f['us_min']:>6.1f}-{f['us_max']:<6.1f}", flush=True)
-    b0, b1 = batches[0], batches[-1]
-    for g in grids:
-        (f0, m0, r0), (f1, m1, r1) = rates[g, b0], rates[g, b1]
-        print(f"grid {g}: batching gain B{b1}/B{b0} (per particle-substep): full {f1 / f0:.2f}x, "
-              f"mpm3d {m1 / m0:.2f}x, ref3 {r1 / r0:.2f}x")
+            mpm3d = ref3 = float("nan")
+            for r in args.resort:  # every resort_every in this process: single scenes move between processes
+                f = full_model(g, B, args.device, args.fuse, args.rotation, args.profile, args.grid_box,
+                               args.warp_scatter, args.repeats, r)
+                if args.profile:
+                    print(f"-- kernel profile of the timed cut, full model, grid {g}, B {B}, resort {r}")
+                    ti.profiler.print_kernel_profiler_info()
+                if not args.no_ref and mpm3d != mpm3d:  # the reference once per grid and batch
+                    cfg = SimConfig(n_grid=g)
+                    x, _ = sample_object("cube", spacing=cfg.spacing)
+                    x = x[cell_order(x, g)]  # the full model's particles, in its order (CuttingEnv.reset)
+                    ref_model = ReferenceMPM(x, B, g, cfg.effective_dt(), cfg.spacing)
+                    mpm3d = ref_model.run(f["steps"], one_kernel=True, repeats=args.repeats)
+                    ref3 = ref_model.run(f["steps"], one_kernel=False, repeats=args.repeats)
+                    ref_model.tree.destroy()
+                rates[g, B, r] = (f["rate"], mpm3d, ref3)
+                print(f"{g:>5} {B:>3} {r:>6} {f['n']:>7} {f['steps']:>6} {f['us']:>10.1f} {f['rate']:>12.3e} "
+                      f"{mpm3d:>13.3e} {ref3:>12.3e} {f['rate'] / mpm3d:>10.3f} {f['rate'] / ref3:>9.3f} "
+                      f"{f['warmup']:>9.1f} {f['us_min']:>6.1f}-{f['us_max']:<6.1f}", flush=True)
+        b0, b1 = batches[0], batches[-1]
+        for r in args.resort:
+            (f0, m0, r0), (f1, m1, r1) = rates[g, b0, r], rates[g, b1, r]
+            print(f"grid {g} resort {r}: batching gain B{b1}/B{b0} (per particle-substep): full {f1 / f0:.2f}x, "
+                  f"mpm3d {m1 / m0:.2f}x, ref3 {r1 / r0:.2f}x", flush=True)
 
 
 if __name__ == "__main__":

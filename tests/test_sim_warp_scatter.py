@@ -58,8 +58,9 @@ GPU_CHECK = r"""
 import numpy as np
 from topocut.sim import CuttingEnv, KnifeAction, SimConfig
 
-def env(warp, B=2):
-    e = CuttingEnv(SimConfig(arch="cuda", n_grid=48, batch_size=B, warp_scatter=warp, dwell_substeps=20))
+def env(warp, B=2, resort=-1):
+    e = CuttingEnv(SimConfig(arch="cuda", n_grid=48, batch_size=B, warp_scatter=warp, dwell_substeps=20,
+                             resort_every=resort))
     assert e.cfg.warp_scatter_enabled() == (warp == "on")
     return e
 
@@ -70,8 +71,8 @@ for name, x in [("crowded", 0.5 + 0.004 * rng.random((3000, 3))),     # ~all in 
                 ("interleaved", np.where((np.arange(4000) % 2)[:, None] == 0, 0.41, 0.63)  # two cells, A B A B ...
                  + 0.005 * rng.random((4000, 3)))]:
     grids = []
-    for warp in ("off", "on"):
-        e = env(warp)
+    for warp, resort in (("off", 0), ("on", 0)):  # the order as loaded (resort_every=0): runs as named
+        e = env(warp, resort=resort)
         e.load_particles(x.astype(np.float32), np.zeros(len(x), np.int32), v=np.full(x.shape, 0.3, np.float32))
         s = e.solver
         s.p2g(e.n, 0, 0.0)
@@ -84,10 +85,12 @@ for name, x in [("crowded", 0.5 + 0.004 * rng.random((3000, 3))),     # ~all in 
     assert np.abs(v0 - v1).max() < 1e-5 * np.abs(v0).max(), (name, np.abs(v0 - v1).max())
     print(name, "p2g ok: mass", tot, "max dm", np.abs(m0 - m1).max(), "max dmom", np.abs(v0 - v1).max())
 
-# 2. a batched cut (two knife poses) through a cube: the same particles come apart
+# 2. a batched cut (two knife poses) through a cube: the same particles come apart (the warp scatter with
+# its default re-sort by cell every 64 substeps: torch's sort on the device)
 out = []
 for warp in ("off", "on"):
     e = env(warp)
+    assert e.resort == (64 if warp == "on" else 0)
     e.reset("cube")
     e.cut([KnifeAction(0.5, 0.5), KnifeAction(0.48, 0.5, yaw=0.3)])
     st = e.state()
@@ -100,6 +103,21 @@ print("cut: max |dx|", dx, "damage agreement", agree, "damaged", d0.sum(axis=1),
 assert dx < 2e-3, dx
 assert agree > 0.99, agree  # float atomics in another order alone move the crack by a few particles
 assert np.allclose(d0.sum(axis=1), d1.sum(axis=1), rtol=0.02)
+# 3. the re-sort's order on the device (Taichi's prefix sum): each scene's particles by cell, each once
+e = env("on", resort=16)
+x = (0.3 + 0.4 * rng.random((5000, 3))).astype(np.float32)
+e.load_particles(x, np.zeros(len(x), np.int32))
+e.set_state({"x": x[::-1].copy(), "material": np.zeros(len(x), np.int32)}, b=1)
+order = e.solver.order.to_numpy()
+for b, xb in enumerate((x, x[::-1])):
+    cell = np.floor(xb * 48 - 0.5).astype(np.int64)
+    key = (cell[:, 0] * 48 + cell[:, 1]) * 48 + cell[:, 2]
+    o = order[b, :len(x)]
+    assert np.array_equal(np.sort(o), np.arange(len(x))), b  # a permutation: every particle visited once
+    assert np.all(np.diff(key[o]) >= 0), b  # by cell
+    assert np.array_equal(order[b, len(x):], np.arange(len(x), e.solver.lanes))
+print("resort order ok")
+e.solver.destroy()
 print("WARP_SCATTER_OK")
 """
 

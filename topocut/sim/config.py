@@ -23,6 +23,7 @@ class SimConfig:
     core_rotation: str = "auto"  # healthy core's R: polar (Newton) | svd | auto = polar on cpu, svd on cuda
     grid_box: str = "auto"  # clear/update only the nodes the scatter wrote: on | off | auto (off for B=1 on cuda)
     warp_scatter: str = "auto"  # p2g sums a warp's same-cell stencils by shuffles: on (cuda only) | off | auto = on on cuda
+    resort_every: int = -1  # substeps between re-sorts of the scatter's visiting order by cell; 0 never, -1 auto
     # -- materials (0: plasto-elastic core, 1: von Mises skin) -------------------
     mu: float = 2083.33
     lam: float = 1388.89
@@ -114,6 +115,14 @@ class SimConfig:
             return self.warp_scatter == "on"
         return self.arch == "cuda"
 
+    def resort_interval(self) -> int:
+        """Substeps between re-sorts of the scatter's particle order by base cell (0: never).  Only the warp
+        scatter gains from it (longer same-cell runs, fewer atomics), so auto sorts every 64 substeps with it
+        and never without it (the sort syncs the host once; docs/benchmarks.md)."""
+        if self.resort_every >= 0:
+            return self.resort_every
+        return 64 if self.warp_scatter_enabled() else 0
+
     def effective_dt(self) -> float:
         return self.dt if self.dt is not None else self.cfl * self.cfl_bound()
 
@@ -140,6 +149,11 @@ class SimConfig:
         if self.warp_scatter_enabled() and self.batch_size * self.n_grid ** 3 >= 2 ** 31:
             bad("warp_scatter", f"run keys (scene, cell) overflow 32 bits at batch_size={self.batch_size}, "
                                 f"n_grid={self.n_grid}; use fewer scenes or warp_scatter=off")
+        if self.resort_every < -1:
+            bad("resort_every", f"{self.resort_every}; valid: -1 (auto), 0 (never) or a number of substeps")
+        if self.resort_interval() and self.batch_size * self.n_grid ** 3 >= 2 ** 31:
+            bad("resort_every", f"cell indices overflow 32 bits at batch_size={self.batch_size}, n_grid={self.n_grid}; "
+                                f"use fewer scenes or resort_every=0")
         if not 1 <= self.fuse_substeps <= 256:
             bad("fuse_substeps", f"{self.fuse_substeps} must lie in [1, 256]")
         if self.batch_size < 1:

@@ -75,6 +75,7 @@ class CuttingEnv:
         init_taichi(self.cfg.arch)
         self.dt = self.cfg.effective_dt()
         self.fuse = self.cfg.fuse_substeps
+        self.resort = self.cfg.resort_interval()
         self.solver: MPMSolver | None = None
         self.n = 0
         self.object = None
@@ -145,6 +146,7 @@ class CuttingEnv:
             mat[:n] = np.asarray(state["material"], np.int32)
             s.material.from_numpy(mat)
         s.Jp.from_numpy(np.linalg.det(s.F.to_numpy()).astype(np.float32))
+        s.sort_by_cell(n, self.resort > 0)  # the scatter's order must cover exactly particles 0 .. n-1
         sweeps = [KnifeSweep.fromdict(d) if isinstance(d, dict) else d for d in state.get("sweeps", [])]
         for sb in scenes:
             self.sweeps[sb] = list(sweeps)
@@ -185,6 +187,8 @@ class CuttingEnv:
                 s.substep(self.n, self.step_count, t0 + i * self.dt, push_accel, contact)
             i += m
             self.step_count += m
+            if self.resort and self.step_count // self.resort > (self.step_count - m) // self.resort:
+                s.sort_by_cell(self.n)
             if i // every > (i - m) // every:
                 self._check()
         self._check()

@@ -72,6 +72,7 @@ class CreamPen:
     # -- state -------------------------------------------------------------------------
     def reset(self, start=(0.5, 0.5)) -> None:
         self.env.n = 0
+        self.solver.sort_by_cell(0, by_cell=False)  # the scatter visits appended particles in memory order
         self.pos = np.tile(np.asarray(start, np.float64).reshape(1, 2), (self.B, 1))  # B,2
         self.stroke = np.zeros(0, np.int32)  # n, stroke id per particle
         self.num_strokes = 0
@@ -94,6 +95,8 @@ class CreamPen:
         if n:
             self.env.set_state({k: v for k, v in state.items() if k in ("x", "v", "C", "F", "sigma_y", "damage",
                                                                           "material")}, b=None)
+        else:
+            self.solver.sort_by_cell(0, by_cell=False)
         self.env.n = n
         self.pos = np.tile(np.asarray(state["pen"], np.float64).reshape(1, 2), (self.B, 1))
         self.stroke = np.asarray(state["stroke"], np.int32).copy()
