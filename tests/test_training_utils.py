@@ -206,3 +206,28 @@ def test_build_trainer_writes_last_ckpt_every_epoch_and_a_resume_continues(tmp_p
     fit.fit(Tiny(), data, data, ckpt_path=resume_path(tmp_path / "work"))
     assert again.epochs == [2] and fit.global_step == 9  # resumed after epoch 1: epoch 2 only
     assert torch.load(tmp_path / "work" / "last.ckpt", weights_only=False)["global_step"] == 9
+
+
+_LOG_SCRIPT = """
+import logging, sys
+if {root_first}:
+    logging.basicConfig(stream=sys.stderr, format="ROOT %(message)s", level=logging.INFO)  # as Hydra does
+import lightning  # noqa: F401  (adds its own console handler)
+if not {root_first}:
+    logging.basicConfig(stream=sys.stderr, format="ROOT %(message)s", level=logging.INFO)
+from topocut.utils.training import route_lightning_logs
+route_lightning_logs()
+logging.getLogger("lightning.pytorch.utilities.rank_zero").info("GPU available: False")
+logging.getLogger("lightning.fabric.utilities.rank_zero").info("seed set")
+"""
+
+
+@pytest.mark.parametrize("root_first", [True, False])
+def test_lightning_lines_are_printed_once_through_the_root_handler(root_first):
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-c", _LOG_SCRIPT.format(root_first=root_first)], capture_output=True,
+                         text=True, timeout=120, check=True)
+    lines = [ln for ln in out.stderr.splitlines() if "GPU available" in ln or "seed set" in ln]
+    assert lines == ["ROOT GPU available: False", "ROOT seed set"], out.stderr

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import shutil
 from pathlib import Path
 
@@ -117,6 +118,23 @@ class MetricHistory(Callback):
         write_json_atomic(Path(path), self.rows)
 
 
+def route_lightning_logs() -> None:
+    """Print each Lightning log line once, in the run's format, and keep it in the run's log file.
+
+    ``import lightning`` gives the ``lightning`` logger a console handler of its own ("INFO: ..."), while its
+    sub-loggers propagate to the root, which Hydra gives a console and a file handler: every line came out
+    twice.  Where the root has handlers, Lightning's own console handlers go and its loggers propagate.
+    """
+    if not logging.getLogger().handlers:
+        return  # a bare script: Lightning's own handlers are the only ones
+    for name in ("lightning", "lightning.pytorch", "lightning.fabric"):
+        lg = logging.getLogger(name)
+        for h in list(lg.handlers):
+            if type(h) is logging.StreamHandler:  # Lightning's, not a FileHandler (a StreamHandler subclass)
+                lg.removeHandler(h)
+        lg.propagate = True
+
+
 def build_trainer(trainer_cfg, max_epochs: int, ckpt_dir: Path, logger=False, progress: bool = True,
                   callbacks=(), gradient_clip_val: float | None = None):
     """A Lightning Trainer from the `trainer` config group (accelerator, devices, strategy, precision).
@@ -127,6 +145,7 @@ def build_trainer(trainer_cfg, max_epochs: int, ckpt_dir: Path, logger=False, pr
     import lightning as L
     from lightning.pytorch.callbacks import ModelCheckpoint
 
+    route_lightning_logs()
     ckpt = ModelCheckpoint(dirpath=str(ckpt_dir), filename="last", monitor=None, save_top_k=1, every_n_epochs=1,
                            enable_version_counter=False)
     return L.Trainer(accelerator=trainer_cfg.accelerator, devices=trainer_cfg.devices, strategy=trainer_cfg.strategy,
