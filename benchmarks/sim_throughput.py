@@ -203,7 +203,8 @@ def main() -> None:
     ap.add_argument("--fuse", type=int, default=None, help="sim.fuse_substeps (default: SimConfig's)")
     ap.add_argument("--rotation", default="auto", help="sim.core_rotation: auto | polar | svd")
     ap.add_argument("--grid-box", default="auto", help="sim.grid_box: auto | on | off")
-    ap.add_argument("--warp-scatter", default="auto", help="sim.warp_scatter: auto | on | off")
+    ap.add_argument("--warp-scatter", nargs="+", default=["auto"],
+                    help="sim.warp_scatter values, each timed in this process: auto | on | off")
     ap.add_argument("--resort", type=int, nargs="+", default=[-1],
                     help="sim.resort_every values, each timed in this process: -1 auto | 0 never | substeps")
     ap.add_argument("--no-ref", action="store_true", help="time the full model only (no reference kernels)")
@@ -220,19 +221,20 @@ def main() -> None:
     print(f"device={args.device}  grids={grids}  batches={batches}  fuse={args.fuse or SimConfig().fuse_substeps}"
           f"  rotation={SimConfig(arch=args.device, core_rotation=args.rotation).core_rotation_method()}"
           f"  grid_box={args.grid_box} {box}"
-          f"  warp_scatter={SimConfig(arch=args.device, warp_scatter=args.warp_scatter).warp_scatter_enabled()}"
-          f"  resort_every={[SimConfig(arch=args.device, warp_scatter=args.warp_scatter, resort_every=r).resort_interval() for r in args.resort]}")
-    print(f"{'grid':>5} {'B':>3} {'resort':>6} {'N':>7} {'steps':>6} {'us/substep':>10} {'full p-st/s':>12} "
+          f"  warp_scatter={[SimConfig(arch=args.device, warp_scatter=w).warp_scatter_enabled() for w in args.warp_scatter]}"
+          f"  resort_every={[SimConfig(arch=args.device, warp_scatter=w, resort_every=r).resort_interval() for w in args.warp_scatter for r in args.resort]}")
+    print(f"{'grid':>5} {'B':>3} {'scatter':>7} {'resort':>6} {'N':>7} {'steps':>6} {'us/substep':>10} {'full p-st/s':>12} "
           f"{'mpm3d p-st/s':>13} {'ref3 p-st/s':>12} {'full/mpm3d':>10} {'full/ref3':>9} {'warm-up s':>9} {'us range':>13}")
     rates = {}
     for g in grids:
         for B in batches:
             mpm3d = ref3 = float("nan")
-            for r in args.resort:  # every resort_every in this process: single scenes move between processes
+            for ws, r in [(w, r) for w in args.warp_scatter for r in args.resort]:  # one process: a single
+                # scene's time moves by tens of percent between processes
                 f = full_model(g, B, args.device, args.fuse, args.rotation, args.profile, args.grid_box,
-                               args.warp_scatter, args.repeats, r)
+                               ws, args.repeats, r)
                 if args.profile:
-                    print(f"-- kernel profile of the timed cut, full model, grid {g}, B {B}, resort {r}")
+                    print(f"-- kernel profile of the timed cut, full model, grid {g}, B {B}, scatter {ws}, resort {r}")
                     ti.profiler.print_kernel_profiler_info()
                 if not args.no_ref and mpm3d != mpm3d:  # the reference once per grid and batch
                     cfg = SimConfig(n_grid=g)
@@ -242,14 +244,14 @@ def main() -> None:
                     mpm3d = ref_model.run(f["steps"], one_kernel=True, repeats=args.repeats)
                     ref3 = ref_model.run(f["steps"], one_kernel=False, repeats=args.repeats)
                     ref_model.tree.destroy()
-                rates[g, B, r] = (f["rate"], mpm3d, ref3)
-                print(f"{g:>5} {B:>3} {r:>6} {f['n']:>7} {f['steps']:>6} {f['us']:>10.1f} {f['rate']:>12.3e} "
+                rates[g, B, ws, r] = (f["rate"], mpm3d, ref3)
+                print(f"{g:>5} {B:>3} {ws:>7} {r:>6} {f['n']:>7} {f['steps']:>6} {f['us']:>10.1f} {f['rate']:>12.3e} "
                       f"{mpm3d:>13.3e} {ref3:>12.3e} {f['rate'] / mpm3d:>10.3f} {f['rate'] / ref3:>9.3f} "
                       f"{f['warmup']:>9.1f} {f['us_min']:>6.1f}-{f['us_max']:<6.1f}", flush=True)
         b0, b1 = batches[0], batches[-1]
-        for r in args.resort:
-            (f0, m0, r0), (f1, m1, r1) = rates[g, b0, r], rates[g, b1, r]
-            print(f"grid {g} resort {r}: batching gain B{b1}/B{b0} (per particle-substep): full {f1 / f0:.2f}x, "
+        for ws, r in [(w, r) for w in args.warp_scatter for r in args.resort]:
+            (f0, m0, r0), (f1, m1, r1) = rates[g, b0, ws, r], rates[g, b1, ws, r]
+            print(f"grid {g} scatter {ws} resort {r}: batching gain B{b1}/B{b0} (per particle-substep): full {f1 / f0:.2f}x, "
                   f"mpm3d {m1 / m0:.2f}x, ref3 {r1 / r0:.2f}x", flush=True)
 
 
