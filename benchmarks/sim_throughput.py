@@ -217,20 +217,21 @@ def main() -> None:
     init_taichi(args.device)
     grids = args.grids or ((24, 32) if args.quick else (64, 84, 128))
     batches = args.batches or ((1, 4) if args.quick else (1, 16))
+    cases = [(w, r) for w in args.warp_scatter for r in args.resort]  # all in one process: a single scene's
+    # time moves by tens of percent between processes
     box = {B: SimConfig(arch=args.device, batch_size=B, grid_box=args.grid_box).grid_box_enabled() for B in batches}
     print(f"device={args.device}  grids={grids}  batches={batches}  fuse={args.fuse or SimConfig().fuse_substeps}"
           f"  rotation={SimConfig(arch=args.device, core_rotation=args.rotation).core_rotation_method()}"
           f"  grid_box={args.grid_box} {box}"
           f"  warp_scatter={[SimConfig(arch=args.device, warp_scatter=w).warp_scatter_enabled() for w in args.warp_scatter]}"
-          f"  resort_every={[SimConfig(arch=args.device, warp_scatter=w, resort_every=r).resort_interval() for w in args.warp_scatter for r in args.resort]}")
+          f"  resort_every={[SimConfig(arch=args.device, warp_scatter=w, resort_every=r).resort_interval() for w, r in cases]}")
     print(f"{'grid':>5} {'B':>3} {'scatter':>7} {'resort':>6} {'N':>7} {'steps':>6} {'us/substep':>10} {'full p-st/s':>12} "
           f"{'mpm3d p-st/s':>13} {'ref3 p-st/s':>12} {'full/mpm3d':>10} {'full/ref3':>9} {'warm-up s':>9} {'us range':>13}")
     rates = {}
     for g in grids:
         for B in batches:
             mpm3d = ref3 = float("nan")
-            for ws, r in [(w, r) for w in args.warp_scatter for r in args.resort]:  # one process: a single
-                # scene's time moves by tens of percent between processes
+            for ws, r in cases:
                 f = full_model(g, B, args.device, args.fuse, args.rotation, args.profile, args.grid_box,
                                ws, args.repeats, r)
                 if args.profile:
@@ -249,7 +250,7 @@ def main() -> None:
                       f"{mpm3d:>13.3e} {ref3:>12.3e} {f['rate'] / mpm3d:>10.3f} {f['rate'] / ref3:>9.3f} "
                       f"{f['warmup']:>9.1f} {f['us_min']:>6.1f}-{f['us_max']:<6.1f}", flush=True)
         b0, b1 = batches[0], batches[-1]
-        for ws, r in [(w, r) for w in args.warp_scatter for r in args.resort]:
+        for ws, r in cases:
             (f0, m0, r0), (f1, m1, r1) = rates[g, b0, ws, r], rates[g, b1, ws, r]
             print(f"grid {g} scatter {ws} resort {r}: batching gain B{b1}/B{b0} (per particle-substep): full {f1 / f0:.2f}x, "
                   f"mpm3d {m1 / m0:.2f}x, ref3 {r1 / r0:.2f}x", flush=True)
