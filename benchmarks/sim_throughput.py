@@ -14,7 +14,9 @@ Prints per case the wall time per substep (the median of ``--repeats`` cuts, and
 particle-substeps/s, the ratios full/mpm3d and full/ref3 (references timed as often), the first-run
 compile time (warm-up; the offline cache hides it on reruns) and per grid the batching gain B_max/B_1.
 ``--fuse 1`` times the full model with one Python call per phase (the path before kernel graphs),
-``--profile`` adds Taichi's kernel profiler (device time per offloaded task; it syncs after each
+``--warp-scatter``, ``--resort`` and ``--set KEY=VAL,...`` (any SimConfig keys, e.g. ``--set grid_layout=aos
+grid_layout=soa``) take several values, each a case timed in the same process (single GPU scenes move by
+tens of percent between processes); ``--profile`` adds Taichi's kernel profiler (device time per offloaded task; it syncs after each
 launch, so the wall times of that run are not comparable).
 """
 import argparse
@@ -168,10 +170,11 @@ class ReferenceMPM:
 
 
 def full_model(n_grid: int, B: int, arch: str, fuse: int | None, rotation: str, profile: bool = False,
-               grid_box: str = "auto", warp_scatter: str = "auto", repeats: int = 1, resort: int = -1) -> dict:
+               grid_box: str = "auto", warp_scatter: str = "auto", repeats: int = 1, resort: int = -1,
+               extra: dict | None = None) -> dict:
     """Rate, wall time per substep (median over ``repeats`` cuts, and its range), particles, substeps and
     warm-up time of a batched cut through a cube."""
-    kw = {} if fuse is None else {"fuse_substeps": fuse}
+    kw = dict(extra or {}) if fuse is None else {"fuse_substeps": fuse, **(extra or {})}
     t = time.perf_counter()
     env = CuttingEnv(SimConfig(n_grid=n_grid, batch_size=B, arch=arch, dwell_substeps=0, core_rotation=rotation,
                                grid_box=grid_box, warp_scatter=warp_scatter, resort_every=resort, **kw))
@@ -194,6 +197,17 @@ def full_model(n_grid: int, B: int, arch: str, fuse: int | None, rotation: str, 
     return out
 
 
+def overrides(text: str) -> dict:
+    """'warp_merge=on,grid_layout=soa' -> SimConfig keyword arguments (ints where they parse)."""
+    out = {}
+    for item in filter(None, text.split(",")):
+        k, _, v = item.partition("=")
+        if k not in SimConfig.__dataclass_fields__:
+            raise SystemExit(f"--set: unknown SimConfig key {k!r}")
+        out[k] = int(v) if v.lstrip("-").isdigit() else v
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
@@ -207,6 +221,9 @@ def main() -> None:
                     help="sim.warp_scatter values, each timed in this process: auto | on | off")
     ap.add_argument("--resort", type=int, nargs="+", default=[-1],
                     help="sim.resort_every values, each timed in this process: -1 auto | 0 never | substeps")
+    ap.add_argument("--set", nargs="+", default=[""], metavar="KEY=VAL,...",
+                    help="further SimConfig overrides, each group a case timed in this process "
+                         "(e.g. warp_merge=off warp_merge=on)")
     ap.add_argument("--no-ref", action="store_true", help="time the full model only (no reference kernels)")
     ap.add_argument("--profile", action="store_true", help="print Taichi's kernel profiler per case")
     ap.add_argument("--repeats", type=int, default=3, help="timed runs per case; the median is reported")
@@ -217,25 +234,26 @@ def main() -> None:
     init_taichi(args.device)
     grids = args.grids or ((24, 32) if args.quick else (64, 84, 128))
     batches = args.batches or ((1, 4) if args.quick else (1, 16))
-    cases = [(w, r) for w in args.warp_scatter for r in args.resort]  # all in one process: a single scene's
+    cases = [(w, r, o) for w in args.warp_scatter for r in args.resort for o in args.set]  # all in one process: a single scene's
     # time moves by tens of percent between processes
     box = {B: SimConfig(arch=args.device, batch_size=B, grid_box=args.grid_box).grid_box_enabled() for B in batches}
     print(f"device={args.device}  grids={grids}  batches={batches}  fuse={args.fuse or SimConfig().fuse_substeps}"
           f"  rotation={SimConfig(arch=args.device, core_rotation=args.rotation).core_rotation_method()}"
           f"  grid_box={args.grid_box} {box}"
           f"  warp_scatter={[SimConfig(arch=args.device, warp_scatter=w).warp_scatter_enabled() for w in args.warp_scatter]}"
-          f"  resort_every={[SimConfig(arch=args.device, warp_scatter=w, resort_every=r).resort_interval() for w, r in cases]}")
+          f"  resort_every={[SimConfig(arch=args.device, warp_scatter=w, resort_every=r).resort_interval() for w, r, _ in cases]}"
+          f"  set={args.set}")
     print(f"{'grid':>5} {'B':>3} {'scatter':>7} {'resort':>6} {'N':>7} {'steps':>6} {'us/substep':>10} {'full p-st/s':>12} "
           f"{'mpm3d p-st/s':>13} {'ref3 p-st/s':>12} {'full/mpm3d':>10} {'full/ref3':>9} {'warm-up s':>9} {'us range':>13}")
     rates = {}
     for g in grids:
         for B in batches:
             mpm3d = ref3 = float("nan")
-            for ws, r in cases:
+            for ws, r, o in cases:
                 f = full_model(g, B, args.device, args.fuse, args.rotation, args.profile, args.grid_box,
-                               ws, args.repeats, r)
+                               ws, args.repeats, r, overrides(o))
                 if args.profile:
-                    print(f"-- kernel profile of the timed cut, full model, grid {g}, B {B}, scatter {ws}, resort {r}")
+                    print(f"-- kernel profile of the timed cut, full model, grid {g}, B {B}, scatter {ws}, resort {r} {o}")
                     ti.profiler.print_kernel_profiler_info()
                 if not args.no_ref and mpm3d != mpm3d:  # the reference once per grid and batch
                     cfg = SimConfig(n_grid=g)
@@ -245,14 +263,14 @@ def main() -> None:
                     mpm3d = ref_model.run(f["steps"], one_kernel=True, repeats=args.repeats)
                     ref3 = ref_model.run(f["steps"], one_kernel=False, repeats=args.repeats)
                     ref_model.tree.destroy()
-                rates[g, B, ws, r] = (f["rate"], mpm3d, ref3)
+                rates[g, B, ws, r, o] = (f["rate"], mpm3d, ref3)
                 print(f"{g:>5} {B:>3} {ws:>7} {r:>6} {f['n']:>7} {f['steps']:>6} {f['us']:>10.1f} {f['rate']:>12.3e} "
                       f"{mpm3d:>13.3e} {ref3:>12.3e} {f['rate'] / mpm3d:>10.3f} {f['rate'] / ref3:>9.3f} "
-                      f"{f['warmup']:>9.1f} {f['us_min']:>6.1f}-{f['us_max']:<6.1f}", flush=True)
+                      f"{f['warmup']:>9.1f} {f['us_min']:>6.1f}-{f['us_max']:<6.1f} {o}", flush=True)
         b0, b1 = batches[0], batches[-1]
-        for ws, r in cases:
-            (f0, m0, r0), (f1, m1, r1) = rates[g, b0, ws, r], rates[g, b1, ws, r]
-            print(f"grid {g} scatter {ws} resort {r}: batching gain B{b1}/B{b0} (per particle-substep): full {f1 / f0:.2f}x, "
+        for ws, r, o in cases:
+            (f0, m0, r0), (f1, m1, r1) = rates[g, b0, ws, r, o], rates[g, b1, ws, r, o]
+            print(f"grid {g} scatter {ws} resort {r} {o}: batching gain B{b1}/B{b0} (per particle-substep): full {f1 / f0:.2f}x, "
                   f"mpm3d {m1 / m0:.2f}x, ref3 {r1 / r0:.2f}x", flush=True)
 
 

@@ -2,7 +2,8 @@
 
 On the CPU: the particle order it relies on (CuttingEnv.reset orders particles by cell) and the config
 checks.  On a machine with an NVIDIA GPU: the warp scatter against the plain one, in a CUDA subprocess
-(this process's Taichi runs on the CPU), on the cell order, a shuffled order and a crowded cell.
+(this process's Taichi runs on the CPU), on the cell order, a shuffled order and a crowded cell (the plain
+one on one struct per grid node, the warp one on the GPU's default grid of an array per component).
 """
 import shutil
 import subprocess
@@ -58,21 +59,23 @@ GPU_CHECK = r"""
 import numpy as np
 from topocut.sim import CuttingEnv, KnifeAction, SimConfig
 
-def env(warp, B=2, resort=-1):
+def env(warp, B=2, resort=-1, layout="auto"):
     e = CuttingEnv(SimConfig(arch="cuda", n_grid=48, batch_size=B, warp_scatter=warp, dwell_substeps=20,
-                             resort_every=resort))
+                             resort_every=resort, grid_layout=layout))
     assert e.cfg.warp_scatter_enabled() == (warp == "on")
     return e
 
-# 1. one p2g from the same particles: grid mass and momentum agree node by node (float order only)
+# 1. one p2g from the same particles: grid mass and momentum agree node by node (float order only), the
+# plain scatter on one struct per node against the warp scatter on the default grid (an array per component)
 rng = np.random.default_rng(0)
 for name, x in [("crowded", 0.5 + 0.004 * rng.random((3000, 3))),     # ~all in one cell: runs of 32
                 ("shuffled", 0.3 + 0.4 * rng.random((6000, 3))),       # random order: runs of ~1
                 ("interleaved", np.where((np.arange(4000) % 2)[:, None] == 0, 0.41, 0.63)  # two cells, A B A B ...
                  + 0.005 * rng.random((4000, 3)))]:
     grids = []
-    for warp, resort in (("off", 0), ("on", 0)):  # the order as loaded (resort_every=0): runs as named
-        e = env(warp, resort=resort)
+    for warp, layout in (("off", "aos"), ("on", "auto")):  # the order as loaded (resort_every=0): runs as named
+        e = env(warp, resort=0, layout=layout)
+        assert e.cfg.grid_layout_method() == ("aos" if warp == "off" else "soa")
         e.load_particles(x.astype(np.float32), np.zeros(len(x), np.int32), v=np.full(x.shape, 0.3, np.float32))
         s = e.solver
         s.p2g(e.n, 0, 0.0)

@@ -24,6 +24,7 @@ class SimConfig:
     grid_box: str = "auto"  # clear/update only the nodes the scatter wrote: on | off | auto (off for B=1 on cuda)
     warp_scatter: str = "auto"  # p2g sums a warp's same-cell stencils by shuffles: on (cuda only) | off | auto = on on cuda
     resort_every: int = -1  # substeps between re-sorts of the scatter's visiting order by cell; 0 never, -1 auto
+    grid_layout: str = "auto"  # grid nodes: aos (one struct each) | soa (an array per component) | auto = soa on cuda
     # -- materials (0: plasto-elastic core, 1: von Mises skin) -------------------
     mu: float = 2083.33
     lam: float = 1388.89
@@ -115,6 +116,14 @@ class SimConfig:
             return self.warp_scatter == "on"
         return self.arch == "cuda"
 
+    def grid_layout_method(self) -> str:
+        """'soa' on a GPU: the scatter's atomics from a warp land on neighbouring nodes, which in one array per
+        component share memory sectors (a batched substep 10-15% faster on an H100, docs/benchmarks.md); on a
+        CPU a thread adds a node's four values together, one struct per node keeps them on one cache line."""
+        if self.grid_layout != "auto":
+            return self.grid_layout
+        return "soa" if self.arch == "cuda" else "aos"
+
     def resort_interval(self) -> int:
         """Substeps between re-sorts of the scatter's particle order by base cell (0: never).  Only the warp
         scatter gains from it (longer same-cell runs, fewer atomics), so auto sorts every 64 substeps with it
@@ -149,6 +158,8 @@ class SimConfig:
         if self.warp_scatter_enabled() and self.batch_size * self.n_grid ** 3 >= 2 ** 31:
             bad("warp_scatter", f"run keys (scene, cell) overflow 32 bits at batch_size={self.batch_size}, "
                                 f"n_grid={self.n_grid}; use fewer scenes or warp_scatter=off")
+        if self.grid_layout not in ("auto", "aos", "soa"):
+            bad("grid_layout", f"{self.grid_layout!r}; valid: auto, aos, soa")
         if self.resort_every < -1:
             bad("resort_every", f"{self.resort_every}; valid: -1 (auto), 0 (never) or a number of substeps")
         if self.resort_interval() and self.batch_size * self.n_grid ** 3 >= 2 ** 31:

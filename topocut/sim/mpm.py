@@ -103,7 +103,11 @@ class MPMSolver:
         else:  # a CPU thread walks its particles one by one: one struct each, a cache line or two (20% faster, B=4)
             fb.dense(ti.ij, (B, capacity)).place(*particle)
         fb.dense(ti.i, capacity).place(self.material)
-        fb.dense(ti.axes(0, 1, 2, 3), (B, n, n, n)).place(self.grid_v, self.grid_m)
+        if cfg.grid_layout_method() == "soa":  # an array per component (m, v_x, v_y, v_z): the atomics a warp
+            for e in (self.grid_m, *(ScalarField(c) for c in self.grid_v._get_field_members())):  # adds along a z
+                fb.dense(ti.axes(0, 1, 2, 3), (B, n, n, n)).place(e)  # row of nodes fall into one sector
+        else:
+            fb.dense(ti.axes(0, 1, 2, 3), (B, n, n, n)).place(self.grid_v, self.grid_m)
         fb.dense(ti.ij, (B, self.lanes)).place(self.order, self.cell_key)
         self.can_sort = cfg.resort_interval() > 0  # the counters cost 4 bytes a node: only when re-sorting
         fb.dense(ti.i, B * n ** 3 if self.can_sort else 1).place(self.cell_slot)
