@@ -14,16 +14,17 @@ Prints per case the wall time per substep (the median of ``--repeats`` cuts, and
 particle-substeps/s, the ratios full/mpm3d and full/ref3 (references timed as often), the first-run
 compile time (warm-up; the offline cache hides it on reruns) and per grid the batching gain B_max/B_1.
 ``--fuse 1`` times the full model with one Python call per phase (the path before kernel graphs),
-``--warp-scatter``, ``--resort`` and ``--set KEY=VAL,...`` (any SimConfig keys, e.g. ``--set grid_layout=aos
-grid_layout=soa``) take several values, each a case timed in the same process (single GPU scenes move by
-tens of percent between processes); ``--profile`` adds Taichi's kernel profiler (device time per offloaded task; it syncs after each
-launch, so the wall times of that run are not comparable).
+``--warp-scatter``, ``--resort`` and ``--set KEY=VAL,...`` (any SimConfig keys, e.g. ``--set
+grid_layout=aos grid_layout=soa``) take several values, each a case timed in the same process (single GPU
+scenes move by tens of percent between processes).  ``--profile`` adds Taichi's kernel profiler (device
+time per offloaded task; it syncs after each launch, so the wall times of that run are not comparable).
 """
 import argparse
 import time
 
 import numpy as np
 import taichi as ti
+import yaml
 
 from topocut.sim.action import KnifeAction
 from topocut.sim.config import SimConfig
@@ -174,7 +175,9 @@ def full_model(n_grid: int, B: int, arch: str, fuse: int | None, rotation: str, 
                extra: dict | None = None) -> dict:
     """Rate, wall time per substep (median over ``repeats`` cuts, and its range), particles, substeps and
     warm-up time of a batched cut through a cube."""
-    kw = dict(extra or {}) if fuse is None else {"fuse_substeps": fuse, **(extra or {})}
+    kw = dict(extra or {})
+    if fuse is not None:
+        kw["fuse_substeps"] = fuse
     t = time.perf_counter()
     env = CuttingEnv(SimConfig(n_grid=n_grid, batch_size=B, arch=arch, dwell_substeps=0, core_rotation=rotation,
                                grid_box=grid_box, warp_scatter=warp_scatter, resort_every=resort, **kw))
@@ -198,13 +201,13 @@ def full_model(n_grid: int, B: int, arch: str, fuse: int | None, rotation: str, 
 
 
 def overrides(text: str) -> dict:
-    """'warp_merge=on,grid_layout=soa' -> SimConfig keyword arguments (ints where they parse)."""
+    """'grid_layout=soa,cfl=0.4' -> SimConfig keyword arguments (values read as YAML scalars)."""
     out = {}
     for item in filter(None, text.split(",")):
         k, _, v = item.partition("=")
         if k not in SimConfig.__dataclass_fields__:
-            raise SystemExit(f"--set: unknown SimConfig key {k!r}")
-        out[k] = int(v) if v.lstrip("-").isdigit() else v
+            raise SystemExit(f"--set: unknown SimConfig key {k!r}; valid: {', '.join(SimConfig.__dataclass_fields__)}")
+        out[k] = yaml.safe_load(v)
     return out
 
 
@@ -223,7 +226,7 @@ def main() -> None:
                     help="sim.resort_every values, each timed in this process: -1 auto | 0 never | substeps")
     ap.add_argument("--set", nargs="+", default=[""], metavar="KEY=VAL,...",
                     help="further SimConfig overrides, each group a case timed in this process "
-                         "(e.g. warp_merge=off warp_merge=on)")
+                         "(e.g. grid_layout=aos grid_layout=soa)")
     ap.add_argument("--no-ref", action="store_true", help="time the full model only (no reference kernels)")
     ap.add_argument("--profile", action="store_true", help="print Taichi's kernel profiler per case")
     ap.add_argument("--repeats", type=int, default=3, help="timed runs per case; the median is reported")
@@ -234,8 +237,8 @@ def main() -> None:
     init_taichi(args.device)
     grids = args.grids or ((24, 32) if args.quick else (64, 84, 128))
     batches = args.batches or ((1, 4) if args.quick else (1, 16))
-    cases = [(w, r, o) for w in args.warp_scatter for r in args.resort for o in args.set]  # all in one process: a single scene's
-    # time moves by tens of percent between processes
+    # every case in one process: a single scene's time moves by tens of percent between processes
+    cases = [(w, r, o) for w in args.warp_scatter for r in args.resort for o in args.set]
     box = {B: SimConfig(arch=args.device, batch_size=B, grid_box=args.grid_box).grid_box_enabled() for B in batches}
     print(f"device={args.device}  grids={grids}  batches={batches}  fuse={args.fuse or SimConfig().fuse_substeps}"
           f"  rotation={SimConfig(arch=args.device, core_rotation=args.rotation).core_rotation_method()}"
