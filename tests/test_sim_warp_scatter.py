@@ -89,7 +89,7 @@ for name, x in [("crowded", 0.5 + 0.004 * rng.random((3000, 3))),     # ~all in 
     print(name, "p2g ok: mass", tot, "max dm", np.abs(m0 - m1).max(), "max dmom", np.abs(v0 - v1).max())
 
 # 2. a batched cut (two knife poses) through a cube: the same particles come apart (the warp scatter with
-# its default re-sort by cell every 64 substeps: torch's sort on the device)
+# its default re-sort by cell every 64 substeps: a counting sort with Taichi's prefix sum on the device)
 out = []
 for warp in ("off", "on"):
     e = env(warp)

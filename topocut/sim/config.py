@@ -127,7 +127,7 @@ class SimConfig:
     def resort_interval(self) -> int:
         """Substeps between re-sorts of the scatter's particle order by base cell (0: never).  Only the warp
         scatter gains from it (longer same-cell runs, fewer atomics), so auto sorts every 64 substeps with it
-        and never without it (the sort syncs the host once; docs/benchmarks.md)."""
+        and never without it (a counting sort queued on the device, no host sync; docs/benchmarks.md)."""
         if self.resort_every >= 0:
             return self.resort_every
         return 64 if self.warp_scatter_enabled() else 0
