@@ -47,6 +47,17 @@ PY
     timeout 400 python3 benchmarks/mppi.py --device cuda --K 16 --n-grid 64 2>&1 | tee "$OUT/bench_mppi.txt"
     timeout 300 python3 benchmarks/mppi.py --device cuda --K 16 --n-grid 64 --reward-backend torch 2>&1 \
       | tee -a "$OUT/bench_mppi.txt" ;;
+  ncu-sim)  # Nsight Compute on a batched cut's scatter and gather (84^3, B=16, after 400 launches). With the grid
+    # box on, p2g's tasks are: bounds, clear, box reset, scatter (kernel_3); g2p has one (kernel_0).
+    timeout 400 ncu -k "regex:p2g.*kernel_3|g2p.*kernel_0" --launch-skip 400 --launch-count 2 \
+      --section SpeedOfLight --section Occupancy --section LaunchStats --section WarpStateStats \
+      --section MemoryWorkloadAnalysis --section ComputeWorkloadAnalysis python3 - <<'PY' 2>&1 | tee "$OUT/ncu_sim.txt"
+from topocut.sim import CuttingEnv, KnifeAction, SimConfig
+env = CuttingEnv(SimConfig(n_grid=84, batch_size=16, arch="cuda", dwell_substeps=0))
+env.reset("cube")
+env.cut([KnifeAction(0.5 + 0.02 * b / 15, 0.5, yaw=0.1 * b) for b in range(16)])
+PY
+    ;;
   bench-rest)
     for b in topology reward train train_policy; do
       [ -f benchmarks/$b.py ] && timeout 150 python3 benchmarks/$b.py --device cuda 2>&1 | tee "$OUT/bench_$b.txt"
