@@ -573,6 +573,8 @@ class MPMSolver:
             else:
                 self._scan_serial()
         self._place(n, int(by_cell))
+        if by_cell:
+            self._zero_counts()
 
     @ti.func
     def cell_index(self, b, p):
@@ -602,9 +604,11 @@ class MPMSolver:
                 self.order[b, start - b * n + self.cell_key[b, i]] = i
             else:
                 self.order[b, i] = i
-        for f in self.cell_slot:  # zero counts for the next sort
-            if by_cell:
-                self.cell_slot[f] = 0
+
+    @ti.kernel
+    def _zero_counts(self):  # for the next sort (only after one: memory order touches no counter)
+        for f in self.cell_slot:
+            self.cell_slot[f] = 0
 
     @ti.kernel
     def reset_knife_stats(self):
