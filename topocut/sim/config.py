@@ -25,6 +25,8 @@ class SimConfig:
     warp_scatter: str = "auto"  # p2g sums a warp's same-cell stencils by shuffles: on (cuda only) | off | auto = on on cuda
     resort_every: int = -1  # substeps between re-sorts of the scatter's visiting order by cell; 0 never, -1 auto
     grid_layout: str = "auto"  # grid nodes: aos (one struct each) | soa (an array per component) | auto = soa on cuda
+    scatter_block_dim: int = 0  # CUDA threads per block of the scatter (caps its registers); 0 = auto
+    gather_block_dim: int = 0  # likewise for the gather (g2p); 0 = auto
     # -- materials (0: plasto-elastic core, 1: von Mises skin) -------------------
     mu: float = 2083.33
     lam: float = 1388.89
@@ -124,6 +126,18 @@ class SimConfig:
             return self.grid_layout
         return "soa" if self.arch == "cuda" else "aos"
 
+    def block_dims(self) -> tuple[int | None, int | None]:
+        """CUDA threads per block of the scatter and of the gather (None on the CPU: Taichi's own chunking).
+
+        Taichi marks every GPU task with launch bounds (maxntid = block_dim, minctasm = 2), so ptxas keeps a
+        task's registers at or below 65536 / (2 block_dim): 128 threads leave it uncapped (the scatter takes
+        91, the gather 155), 256 cap it at 128, 384 at 85, 512 at 64.  Fewer registers let more warps stay on
+        an SM (what a batch needs: the scatter is latency-bound at 28% occupancy) at the price of spills;
+        auto picks per batch size from the H100 timings in docs/benchmarks.md."""
+        if self.arch != "cuda":
+            return None, None
+        return self.scatter_block_dim or 128, self.gather_block_dim or 128
+
     def resort_interval(self) -> int:
         """Substeps between re-sorts of the scatter's particle order by base cell (0: never).  Only the warp
         scatter gains from it (longer same-cell runs, fewer atomics), so auto sorts every 64 substeps with it
@@ -160,6 +174,10 @@ class SimConfig:
                                 f"n_grid={self.n_grid}; use fewer scenes or warp_scatter=off")
         if self.grid_layout not in ("auto", "aos", "soa"):
             bad("grid_layout", f"{self.grid_layout!r}; valid: auto, aos, soa")
+        for key in ("scatter_block_dim", "gather_block_dim"):
+            bd = getattr(self, key)
+            if bd and not (32 <= bd <= 1024 and bd % 32 == 0):
+                bad(key, f"{bd}; valid: 0 (auto) or a multiple of 32 in [32, 1024] (CUDA threads per block)")
         if self.resort_every < -1:
             bad("resort_every", f"{self.resort_every}; valid: -1 (auto), 0 (never) or a number of substeps")
         if self.resort_interval() and self.batch_size * self.n_grid ** 3 >= 2 ** 31:

@@ -122,6 +122,7 @@ class MPMSolver:
         # nodes [box[0:3], box[3:6]) of every scene hold all the scatter wrote since the last clear (sim.grid_box)
         self.use_box = cfg.grid_box_enabled()
         self.use_warp = cfg.warp_scatter_enabled()
+        self.scatter_block, self.gather_block = cfg.block_dims()  # None on the CPU (loop_config ignores None)
         self.box = ti.field(ti.i32)
         # substep number from which scene b is frozen (2**30 = never): every phase skips it from then on,
         # so a batched cut gives scene b its own substep budget.  A field, so ti.graph runs read it live.
@@ -212,7 +213,7 @@ class MPMSolver:
     @ti.func
     def scatter(self, n: ti.template(), step: ti.template(), push_accel: ti.template()):
         if ti.static(self.use_warp):
-            ti.loop_config(block_dim=128)  # a multiple of 32: lane = thread index % 32
+            ti.loop_config(block_dim=self.scatter_block)  # a multiple of 32: lane = thread index % 32
             for g in range(self.B * self.lanes):
                 b, i = g // self.lanes, g % self.lanes
                 live = i < n and self.active(b, step)
@@ -221,6 +222,7 @@ class MPMSolver:
                     p = self.order[b, i]
                 self.scatter_warp(b, p, live, step, push_accel)
         else:
+            ti.loop_config(block_dim=self.scatter_block)
             for b, i in ti.ndrange(self.B, self.capacity):
                 if i < n and self.active(b, step):  # a frozen scene scatters nothing: its grid stays empty
                     self.scatter_particle(b, self.order[b, i], step, push_accel)
@@ -453,6 +455,7 @@ class MPMSolver:
 
     @ti.func
     def gather(self, n: ti.template(), step: ti.template(), t: ti.template()):
+        ti.loop_config(block_dim=self.gather_block)
         for b, p in ti.ndrange(self.B, self.capacity):
             if self.active(b, step):  # a frozen scene keeps x, v, C and its knife totals
                 if p == 0 and self.k_on[b] == 1:  # one thread per scene books the knife's impulse of this substep
