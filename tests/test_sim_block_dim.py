@@ -2,7 +2,7 @@
 
 Taichi marks each GPU task with launch bounds (maxntid = block_dim, minctasm = 2), so a bigger block caps
 the task's registers (65536 / (2 block_dim)) and lets more warps share an SM.  auto gives a batch's scatter
-384 threads (H100: 8-9% off a batched substep, docs/benchmarks.md) and keeps 128 elsewhere; the CPU keeps
+384 threads (H100: 4.6-8.9% off a batched substep, docs/benchmarks.md) and keeps 128 elsewhere; the CPU keeps
 Taichi's own chunking.  The GPU check in tests/test_sim_warp_scatter.py compares 128 against 384 on a cut.
 """
 import pytest
