@@ -132,7 +132,7 @@ class SimConfig:
         Taichi marks every GPU task with launch bounds (maxntid = block_dim, minctasm = 2), so ptxas keeps a
         task's registers at or below 65536 / (2 block_dim): 128 threads leave it uncapped (the scatter takes
         91, the gather 155), 256 cap it at 128, 384 at 85, 512 at 64.  Fewer registers let more warps stay on
-        an SM (what a batch needs: its scatter is latency-bound at 28% occupancy) at the price of spills.
+        an SM (what a batch needs: its scatter is latency-bound at 28% occupancy), at the risk of spills.
         auto: a batch's scatter takes 384 (H100, 16 scenes: 84^3 190-196 -> 181-187 us per substep, 128^3 518.2 ->
         472.2); a single scene, one partial wave of blocks, keeps 128, and so does the gather (384: slower).
         Results change only by the GPU's float atomics order (docs/benchmarks.md)."""
