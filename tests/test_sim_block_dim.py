@@ -1,8 +1,8 @@
 """sim.scatter_block_dim / sim.gather_block_dim: CUDA threads per block of the scatter and the gather.
 
 Taichi marks each GPU task with launch bounds (maxntid = block_dim, minctasm = 2), so a bigger block caps
-the task's registers (65536 / (2 block_dim)) and lets more warps share an SM.  auto gives a batch's scatter
-384 threads (H100: 4.6-8.9% off a batched substep, docs/benchmarks.md) and keeps 128 elsewhere; the CPU keeps
+the task's registers (65536 / (2 block_dim)) and lets more warps share an SM.  auto gives a batch's (warp)
+scatter 384 threads (H100: 4.6-8.9% off a batched substep, docs/benchmarks.md) and keeps 128 elsewhere; the CPU keeps
 Taichi's own chunking.  The GPU check in tests/test_sim_warp_scatter.py compares 128 against 384 on a cut.
 """
 import pytest
@@ -15,6 +15,7 @@ from topocut.sim import SimConfig
     (dict(arch="cuda", batch_size=1), (128, 128)),  # a single scene: one partial wave of blocks
     (dict(arch="cuda", batch_size=2), (384, 128)),
     (dict(arch="cuda", batch_size=16), (384, 128)),
+    (dict(arch="cuda", batch_size=16, warp_scatter="off"), (128, 128)),  # the plain scatter: not timed at 384
     (dict(arch="cuda", batch_size=16, scatter_block_dim=512, gather_block_dim=256), (512, 256)),
     (dict(arch="cuda", batch_size=1, scatter_block_dim=96), (96, 128)),
 ])

@@ -134,11 +134,13 @@ class SimConfig:
         91, the gather 155), 256 cap it at 128, 384 at 85, 512 at 64.  Fewer registers let more warps stay on
         an SM (what a batch needs: its scatter is latency-bound at 28% occupancy), at the risk of spills.
         auto: a batch's scatter takes 384 (H100, 16 scenes: 84^3 190-196 -> 181-187 us per substep, 128^3 518.2 ->
-        472.2); a single scene, one partial wave of blocks, keeps 128, and so does the gather (384: slower).
-        Results change only by the GPU's float atomics order (docs/benchmarks.md)."""
+        472.2, the warp scatter); a single scene, one partial wave of blocks, keeps 128, and so do the plain
+        scatter (not timed at 384) and the gather (384: slower).  Results change only by the GPU's float atomics
+        order (docs/benchmarks.md)."""
         if self.arch != "cuda":
             return None, None
-        return self.scatter_block_dim or (384 if self.batch_size > 1 else 128), self.gather_block_dim or 128
+        batch_warp = self.batch_size > 1 and self.warp_scatter_enabled()
+        return self.scatter_block_dim or (384 if batch_warp else 128), self.gather_block_dim or 128
 
     def resort_interval(self) -> int:
         """Substeps between re-sorts of the scatter's particle order by base cell (0: never).  Only the warp
