@@ -53,7 +53,7 @@ PY
       --section SpeedOfLight --section Occupancy --section LaunchStats --section WarpStateStats \
       --section MemoryWorkloadAnalysis --section ComputeWorkloadAnalysis python3 - <<'PY' 2>&1 | tee "$OUT/ncu_sim.txt"
 from topocut.sim import CuttingEnv, KnifeAction, SimConfig
-env = CuttingEnv(SimConfig(n_grid=84, batch_size=16, arch="cuda", dwell_substeps=0))
+env = CuttingEnv(SimConfig(n_grid=84, batch_size=16, arch="cuda", dwell_time=0.0))
 env.reset("cube")
 env.cut([KnifeAction(0.5 + 0.02 * b / 15, 0.5, yaw=0.1 * b) for b in range(16)])
 PY

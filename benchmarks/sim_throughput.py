@@ -179,7 +179,7 @@ def full_model(n_grid: int, B: int, arch: str, fuse: int | None, rotation: str, 
     if fuse is not None:
         kw["fuse_substeps"] = fuse
     t = time.perf_counter()
-    env = CuttingEnv(SimConfig(n_grid=n_grid, batch_size=B, arch=arch, dwell_substeps=0, core_rotation=rotation,
+    env = CuttingEnv(SimConfig(n_grid=n_grid, batch_size=B, arch=arch, dwell_time=0.0, core_rotation=rotation,
                                grid_box=grid_box, warp_scatter=warp_scatter, resort_every=resort, **kw))
     env.reset("cube")
     env.simulate(3)  # compile the phases

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import os
 
 import numpy as np
@@ -18,7 +19,10 @@ import numpy as np
 from pipelines._common import as_dict, begin_sim, object_pose
 from topocut.data.store import config_key
 from topocut.utils.context import RunContext
+from topocut.utils.errors import NothingUsable
 from topocut.utils.progress import progress_bar
+
+log = logging.getLogger("topocut")
 
 
 def _is_multirun() -> bool:
@@ -119,20 +123,37 @@ def run(ctx: RunContext, sim, object, task, topology, reward, planner, data, com
                     "goal": goal.points, "goal_labels": goal.labels, "status": summary["status"],
                     "final_reward": summary["final_reward"], "success": summary["success"]}
             record.update({k: summary[k] for k in ("status", "num_cuts", "final_reward", "success", "rewards")})
+            if summary["status"] != "ok":  # why it failed, in the episode log and the dataset's episode entry
+                meta["error"] = record["error"] = summary.get("error", "unknown")
+                log.warning("mppi episode %d (seed %d) failed after %d cuts: %s", e, seed, summary["num_cuts"],
+                            record["error"])
             with open(log_path, "a") as f:  # before the episode's commit: a crash between the two re-runs it,
                 f.write(json.dumps(record, default=float) + "\n")  # and its second record replaces the first
             ew.add_episode(steps, meta)
-            advance(task.max_cuts - summary["num_cuts"], info=f"episode {e}: reward {summary['final_reward']:.3f}")
+            advance(task.max_cuts - summary["num_cuts"],
+                    info=f"episode {e}: " + (f"reward {summary['final_reward']:.3f}" if summary["status"] == "ok"
+                                             else f"failed ({record['error']})"))
     ds = EpisodeDataset(zpath)
     if ds.num_episodes != data.episodes:
         raise RuntimeError(f"{zpath} holds {ds.num_episodes} episodes, expected data.episodes={data.episodes}")
     records = read_records(log_path)
+    failures = [{"episode": r["episode"], "seed": r.get("seed"), "error": r.get("error", "unknown")}
+                for r in records if r.get("status") != "ok"]
+    if len(failures) == len(records) or len(ds) == 0:
+        # nothing to learn from: committing would make an empty or all-failed dataset `latest` for pretrain/bc.
+        # The partial directory stays, so the same command re-reports without re-simulating.
+        what = f"all {len(records)} episodes failed" if failures else "its episodes recorded no steps"
+        reasons = "".join(f"; episode {f['episode']}: {f['error']}" for f in failures)
+        raise NothingUsable(f"stage=mppi: {what}, nothing committed to dataset/{name} (log: {log_path}){reasons}",
+                            failures)
     finals = [r["final_reward"] for r in records if r.get("status") == "ok"]
     heur = [r["heuristic_final_reward"] for r in records if "heuristic_final_reward" in r]
     summary = {"episodes": ds.num_episodes, "cuts": len(ds),
                "success_rate": float(np.mean([r["success"] for r in records])) if records else 0.0,
                "mean_final_reward": float(np.mean(finals)) if finals else float("nan"),
-               "failed_episodes": sum(r.get("status") != "ok" for r in records)}
+               "failed_episodes": len(failures)}
+    if failures:
+        summary["failures"] = failures
     if heur:
         summary["heuristic_mean_final_reward"] = float(np.mean(heur))
     _plot_rewards(records, writer.path / "rewards.png")

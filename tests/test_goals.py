@@ -36,16 +36,21 @@ def test_slice_has_the_requested_thickness_and_planes_bound_it():
 
 
 def test_stick_and_dice_dimensions():
+    # cube slab 0.04 thick, 0.16 tall and wide: upright sticks, two bands of 0.024 from a face, no turn
     g = make_goal(TaskConfig(name="stick", thickness=0.04, width=0.024, max_cuts=3), "cube", ObjectPose(), SP)
-    assert len(g.planes) == 3 and len(g.fragments) == 2
+    assert len(g.planes) == 3 and len(g.fragments) == 2 and not g.turns
     a1, a2 = g.axes[0], g.axes[1]
     for f in g.fragments:
         assert extent(f.astype(float), a1) == pytest.approx(0.04 - SP, abs=0.5 * SP)
         assert extent(f.astype(float), a2) == pytest.approx(0.024 - SP, abs=0.5 * SP)
-    d = make_goal(TaskConfig(name="dice", size=0.032, max_cuts=2), "cube", ObjectPose(), SP)
+    # dice: slab, lay it flat, one stick cut, one chop: a cube of side 0.032 (4 layers) on every axis
+    d = make_goal(TaskConfig(name="dice", size=0.032, max_cuts=3), "cube", ObjectPose(), SP)
+    assert [s.kind for s in d.steps] == ["cut", "turn", "cut", "cut"]
     f = d.fragments[0].astype(float)
-    for ax in d.axes[:2]:
+    for ax in d.axes:
         assert extent(f, ax) == pytest.approx(0.032 - SP, abs=0.5 * SP)
+    with pytest.raises(ValueError, match=r"task.max_cuts=2: task 'dice' needs at least 3"):
+        make_goal(TaskConfig(name="dice", size=0.032, max_cuts=2), "cube", ObjectPose(), SP)
 
 
 def test_pyramid_is_the_corner_tetrahedron():

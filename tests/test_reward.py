@@ -7,6 +7,7 @@ from topocut.reward import (
     RewardConfig,
     descriptor,
     match,
+    piece_distance,
     piecewise_reward,
     reward_from_distances,
     spectral_descriptors,
@@ -72,10 +73,12 @@ def make(k, seed=0):
 
 def test_distinct_shapes_are_farther_apart_than_poses_and_resamplings():
     for a, b in [("slice_t", "slice_2t"), ("stick", "die"), ("sphere", "cube")]:
-        d = spectral_distance(make(a), make(b), CFG)
-        pose = max(spectral_distance(make(k), moved(make(k), 3), CFG) for k in (a, b))  # same particles moved
-        resampled = max(spectral_distance(make(k), moved(make(k, seed=9), 3), CFG) for k in (a, b))
-        assert d > 1e4 * pose and d > 4 * resampled, (a, b, d, pose, resampled)
+        d = piece_distance(make(a), make(b), CFG)  # spectral shape + size terms
+        pose = max(piece_distance(make(k), moved(make(k), 3), CFG) for k in (a, b))  # same particles moved
+        resampled = max(piece_distance(make(k), moved(make(k, seed=9), 3), CFG) for k in (a, b))
+        # sphere vs cube of ~250 particles: the size terms' resampling noise is larger on so few particles
+        factor = 1.5 if a == "sphere" else 4
+        assert d > 1e4 * pose and d > factor * resampled, (a, b, d, pose, resampled)
 
 
 def test_eigenvector_term_alone_separates_shapes():
@@ -96,17 +99,17 @@ def test_piecewise_reward_matches_the_paper_formula():
         spectral_distance(box(0.02, 0.02, 0.02), box(0.02, 0.02, 0.02), RewardConfig(gamma=2.0, delta=1.0))
 
 
-def test_delta_calibration_a_slab_half_again_too_thick_earns_nothing():
-    """docs/reward.md#calibration: with the default delta, R(d(slice6 | slice4)) ~ 0, R(slice4 | slice3) > 0.75."""
+def test_size_terms_make_wrong_thicknesses_earn_nothing():
+    """docs/reward.md#sweep: slabs of 3/4/6 layers: 1.33x and 1.5x and 2x the goal thickness earn nothing,
+    the same slab scores ~1 (the spectral term alone is scale-free and does not see the thickness)."""
     from topocut.reward.experiments import shape_gallery
 
     g, cfg = shape_gallery(), RewardConfig()
-    R = {(a, b): piecewise_reward(spectral_distance(g[a], g[b], cfg), cfg)
+    R = {(a, b): piecewise_reward(piece_distance(g[a], g[b], cfg), cfg)
          for a, b in (("slice3", "slice3"), ("slice4", "slice3"), ("slice6", "slice4"), ("slice6", "slice3"))}
-    assert R["slice3", "slice3"] == pytest.approx(cfg.r_max - cfg.gamma * 0.0, abs=1e-3)
-    assert R["slice4", "slice3"] > 0.75  # 1.33x the goal thickness: most of the credit
-    assert R["slice6", "slice4"] < 0.2 and R["slice6", "slice3"] == 0.0  # 1.5x: almost none, 2x: none
-    assert cfg.tau + (cfg.r_max - cfg.gamma * cfg.tau) / cfg.delta < 0.12  # R reaches 0 before d = 0.12
+    assert R["slice3", "slice3"] == pytest.approx(cfg.r_max, abs=1e-3)
+    assert R["slice4", "slice3"] == 0.0 and R["slice6", "slice4"] == 0.0 and R["slice6", "slice3"] == 0.0
+    assert spectral_distance(g["slice4"], g["slice3"], cfg) < 0.05  # the shape term alone: nearly blind
 
 
 def test_wrong_cut_that_crosses_a_good_slab_lowers_the_total():
@@ -137,7 +140,7 @@ def test_bad_points_name_the_fragment():
         spectral_reward([box(0.02, 0.02, 0.02), frag], goal, CFG)
     with pytest.raises(ValueError, match=r"goal_fragments\[0\] has 1 point"):
         spectral_reward([goal[0]], [frag], CFG)
-    with pytest.raises(ValueError, match="reference_sigma.*distinct points"):
+    with pytest.raises(ValueError, match="distinct points"):
         spectral_reward([goal[0]], [np.zeros((40, 3))], CFG)
 
 
@@ -146,15 +149,28 @@ def test_matching_maximises_reward_not_closeness():
     cfg = RewardConfig()
     D = np.array([[0.0, 0.3], [0.3, 1.0]])  # fragment 0 is goal 0 exactly; 0.3 and 1.0 both earn R = 0
     assert match(D, cfg) == [(0, 0), (1, 1)]  # summed distance 1.0 (minimising it would pick 0.6, reward 0)
-    assert reward_from_distances(D, 2, cfg).total == pytest.approx(cfg.r_max / 2)  # kappa = 1/2, R(0) = r_max
-    assert reward_from_distances(D[:1], 2, cfg).total == pytest.approx(cfg.r_max / 2)  # the extra piece costs 0
-    # an inf pair counts as no pair: it must not push fragment 0 onto its worse goal piece
+    r = reward_from_distances(D, 2, cfg)
+    assert r.matching == [(0, 0)] and r.stock == 1  # the extra piece is the uncut rest: worth 0
+    assert r.total == pytest.approx(cfg.r_max / 2)  # kappa = 1/2, R(0) = r_max
+    # a second piece that matches nothing is waste: it costs a full piece (weight 1 without volumes)
+    r3 = reward_from_distances(np.array([[0.0, 0.3], [0.3, 1.0], [0.5, 0.5]]), 2, cfg)
+    assert r3.unclipped == pytest.approx((cfg.r_max - cfg.waste_cost * cfg.r_max) / 2)
+    # a half-volume extra fragment costs half (volumes given)
+    r4 = reward_from_distances(np.array([[0.0, 0.3], [0.3, 1.0], [0.5, 0.5]]), 2, cfg, volumes=[1, 3, 0.5],
+                               goal_volumes=[1, 1])
+    assert r4.unclipped == pytest.approx((cfg.r_max - 0.5 * cfg.waste_cost * cfg.r_max) / 2) and r4.stock == 1
+    # an inf pair counts as no pair
     D = np.array([[0.01, 0.05], [0.5, np.inf]])
-    assert match(D, cfg) == [(0, 0)]  # (1, 1) is inf: dropped; minimising distance picked (0, 1), (1, 0)
+    assert match(D, cfg) == [(0, 0)]
     R = lambda d: cfg.r_max - cfg.gamma * d  # noqa: E731  (d <= tau)
-    assert reward_from_distances(D, 2, cfg).total == pytest.approx(R(0.01) / 2)
-    # among equal rewards, the smaller summed distance
+    r6 = reward_from_distances(D, 2, cfg)
+    assert r6.stock == 1 and r6.total == pytest.approx((R(0.01) - cfg.mismatch_cost * (cfg.r_max - R(0.01))) / 2)
     assert match(np.array([[0.5, 0.9], [0.6, 2.0]]), cfg) == [(0, 1), (1, 0)]
+    # a matched piece of partial credit pays for the material it wasted: R - (r_max - R) w
+    d = 0.1
+    r5 = reward_from_distances(np.array([[d]]), 1, cfg)
+    Rd = piecewise_reward(d, cfg)
+    assert r5.unclipped == pytest.approx(Rd - cfg.mismatch_cost * (cfg.r_max - Rd))
 
 
 def test_matching_is_order_invariant_and_bounded():
@@ -175,11 +191,11 @@ def test_matching_is_order_invariant_and_bounded():
     assert (1, 0) in r.matching  # the moved die goes to the die goal
     assert np.isinf(r.distances[2]).all()  # 8 points < min_points
     assert 0.0 <= r.total <= CFG.r_max and np.all((0 <= r.per_goal) & (r.per_goal <= CFG.r_max))
-    assert r.per_goal[0] > 0.9
+    assert r.per_goal[0] > 0.8
     assert r.cut_count == sum(r.distances[f, g] <= 0.05 for f, g in r.matching) >= 1
     # kappa scales the sum
-    r2 = spectral_reward(frags, goals, RewardConfig(num_point=256, knn=20, num_eig=12, kappa=1.0))
-    assert r2.total == pytest.approx(r.per_goal.sum())
+    r2 = spectral_reward(frags, goals, RewardConfig(num_point=256, knn=20, num_eig=12, kappa=1.0, clip_total=False))
+    assert r2.total == pytest.approx(r.values.sum())
     # no fragment -> every goal unmatched -> 0
     assert spectral_reward([], goals, CFG).total == 0.0
 
@@ -241,4 +257,4 @@ def test_rewards_of_many_scenes_equal_one_scene_at_a_time(backend):
         assert r.total == pytest.approx(alone.total, rel=1e-6, abs=1e-9)
         assert r.matching == alone.matching and r.cut_count == alone.cut_count
         np.testing.assert_allclose(r.distances, alone.distances, rtol=1e-6)
-    assert batched[1].total == 0.0 and batched[0].total > 0.4 and batched[2].per_goal[1] > 0.9
+    assert batched[1].total == 0.0 and batched[0].per_goal[0] > 0.5 and batched[2].per_goal[1] > 0.9

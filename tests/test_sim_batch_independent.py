@@ -1,6 +1,6 @@
 """A batched cut gives every scene its own substep budget: scene b equals the same cut run alone (B=1).
 
-Scene b runs ceil(depth_b / (speed_b dt)) + dwell_substeps substeps and is then frozen (``frozen_at``:
+Scene b runs ceil(depth_b / (speed_b dt)) + dwell substeps (sim.dwell_time) and is then frozen (``frozen_at``:
 no phase touches it) while deeper scenes finish.  Before, every scene ran the deepest scene's budget, so a
 shallow cut kept settling under a resting knife and MPPI's replay of its best sample (B=1) disagreed with
 the batched evaluation.  Scenes share no data, and the session's single CPU thread (tests/conftest.py)
@@ -15,7 +15,7 @@ from topocut.sim.config import SimConfig
 
 # a shallow partial cut (stops 4 cm into the cube) and a tilted, yawed full cut down to the board
 ACTIONS = [KnifeAction(0.5, 0.5, depth=0.04), KnifeAction(0.47, 0.5, yaw=0.3, tilt=0.2)]
-SMALL = dict(n_grid=32, push_substeps=40, settle_substeps=37)
+SMALL = dict(n_grid=32, push_time=0.008, settle_time=0.0074)
 FIELDS = ("x", "v", "C", "F", "sigma_y", "damage")
 
 

@@ -12,7 +12,7 @@ from topocut.sim.action import KnifeAction
 from topocut.sim.config import SimConfig
 
 ACTIONS = [KnifeAction(0.5, 0.5, depth=5.0), KnifeAction(0.45, 0.5, yaw=0.3)]
-SMALL = dict(n_grid=32, batch_size=2, push_substeps=40, settle_substeps=37)
+SMALL = dict(n_grid=32, batch_size=2, push_time=0.008, settle_time=0.0074)
 
 
 def _run(grid_box: str):

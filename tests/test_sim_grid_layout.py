@@ -18,7 +18,7 @@ from topocut.sim.objects import sample_object
 def _run(layout: str):
     from topocut.sim.env import CuttingEnv
 
-    env = CuttingEnv(SimConfig(n_grid=32, batch_size=2, push_substeps=30, grid_layout=layout))
+    env = CuttingEnv(SimConfig(n_grid=32, batch_size=2, push_time=0.006, grid_layout=layout))
     env.reset("cube")
     info = env.cut([KnifeAction(0.5, 0.5, depth=5.0), KnifeAction(0.45, 0.5, yaw=0.3)])
     env.push()

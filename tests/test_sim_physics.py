@@ -210,7 +210,7 @@ def test_cut_substeps_that_outrun_the_cfl_bound_are_refused(env, monkeypatch):
 
 
 def test_config_ranges_and_gif_timing(tmp_path):
-    for kw, key in ((dict(check_every=0), "check_every"), (dict(dwell_substeps=-1), "dwell_substeps"),
+    for kw, key in ((dict(check_every=0), "check_every"), (dict(dwell_time=-1.0), "dwell_time"),
                     (dict(j_min=1.2), "j_min"), (dict(friction=-0.1), "friction")):
         with pytest.raises(ValueError, match=rf"sim\.{key}"):
             SimConfig(**kw).validate()

@@ -68,8 +68,8 @@ def test_every_particle_scattered_once_when_the_count_shrinks():
 
 
 def _cut(resort_every: int):
-    env = CuttingEnv(SimConfig(n_grid=N_GRID, batch_size=2, resort_every=resort_every, push_substeps=40,
-                               settle_substeps=40))
+    env = CuttingEnv(SimConfig(n_grid=N_GRID, batch_size=2, resort_every=resort_every, push_time=0.008,
+                               settle_time=0.008))
     env.reset("cube")
     env.cut([KnifeAction(0.5, 0.5, depth=5.0), KnifeAction(0.45, 0.5, yaw=0.3)])
     env.push()

@@ -61,7 +61,7 @@ import numpy as np
 from topocut.sim import CuttingEnv, KnifeAction, SimConfig
 
 def env(warp, B=2, resort=-1, layout="auto"):
-    e = CuttingEnv(SimConfig(arch="cuda", n_grid=48, batch_size=B, warp_scatter=warp, dwell_substeps=20,
+    e = CuttingEnv(SimConfig(arch="cuda", n_grid=48, batch_size=B, warp_scatter=warp, dwell_time=0.002,
                              resort_every=resort, grid_layout=layout))
     assert e.cfg.warp_scatter_enabled() == (warp == "on")
     return e

@@ -25,8 +25,8 @@ REPO = Path(__file__).resolve().parents[1]
 
 # Tiny everything: ~2 s per episode on a 2-core CPU.  task.max_cuts=2 because `stick` needs a slab cut
 # and a width cut before it has a goal piece.
-FAST = ["logger=none", "progress=false", "sim.n_grid=20", "sim.cut_substeps=40", "sim.dwell_substeps=5",
-        "sim.push_substeps=20", "sim.settle_substeps=20", "sim.batch_size=2", "planner.num_samples=2",
+FAST = ["logger=none", "progress=false", "sim.n_grid=20", "sim.cut_substeps=40", "sim.dwell_time=0.0005",
+        "sim.push_time=0.002", "sim.settle_time=0.002", "sim.batch_size=2", "planner.num_samples=2",
         "planner.horizon=1", "planner.iterations=1", "task.max_cuts=2", "data.points_per_step=128",
         "topology.resolution=32", "stage.run.compare_heuristic=false", "object.randomize_pose=false"]
 RESUME_SEED = 7

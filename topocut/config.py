@@ -7,6 +7,7 @@ make alone, naming the full key path in its message.
 """
 from __future__ import annotations
 
+import difflib
 import inspect
 from dataclasses import dataclass, field, fields, is_dataclass
 from typing import Any
@@ -115,14 +116,82 @@ def _check(cond: bool, key: str, msg: str) -> None:
         raise ConfigError(f"{key}: {msg}")
 
 
+def unknown_key_error(full_key: str, schema: type) -> ConfigError:
+    """The message for a key its group's dataclass does not declare, listing the ones it does."""
+    valid = [f.name for f in fields(schema)]
+    group, _, leaf = full_key.rpartition(".")
+    close = difflib.get_close_matches(leaf, valid, n=1)
+    hint = f" (did you mean {group + '.' if group else ''}{close[0]}?)" if close else ""
+    return ConfigError(f"{full_key}: unknown key{hint}; valid keys of {group or 'the root config'}: "
+                       f"{', '.join(valid)}")
+
+
+def check_known_keys(node: DictConfig, prefix: str = "") -> None:
+    """Every key must be declared by its group's dataclass.  Hydra's ``+key=value`` adds a key the schema lacks
+    without complaint (OmegaConf then drops it when building the dataclass), so ``+planner.num_sample=64`` would
+    run with the default silently.  Dicts the schema leaves open (eval.checkpoints, eval.task_overrides) take
+    any key; stage.run is checked against the stage function's signature."""
+    schema = OmegaConf.get_type(node)
+    if not is_dataclass(schema):
+        return
+    valid = {f.name for f in fields(schema)}
+    for key in node.keys():
+        if key not in valid:
+            raise unknown_key_error(f"{prefix}{key}", schema)
+        if not OmegaConf.is_interpolation(node, key) and not OmegaConf.is_missing(node, key):
+            child = node[key]
+            if isinstance(child, DictConfig):
+                check_known_keys(child, f"{prefix}{key}.")
+
+
+def composition_error(e: Exception) -> ConfigError:
+    """One line for what Hydra refuses while composing (an unknown option or key, a value of the wrong type),
+    in the words ``validate`` uses: the key, and what is valid."""
+    from hydra.errors import MissingConfigException
+
+    if isinstance(e, MissingConfigException) and e.missing_cfg_file and e.options:
+        group, _, option = e.missing_cfg_file.rpartition("/")
+        return ConfigError(f"{group}={option}: no such option; valid: {', '.join(e.options)}")
+    cause = e.__cause__
+    key, schema = getattr(cause, "full_key", None), getattr(cause, "object_type", None)
+    if key and is_dataclass(schema) and key.rpartition(".")[2] not in {f.name for f in fields(schema)}:
+        return unknown_key_error(key, schema)  # not Hydra's advice to add it with '+': it would be refused then
+    if key and "not in struct" in str(cause):  # a key of stage.run: its valid ones are the stage's arguments
+        return ConfigError(f"{key}: unknown key; `python -m topocut.run {key.split('.')[0]}=... --cfg job` "
+                           "prints the valid ones")
+    first = str(e).splitlines()[0]
+    return ConfigError(f"{first}: {str(cause).splitlines()[0]}" if cause is not None else first)
+
+
+def check_device(cfg: DictConfig, device: str) -> None:
+    """A training stage's Lightning accelerator must exist on the device this run resolved to."""
+    trains = isinstance(cfg.stage.run, DictConfig) and "trainer" in cfg.stage.run
+    _check(not trains or device == "cuda" or cfg.trainer.accelerator not in ("gpu", "cuda"), "trainer.accelerator",
+           f"{cfg.trainer.accelerator} needs a CUDA device, but this run's device is {device} (device={cfg.device}); "
+           "use trainer=cpu, or device=cuda on a machine with a GPU")
+
+
 def validate(cfg: DictConfig) -> None:
     """Cross-field checks; raises ConfigError naming the full key path."""
+    check_known_keys(cfg)
     _check(cfg.stage.name in STAGES, "stage.name", f"{cfg.stage.name!r} is not a stage; valid: {', '.join(STAGES)}")
     _check(cfg.object.name in OBJECTS, "object.name",
            f"unknown object {cfg.object.name!r}; valid: {', '.join(OBJECTS)}")
     _check(cfg.device in ("auto", "cpu", "cuda"), "device", f"{cfg.device!r}; valid: auto, cpu, cuda")
-    _check(cfg.object.scale_min <= cfg.object.scale_max, "object.scale_min",
-           f"{cfg.object.scale_min} exceeds object.scale_max={cfg.object.scale_max}")
+    for group in ("object", "eval"):  # pose randomisation ranges (topocut.sim.objects.random_pose)
+        node = cfg[group]
+        _check(0 < node.scale_min <= node.scale_max, f"{group}.scale_min",
+               f"{node.scale_min} is not valid; need 0 < {group}.scale_min <= {group}.scale_max={node.scale_max}")
+        _check(0 <= node.translation < 0.5, f"{group}.translation",
+               f"{node.translation} is not valid; must lie in [0, 0.5) (scene units; the board is the unit square)")
+        _check(0 <= node.yaw_deg <= 180, f"{group}.yaw_deg", f"{node.yaw_deg} is not valid; must lie in [0, 180]")
+    from topocut.data.store import InvalidName, check_name
+
+    for key, kind in (("data.dataset", "dataset"), ("data.encoder", "checkpoint"), ("eval.name", "eval")):
+        try:  # a name is one directory under <outputs_root>/<kind>: `../x` or `/tmp/x` would write elsewhere
+            check_name(kind, OmegaConf.select(cfg, key), key)
+        except InvalidName as e:
+            raise ConfigError(str(e)) from e
     _check(0.0 <= cfg.trainer.val_fraction < 1.0, "trainer.val_fraction", "must lie in [0, 1)")
     bad = [o for o in cfg.trainer.held_out_objects if o not in OBJECTS]
     _check(not bad, "trainer.held_out_objects", f"unknown object {bad[0]!r}; valid: {', '.join(OBJECTS)}" if bad else "")

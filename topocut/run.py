@@ -7,10 +7,12 @@ the logger — whatever the stage did.
 """
 from __future__ import annotations
 
+import errno
 import json
 import logging
 import os
 import sys
+import tempfile
 import time
 import traceback
 from pathlib import Path
@@ -20,18 +22,34 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from topocut.config import ConfigError, register_configs, validate
-from topocut.data.store import ArtifactBusy, ArtifactStore, CorruptArtifact, MissingArtifact, write_json_atomic
+from topocut.config import ConfigError, check_device, composition_error, register_configs, validate
+from topocut.data.store import (
+    ArtifactBusy,
+    ArtifactStore,
+    CorruptArtifact,
+    InvalidName,
+    MissingArtifact,
+    write_json_atomic,
+)
 from topocut.utils.context import RunContext
+from topocut.utils.errors import NothingUsable
 from topocut.utils.logger import RunLogger
 from topocut.utils.progress import print_summary
 from topocut.utils.runtime import DeviceUnavailable, resolve_device, seed_everything_all
 
 log = logging.getLogger("topocut")
 register_configs()
+CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
 # A user's mistake, not a bug: a single run prints the message (which names the key or file and what is valid)
 # without a traceback and exits 2; status.json keeps the traceback.  Multirun jobs re-raise for Hydra's launcher.
-USER_ERRORS = (ConfigError, MissingArtifact, CorruptArtifact, ArtifactBusy, DeviceUnavailable)
+USER_ERRORS = (ConfigError, MissingArtifact, CorruptArtifact, ArtifactBusy, DeviceUnavailable, InvalidName,
+               NothingUsable)
+# The machine's refusals the user fixes (a full disk or quota, a read-only or forbidden outputs_root), not bugs
+USER_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM)
+
+
+def is_user_error(e: BaseException) -> bool:
+    return isinstance(e, USER_ERRORS) or (isinstance(e, OSError) and e.errno in USER_ERRNOS)
 
 
 def run_stage(cfg: DictConfig, run_dir: Path, overrides: list[str] | None = None) -> dict:
@@ -44,6 +62,7 @@ def run_stage(cfg: DictConfig, run_dir: Path, overrides: list[str] | None = None
         validate(cfg)
         check_overrides(cfg, overrides or [])
         device = resolve_device(cfg.device)
+        check_device(cfg, device)
         seed_everything_all(cfg.seed)
         store = ArtifactStore(Path(cfg.outputs_root))
         resolved = OmegaConf.to_container(cfg, resolve=True)
@@ -60,10 +79,15 @@ def run_stage(cfg: DictConfig, run_dir: Path, overrides: list[str] | None = None
         return summary
     except BaseException as e:
         status.update(status="failed", error=f"{type(e).__name__}: {e}", traceback=traceback.format_exc())
+        if isinstance(e, NothingUsable):
+            status["failures"] = e.failures
         raise
     finally:
         status["seconds"] = round(time.time() - started, 2)
-        write_json_atomic(run_dir / "status.json", status)
+        try:
+            write_json_atomic(run_dir / "status.json", status)
+        except OSError as e:  # a full disk: report it, but never in place of the stage's own error
+            log.warning("could not write %s (%s)", run_dir / "status.json", e)
         if logger is not None:
             logger.finish(exit_code=0 if status["status"] == "ok" else 1)
 
@@ -89,8 +113,8 @@ def main(cfg: DictConfig) -> None:
     single = hc.mode == RunMode.RUN
     try:
         summary = run_stage(cfg, Path(hc.runtime.output_dir), overrides)
-    except USER_ERRORS as e:
-        if not single:
+    except Exception as e:
+        if not single or not is_user_error(e):
             raise
         log.error("%s: %s", type(e).__name__, e)
         sys.exit(2)
@@ -103,6 +127,35 @@ def main(cfg: DictConfig) -> None:
     log.info("summary: %s", json.dumps(summary, default=str))
 
 
+def preflight(argv: list[str]) -> None:
+    """Compose the config before Hydra does, to refuse a typo'd option or key and an unwritable outputs_root as
+    user errors: Hydra reports them (and fails to create the run directory) with status 1 and a traceback.
+    Hydra's own modes (``-m``, ``--cfg``, ``--help``, ...) are left to Hydra."""
+    if any(a.startswith("-") for a in argv):
+        return
+    from hydra import compose, initialize_config_dir
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
+    try:
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            cfg = compose(config_name="config", overrides=argv)
+    except (HydraException, OmegaConfBaseException) as e:
+        raise composition_error(e) from e
+    root = Path(cfg.outputs_root)
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+        tempfile.TemporaryFile(dir=root).close()
+    except OSError as e:
+        raise ConfigError(f"outputs_root={cfg.outputs_root}: cannot write there ({e.strerror or e}); "
+                          "give a writable directory (outputs_root=<dir> or TOPOCUT_OUTPUTS)") from e
+
+
 if __name__ == "__main__":
     os.environ.setdefault("HYDRA_FULL_ERROR", "0")
+    try:
+        preflight(sys.argv[1:])
+    except ConfigError as e:
+        print(f"ConfigError: {e}", file=sys.stderr)
+        sys.exit(2)
     main()

@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 DEFAULT_POINTS_PER_STEP = 2048
+FORMAT = "topocut-episodes-v1"  # the root's "format" attribute; any other layout is refused, not guessed at
 KEY_FIELDS = ("task", "object", "seed")
 
 # name -> (trailing shape, dtype)
@@ -37,6 +38,7 @@ STEP_ARRAYS = {"action": ((4,), "float32"), "pose": ((4, 4), "float32"), "histor
 GOAL_ARRAYS = {"goal": ((3,), "float32"), "goal_labels": ((), "int32")}
 EPISODE_ARRAYS = {"goal_point_ends": ((), "int64")}
 CHUNK_ROWS = {"point": 1 << 16, "step": 1024, "goal": 1 << 16, "episode": 1024}
+REQUIRED = (*(f"data/{n}" for n in (*POINT_ARRAYS, *STEP_ARRAYS, *GOAL_ARRAYS, *EPISODE_ARRAYS)), "meta/episode_ends")
 STEP_KEYS = ("x_t", "f_t", "x_t1", "f_t1", "action", "pose", "history", "reward", "success")
 
 
@@ -131,21 +133,38 @@ class _Buffer:
         self.path = Path(path)
         self.root = zarr.open_group(str(self.path), mode=mode)
         self.writable = mode != "r"
-        if self.writable and "meta" not in self.root:
+        if self.writable and self.root.attrs.get("format") is None:
             self._init_layout()
+        self._check_layout()
         self.data, self.meta = self.root["data"], self.root["meta"]
         self._load_committed()
 
     def _init_layout(self) -> None:
+        """Create what is missing: a new buffer, or one whose writer was killed while laying it out."""
+        self.root.attrs["format"] = FORMAT
         data = self.root.require_group("data")
         meta = self.root.require_group("meta")
         for kind, arrays in (("point", POINT_ARRAYS), ("step", STEP_ARRAYS), ("goal", GOAL_ARRAYS),
                              ("episode", EPISODE_ARRAYS)):
             for name, (shape, dtype) in arrays.items():
-                _create(data, name, shape, dtype, CHUNK_ROWS[kind])
-        _create(meta, "episode_ends", (), "int64", CHUNK_ROWS["episode"], fill_value=-1)
-        meta.attrs["episodes"] = []
-        self.root.attrs["format"] = "topocut-episodes-v1"
+                if name not in data:
+                    _create(data, name, shape, dtype, CHUNK_ROWS[kind])
+        if "episode_ends" not in meta:
+            _create(meta, "episode_ends", (), "int64", CHUNK_ROWS["episode"], fill_value=-1)
+        if "episodes" not in meta.attrs:
+            meta.attrs["episodes"] = []
+
+    def _check_layout(self) -> None:
+        """Another format (a future schema) fails here, naming what differs, not later as a bare KeyError."""
+        from topocut.data.store import UnsupportedSchema
+
+        found = self.root.attrs.get("format")
+        missing = [k for k in REQUIRED if k not in self.root]
+        if found != FORMAT or missing:
+            raise UnsupportedSchema(f"{self.path}: episode buffer format {found!r}"
+                                    + (f" without {', '.join(missing)}" if missing else "")
+                                    + f"; this topocut reads {FORMAT} (docs/data.md). Re-create the dataset with "
+                                    "this version (re-run the stage that made it) or read it with the one that wrote it")
 
     def _load_committed(self) -> None:
         """Longest prefix of episodes whose arrays and JSON entries are all complete."""

@@ -29,9 +29,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 1  # of manifest.json; a manifest with another one is refused, never guessed at
 KINDS = ("dataset", "checkpoint", "eval", "sim")
 _VERSION_RE = re.compile(r"^v(\d{3,})$")
+# No '/' and no leading '.': a name is one directory directly under <root>/<kind>, never '..' or a hidden one
+NAME_PATTERN = r"[A-Za-z0-9][A-Za-z0-9._-]*"
+_NAME_RE = re.compile(rf"^{NAME_PATTERN}$")
 
 
 class MissingArtifact(FileNotFoundError):
@@ -43,7 +46,26 @@ class ArtifactBusy(RuntimeError):
 
 
 class CorruptArtifact(RuntimeError):
-    """A committed artifact's files do not match its manifest."""
+    """A committed artifact's files do not match its manifest (or it has none)."""
+
+
+class UnsupportedSchema(CorruptArtifact):
+    """An artifact written in a layout this version of topocut does not read (manifest or data schema)."""
+
+
+class InvalidName(ValueError):
+    """An artifact name that would not stay one directory under its kind."""
+
+
+def check_name(kind: str, name: str, key: str | None = None) -> str:
+    """``name`` if it is a valid artifact name; ``key`` (e.g. ``data.dataset``) is the setting it came from."""
+    if kind not in KINDS:
+        raise ValueError(f"unknown artifact kind {kind!r}; valid kinds: {', '.join(KINDS)}")
+    if not isinstance(name, str) or not _NAME_RE.match(name):
+        raise InvalidName(f"{key or kind + ' name'}={name!r} is not a valid artifact name: it must match "
+                          f"{NAME_PATTERN} (letters, digits, '.', '_', '-'; no '/'), so that it is stored as "
+                          f"<outputs_root>/{kind}/<name>")
+    return name
 
 
 @dataclass(frozen=True)
@@ -60,7 +82,7 @@ class ArtifactRef:
         kind = kind or default_kind
         if not kind or not name:
             raise ValueError(f"artifact reference {text!r} must look like 'kind/name[:version]' with kind in {KINDS}")
-        return cls(kind, name, version or "latest")
+        return cls(kind, check_name(kind, name), version or "latest")
 
     def __str__(self) -> str:
         return f"{self.kind}/{self.name}:{self.version}"
@@ -86,11 +108,15 @@ def write_json_atomic(path: Path, obj: Any) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    with open(tmp, "w") as f:
-        json.dump(obj, f, indent=1, sort_keys=True, default=str)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "w") as f:
+            json.dump(obj, f, indent=1, sort_keys=True, default=str)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)  # a full disk must not leave half a file behind
+        raise
     return path
 
 
@@ -147,8 +173,13 @@ class VersionWriter:
     def commit(self, summary: dict | None = None) -> Path:
         files = {}
         for p in sorted(self.path.rglob("*")):
-            if p.is_file() and p.name != "manifest.json" and ".tmp-" not in p.name:
-                files[str(p.relative_to(self.path))] = sha256_file(p)
+            if not p.is_file():
+                continue
+            rel = str(p.relative_to(self.path))
+            if ".tmp-" in p.name:  # a killed atomic write's leftover: the version holds exactly its listed files
+                p.unlink()
+            elif rel != "manifest.json":
+                files[rel] = sha256_file(p)
         manifest = {
             "schema_version": SCHEMA_VERSION, "kind": self.kind, "name": self.name, "key": self.key,
             "files": files, "config": self.config, "inputs": self.inputs,
@@ -187,18 +218,23 @@ class ArtifactStore:
         self.root.mkdir(parents=True, exist_ok=True)
 
     # -- reading ------------------------------------------------------------
-    def versions(self, kind: str, name: str) -> list[str]:
-        d = self.root / kind / name
+    def _numbered(self, kind: str, name: str) -> list[str]:
+        """Every ``vNNN`` directory, committed or not (a copy interrupted before its manifest counts too)."""
+        d = self.root / kind / check_name(kind, name)
         if not d.is_dir():
             return []
-        vs = [p.name for p in d.iterdir() if p.is_dir() and _VERSION_RE.match(p.name)
-              and (p / "manifest.json").exists()]
-        return sorted(vs, key=lambda v: int(v[1:]))
+        return sorted((p.name for p in d.iterdir() if p.is_dir() and _VERSION_RE.match(p.name)),
+                      key=lambda v: int(v[1:]))
+
+    def versions(self, kind: str, name: str) -> list[str]:
+        """The committed versions (those with a manifest), oldest first."""
+        return [v for v in self._numbered(kind, name) if (self.root / kind / name / v / "manifest.json").exists()]
 
     def names(self, kind: str) -> list[str]:
-        """Names with at least one committed version (a name holding only partial work is not listed)."""
+        """Names with at least one version directory (a name holding only partial work is not listed)."""
         d = self.root / kind
-        return sorted(p.name for p in d.iterdir() if p.is_dir() and self.versions(kind, p.name)) if d.is_dir() else []
+        return sorted(p.name for p in d.iterdir() if p.is_dir() and _NAME_RE.match(p.name)
+                      and self._numbered(kind, p.name)) if d.is_dir() else []
 
     def ref(self, path: Path) -> str:
         """``kind/name:version@fingerprint`` of a committed version, for a consumer's ``inputs``.
@@ -215,20 +251,24 @@ class ArtifactStore:
     def resolve(self, kind: str | ArtifactRef, name: str | None = None, version: str = "latest",
                 verify: bool = True) -> Path:
         ref = kind if isinstance(kind, ArtifactRef) else ArtifactRef(kind, name, version)
-        if ref.kind not in KINDS:
-            raise ValueError(f"unknown artifact kind {ref.kind!r}; valid kinds: {', '.join(KINDS)}")
-        versions = self.versions(ref.kind, ref.name)
-        if not versions:
+        check_name(ref.kind, ref.name)
+        numbered = self._numbered(ref.kind, ref.name)
+        if not numbered:
             known = self.names(ref.kind)
             raise MissingArtifact(
                 f"no committed {ref.kind} named {ref.name!r} under {self.root / ref.kind}; "
                 f"known {ref.kind} names: {known or 'none'}. Run the stage that produces it first "
                 f"(e.g. `make mppi` for datasets, `make pretrain` for the encoder checkpoint).")
-        version = versions[-1] if ref.version == "latest" else ref.version
-        if version not in versions:
+        # latest is the highest-numbered directory: one without a manifest is refused, not silently skipped
+        version = numbered[-1] if ref.version == "latest" else ref.version
+        if version not in numbered:
             raise MissingArtifact(f"{ref.kind}/{ref.name} has no version {ref.version!r}; "
-                                  f"available: {', '.join(versions)} (or 'latest')")
+                                  f"available: {', '.join(self.versions(ref.kind, ref.name)) or 'none'} (or 'latest')")
         path = self.root / ref.kind / ref.name / version
+        if not (path / "manifest.json").is_file():
+            raise CorruptArtifact(f"{path} has no manifest.json (an interrupted copy or a hand-made directory), so "
+                                  f"nothing in it can be verified; restore its manifest, or delete {path} (or pin "
+                                  f"another version: {', '.join(self.versions(ref.kind, ref.name)) or 'none'})")
         if verify:
             self.verify(path)
         return path
@@ -236,13 +276,27 @@ class ArtifactStore:
     def manifest(self, path: Path) -> dict:
         mpath = Path(path) / "manifest.json"
         try:
-            return json.loads(mpath.read_text())
+            m = json.loads(mpath.read_text())
         except (OSError, json.JSONDecodeError) as e:
             raise CorruptArtifact(f"{mpath}: unreadable manifest ({e}); delete {path} and re-run the stage") from e
+        if not isinstance(m, dict) or m.get("schema_version") != SCHEMA_VERSION or not isinstance(m.get("files"), dict):
+            found = m.get("schema_version") if isinstance(m, dict) else type(m).__name__
+            raise UnsupportedSchema(f"{mpath}: schema_version {found!r} is not supported; this topocut reads "
+                                    f"schema_version {SCHEMA_VERSION}. Read {path} with the topocut that wrote it, "
+                                    f"or delete it and re-run the stage that made it")
+        return m
 
     def verify(self, path: Path) -> dict:
-        """Check every file's sha256 against the manifest; raise CorruptArtifact naming the file."""
+        """Check that the version holds exactly the manifest's files, each with its sha256; raise
+        CorruptArtifact naming the file.  An unlisted file counts: zarr stores no chunk equal to the fill
+        value, so one written after the commit changes what readers see without touching a listed file."""
+        path = Path(path)
         manifest = self.manifest(path)
+        for f in sorted(path.rglob("*")):
+            rel = str(f.relative_to(path))
+            if f.is_file() and rel != "manifest.json" and rel not in manifest["files"]:
+                raise CorruptArtifact(f"{f} is not listed in {path}/manifest.json (added after the commit); "
+                                      f"remove it, or delete {path} and re-run the stage that made it")
         for rel, digest in manifest["files"].items():
             f = Path(path) / rel
             if not f.exists():
@@ -254,7 +308,7 @@ class ArtifactStore:
         return manifest
 
     def find_by_key(self, kind: str, name: str, key: str) -> Path | None:
-        for v in reversed(self.versions(kind, name)):
+        for v in reversed(self.versions(kind, name)):  # a directory without a manifest has no key to match
             p = self.root / kind / name / v
             if self.manifest(p).get("key") == key:
                 return p
@@ -262,15 +316,14 @@ class ArtifactStore:
 
     # -- writing ------------------------------------------------------------
     def _next_version(self, kind: str, name: str) -> str:
-        vs = self.versions(kind, name)
+        vs = self._numbered(kind, name)  # past every directory, manifest or not: a rename onto one would fail
         return f"v{(int(vs[-1][1:]) + 1 if vs else 1):03d}"
 
     def begin(self, kind: str, name: str, config: Any, inputs: dict[str, str] | None = None,
               extra: dict | None = None) -> tuple[VersionWriter | None, Path | None]:
         """Start (or resume) a version.  Returns (writer, None), or (None, existing) if the same
         config and inputs were already committed, so the caller can reuse it."""
-        if kind not in KINDS:
-            raise ValueError(f"unknown artifact kind {kind!r}; valid kinds: {', '.join(KINDS)}")
+        check_name(kind, name)
         inputs = dict(inputs or {})
         key = config_key(config, [f"{k}={v}" for k, v in inputs.items()])
         existing = self.find_by_key(kind, name, key)

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from topocut.reward import distance_matrices, reward_from_distances
+from topocut.reward import distances_and_volumes, reward_from_distances
 from topocut.sim.action import KnifeAction
 
 
@@ -67,12 +67,12 @@ class PlaneScorer:
             labs = [self.scorer.labels(st.x[b], st.damage[b], st.sweeps[b]) for b in range(n)]
             # one distance matrix per scene, scored under both reward configs (they differ only in R(d))
             sets = [self.scorer.fragments(x, lab) for x, lab in zip(xs, labs)]
-            Ds = distance_matrices(sets, list(self.goal.fragments), self.scorer.reward_cfg)
+            Ds, vols, gvols = distances_and_volumes(sets, list(self.goal.fragments), self.scorer.reward_cfg)
             G = len(self.goal.fragments)
             for b in range(n):
                 out.append({"action": chunk[b].to_vector(), "x": xs[b], "labels": labs[b],
-                            "reward": reward_from_distances(Ds[b], G, self.scorer.reward_cfg).total,
-                            "cost_reward": reward_from_distances(Ds[b], G, self.cost_cfg).total})
+                            "reward": reward_from_distances(Ds[b], G, self.scorer.reward_cfg, vols[b], gvols).total,
+                            "cost_reward": reward_from_distances(Ds[b], G, self.cost_cfg, vols[b], gvols).total})
         return out
 
     def rollout(self, seqs: np.ndarray) -> np.ndarray:
@@ -87,12 +87,12 @@ def pyramid_experiment(n_grid: int = 48, num_samples: int = 8, iterations: int =
                        init=(-0.02, 0.35, -0.3), delta: float = 1.1, seed: int = 0, device: str = "cpu",
                        out: str | None = None) -> dict:
     """MPPI over one cut of the cube's corner; returns the numbers and (with ``out``) draws the figure."""
-    from topocut.goals import TaskConfig, make_goal
     from topocut.planning.config import MPPIConfig
     from topocut.planning.mppi import MPPI
     from topocut.reward import RewardConfig
     from topocut.sim import CuttingEnv, SimConfig, init_taichi
     from topocut.sim.objects import ObjectPose
+    from topocut.tasks import TaskConfig, make_goal
     from topocut.topology import TopologyConfig
 
     t0 = time.perf_counter()
@@ -230,10 +230,10 @@ def draw_pyramid(path, x0, goal, ideal, start, planned, res, ideal_res, result, 
 def writing_experiment(word: str = "CORL", n_grid: int = 48, num_samples: int = 4, iterations: int = 2,
                        seed: int = 0, out: str | None = None) -> dict:
     """Cream writing: the scripted writer vs MPPI over strokes (same goals); figure + numbers."""
-    from topocut.goals.config import TaskConfig
     from topocut.planning.writer import StrokeMPPI, StrokeMPPIConfig, draw_writing, write_scripted, writing_scene
     from topocut.sim import SimConfig, init_taichi
     from topocut.sim.pen import CreamPen
+    from topocut.tasks.config import TaskConfig
 
     init_taichi("cpu", cpu_threads=1)
     sim, task = SimConfig(n_grid=n_grid), TaskConfig(name="cream_writing", word=word).validate()

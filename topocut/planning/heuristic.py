@@ -1,6 +1,6 @@
 """Heuristic controller: the goal's ideal cut planes in order (the evaluation's "Heuristic" baseline).
 
-``Goal.planes`` (topocut.goals.make_goal) are the equally spaced planes that
+``Goal.planes`` (topocut.tasks.make_goal; the Cut steps of the task's oracle) are the equally spaced planes that
 produce the target pieces on the nominal, undeformed object; executing them
 open loop ignores how the material deforms and moves.  They are also MPPI's
 initial guess and horizon fill.
@@ -52,8 +52,8 @@ class FixedTrajectoryPolicy(HeuristicPolicy):
         self._cache: dict[tuple[str, str], object] = {}
 
     def reset(self, goal) -> None:
-        from topocut.goals import make_goal
         from topocut.sim.objects import ObjectPose
+        from topocut.tasks import make_goal
 
         key = (goal.task, goal.object)
         if key not in self._cache:

@@ -228,8 +228,8 @@ def run_episode(env, goal, planner, reward_cfg=None, topo_cfg=None, max_cuts: in
             env.cut([action] * B if B > 1 else action)
             if push:
                 env.push()
-        except Diverged as e:
-            status, error = "failed", str(e)
+        except Diverged as e:  # the reason goes with the episode (its log and dataset entry), not only a NaN reward
+            status, error = "failed", f"cut {t + 1}: {type(e).__name__}: {e}"
             break
         st = env.state()
         x1 = np.asarray(st.x[0])

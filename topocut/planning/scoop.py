@@ -87,7 +87,7 @@ class ScoopScene:
         from topocut.sim import CuttingEnv
 
         self.spoon, self.sided = spoon, sided
-        self.env = CuttingEnv(dataclasses.replace(sim, yield_stress=spoon.yield_stress), batch_size=1)
+        self.env = CuttingEnv(dataclasses.replace(sim, yield_stress=spoon.yield_stress, fields=1), batch_size=1)
         x = block_particles(spoon, self.env.cfg.spacing, self.env.cfg.board_z, seed)
         self.env.load_particles(x, np.ones(len(x), np.int32))
         self.tools = ToolColliders(self.env.solver, spoon)
@@ -116,7 +116,7 @@ class ScoopScene:
             if sided:
                 self.tools.p2g_sided(env.n, k)
             else:
-                s.p2g(env.n, k, 0.0)
+                s.p2g(env.n, k)
             s.grid_op(self.t, 0)
             self.tools.collide_tools()
             if sided:
@@ -185,7 +185,7 @@ def scoop_episode(sim, task, topology=None, frames_dir=None, seed: int = 0, rewa
         arrays[f"x_{i + 1}"] = scene.x
         if on_scoop is not None:
             on_scoop(i, {"chunks_in_cup": i + 1, **rec})
-    scene.run(None, scene.t + scene.env.cfg.settle_substeps * scene.env.dt)
+    scene.run(None, scene.t + scene.env.cfg.settle_time)
     x = scene.x
     st = scene.env.state()
     topo = discover(x, st.damage[0], None, cfg=topology, device=topology_device(scene.env))

@@ -206,7 +206,7 @@ class PDDPPolicy:
         if isinstance(module_or_ckpt, PDDPModule):
             module = module_or_ckpt
         else:
-            module = PDDPModule.load_from_checkpoint(str(module_or_ckpt), map_location=device)
+            module = PDDPModule.load_from_checkpoint(str(module_or_ckpt), map_location=device, weights_only=True)
         self.module = module.to(device).eval()
         self.device, self.board_z, self.use_ema, self.seed = torch.device(device), board_z, use_ema, int(seed)
         self.generator = torch.Generator(device=self.device).manual_seed(self.seed)

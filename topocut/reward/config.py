@@ -18,20 +18,31 @@ class RewardConfig:
     # eigenvector term: quantiles of the normalised heat kernel signature at t = c / lambda_K
     hks_times: list[float] = field(default_factory=lambda: [2.0, 4.0, 8.0])
     num_quantiles: int = 16
-    alpha: float = 1.0  # weight of the eigenvalue term  mean_k (log lx_k - log ly_k)^2
+    alpha: float = 1.0  # weight of the eigenvalue term  mean_k (l_x,k - l_y,k)^2 (mean-centred log eigenvalues)
     beta: float = 1.0  # weight of the eigenvector (HKS distribution) term
+    # size terms (topocut.reward.size): a * sum_k (dlog e_k)^2 + b * (dlog fill)^2 over the sorted principal
+    # extents and the fill V / (e1 e2 e3); a slab r times the goal's thickness is at a log(r)^2 (docs/reward.md#sweep)
+    size_weight: float = 3.0
+    fill_weight: float = 3.0
+    profile_weight: float = 3.0  # the thickness profile along the thinnest axis (quantiles over 2s columns)
     min_points: int = 32  # fragments with fewer points get distance inf (reward 0)
     # piecewise-linear reward R(d) (paper appendix): R_max - gamma d for d <= tau, then slope delta > gamma; clipped at 0
     r_max: float = 1.0
     gamma: float = 1.0
     tau: float = 0.01
-    # delta = 10 puts R = 0 at d = 0.11, the distance of a slab to one 1.5x as thick (docs/reward.md#calibration);
-    # with 5, a slab twice too thick still earned ~0.5 and a wrong cut could raise the total (Q1)
-    delta: float = 10.0
-    kappa: float | None = None  # total = kappa * sum_i R(d_i); None: 1 / (number of goal pieces)
-    # a matched piece counts as a correct cut (N_C) if d <= this, i.e. R(d) >= 0.59 with the defaults;
-    # None: tau (R >= 0.99), which no simulated cut reaches (see docs/reward.md)
-    success_distance: float | None = 0.05
+    # delta = 4 puts R = 0 at d = 0.2575: a slab 1.34x (or 0.75x) the goal's thickness (d_size = 3 log(r)^2);
+    # the size terms, not delta, now make wrong thicknesses earn nothing (docs/reward.md#calibration)
+    delta: float = 4.0
+    kappa: float | None = None  # total = kappa * sum of fragment values; None: 1 / (number of goal pieces)
+    # every fragment is accounted for (docs/reward.md#several-fragments): a fragment assigned to a goal piece is
+    # worth R(d) - mismatch_cost (r_max - R(d)) w, one fragment may be the uncut stock (0), every other one is
+    # waste, - waste_cost r_max w, with w = min(1, its volume / the mean goal piece's)
+    mismatch_cost: float = 1.0
+    waste_cost: float = 1.0
+    clip_total: bool = True  # total clipped to [0, r_max] (RewardResult.unclipped keeps the sum)
+    # a piece assigned to a goal piece counts as a correct cut (N_C) if d <= this, i.e. R(d) >= 0.77 with the
+    # defaults: a slab within ~0.86-1.16x the goal thickness (docs/reward.md#sweep); None: tau
+    success_distance: float | None = 0.065
     backend: str = "scipy"  # "scipy" (sparse shift-invert eigsh, CPU) or "torch" (batched dense eigh)
     device: str = "cpu"  # torch backend only
 
@@ -45,6 +56,9 @@ class RewardConfig:
                 raise ValueError(f"reward.{k}={getattr(self, k)} must be >= 1")
         if self.min_points < self.num_eig + 2:
             raise ValueError(f"reward.min_points={self.min_points} must be >= reward.num_eig + 2 = {self.num_eig + 2}")
+        for k in ("size_weight", "fill_weight", "profile_weight", "mismatch_cost", "waste_cost"):
+            if getattr(self, k) < 0:
+                raise ValueError(f"reward.{k}={getattr(self, k)} must be >= 0")
         if self.sigma is not None and self.sigma <= 0:
             raise ValueError(f"reward.sigma={self.sigma} must be > 0 or None")
         return self

@@ -1,16 +1,28 @@
-"""Fragment-to-goal matching and the multi-fragment spectral reward.
+"""Fragment-to-goal assignment and the multi-fragment reward (docs/reward.md#several-fragments).
 
-R(d) is the paper's piecewise-linear map (appendix, "Pose-Invariant Shape Evaluation"):
+Distance of a fragment X to a goal piece Y (``piece_distance``):
+
+    d(X, Y) = d_spec(X, Y) + d_size(X, Y)
+
+d_spec the scale-free spectral shape distance (topocut.reward.spectral), d_size the pose-invariant size
+distance (principal extents and fill, topocut.reward.size).  R(d) is the paper's piecewise-linear map:
 
     R(d) = R_max - gamma d                          for d <= tau
     R(d) = R_max - gamma tau - delta (d - tau)      for d >  tau        (delta > gamma)
 
-clipped below at 0 (the main text's max(0, .)), so 0 <= R <= R_max.  Fragments are
-assigned to goal pieces one-to-one by the Hungarian algorithm maximising the summed reward
-(the distance only breaks ties: minimising summed distance instead lets a far-off extra
-fragment, which earns 0 anyway, pull a perfect fragment off its goal piece); goal pieces
-left without a fragment score 0.  total = kappa * sum_g R(d_g), with
-kappa = 1 / G by default so that 0 <= total <= R_max whatever the number G of goal pieces.
+clipped below at 0 (the main text's max(0, .)).
+
+Every fragment is accounted for.  Each fragment f takes exactly one role, chosen by the Hungarian algorithm
+to maximise the summed value:
+
+* goal piece g (one fragment per goal piece):   R(d_fg) - c_mis (R_max - R(d_fg)) w_f
+* the stock (at most one fragment: the uncut rest of the object):   0
+* waste (material cut from the wrong place):   - c_waste R_max w_f
+
+with w_f = min(1, V_f / mean_g V_g) the fragment's material in goal pieces (capped at one).  A goal piece
+left without a fragment earns 0.  total = kappa * sum of values (kappa = 1 / G by default), clipped to
+[0, R_max] (``RewardResult.unclipped`` keeps the sum).  N_C counts the fragments assigned to a goal piece
+with d <= success_distance.
 """
 from __future__ import annotations
 
@@ -22,7 +34,8 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from topocut.reward.config import RewardConfig
-from topocut.reward.spectral import _points, descriptor, descriptor_distance, reference_sigma, resample
+from topocut.reward.size import size_descriptor, size_distance
+from topocut.reward.spectral import _points, descriptor, descriptor_distance, resample
 
 
 def piecewise_reward(d, cfg: RewardConfig | None = None):
@@ -53,13 +66,64 @@ def match(distances, cfg: RewardConfig | None = None) -> list[tuple[int, int]]:
     return sorted((int(r), int(c)) for r, c in zip(rows, cols) if finite[r, c])
 
 
+def fragment_weights(volumes, goal_volumes) -> np.ndarray:
+    """w_f = min(1, V_f / mean goal-piece volume): a fragment's material counted in goal pieces."""
+    v = np.asarray(volumes, np.float64).reshape(-1)
+    gv = float(np.mean(goal_volumes)) if len(goal_volumes) else 0.0
+    if not gv > 0:
+        return np.ones_like(v)
+    return np.minimum(1.0, v / gv)
+
+
+def assign(distances, cfg: RewardConfig | None = None, weights=None):
+    """Roles of the fragments of an (F,G) distance matrix: (pairs [(f, g)], stock f or None, waste [f],
+    values (F,)).  Maximises the summed value (module docstring); the summed distance of the pairs breaks
+    ties.  A fragment at d = inf to every goal piece (below min_points) can only be stock or waste."""
+    cfg = cfg or RewardConfig()
+    D = np.asarray(distances, dtype=np.float64).reshape(len(distances), -1) if len(distances) else np.zeros((0, 0))
+    F, G = D.shape if D.ndim == 2 else (0, 0)
+    if F == 0:
+        return [], None, [], np.zeros(0)
+    w = np.ones(F) if weights is None else np.asarray(weights, np.float64)
+    finite = np.isfinite(D)
+    R = piecewise_reward(np.where(finite, D, np.inf), cfg) if G else np.zeros((F, 0))
+    R = np.atleast_2d(R).reshape(F, G)
+    pair_val = R - cfg.mismatch_cost * (cfg.r_max - R) * w[:, None]
+    waste_val = -cfg.waste_cost * cfg.r_max * w
+    Df = np.where(finite, D, 0.0)
+    eps = 1e-9 / (Df.max(initial=0.0) * max(D.size, 1) + 1e-300)
+    big = 1e6
+    cost = np.full((F, G + 1 + F), big)
+    cost[:, :G] = np.where(finite, -pair_val + eps * Df, big)
+    cost[:, G] = 0.0 - 1e-12 * w  # the stock: a hair better for the larger fragment among equal choices
+    cost[np.arange(F), G + 1 + np.arange(F)] = -waste_val
+    rows, cols = linear_sum_assignment(cost)
+    pairs, stock, waste = [], None, []
+    values = np.zeros(F)
+    for r, c in zip(rows, cols):
+        if c < G:
+            pairs.append((int(r), int(c)))
+            values[r] = pair_val[r, c]
+        elif c == G:
+            stock = int(r)
+        else:
+            waste.append(int(r))
+            values[r] = waste_val[r]
+    return sorted(pairs), stock, sorted(waste), values
+
+
 @dataclass
 class RewardResult:
-    total: float  # kappa * sum of per-goal rewards
-    per_goal: np.ndarray  # G, R(d) of the fragment matched to each goal piece (0 if none)
+    total: float  # kappa * sum of the fragments' values, clipped to [0, r_max]
+    per_goal: np.ndarray  # G, R(d) of the fragment assigned to each goal piece (0 if none)
     matching: list = field(default_factory=list)  # [(fragment index, goal index)]
-    cut_count: int = 0  # matched pieces with d <= success distance (N_C)
-    distances: np.ndarray = None  # F,G spectral distances (inf: fragment too small)
+    cut_count: int = 0  # fragments assigned to a goal piece with d <= success distance (N_C)
+    distances: np.ndarray = None  # F,G distances d_spec + d_size (inf: fragment too small)
+    unclipped: float = 0.0  # kappa * sum of the fragments' values (may be < 0)
+    stock: int | None = None  # the fragment taken as the uncut rest (value 0)
+    waste: list = field(default_factory=list)  # fragments costing -c_waste w_f
+    values: np.ndarray = None  # F, each fragment's value
+    weights: np.ndarray = None  # F, w_f
 
 
 _CACHE: OrderedDict[tuple, object] = OrderedDict()  # goal resamplings / descriptors reused across MPPI rollouts
@@ -80,7 +144,7 @@ def _hash(points: np.ndarray) -> str:
     return hashlib.blake2b(np.ascontiguousarray(points).tobytes(), digest_size=16).hexdigest()
 
 
-def _descriptors(clouds: list[np.ndarray], sigma: float, cfg: RewardConfig) -> list:
+def _descriptors(clouds: list[np.ndarray], sigma, cfg: RewardConfig) -> list:
     """Descriptor per (resampled) cloud, None for clouds below min_points."""
     out: list = [None] * len(clouds)
     todo = [i for i, c in enumerate(clouds) if len(c) >= cfg.min_points]
@@ -101,8 +165,13 @@ def _descriptors(clouds: list[np.ndarray], sigma: float, cfg: RewardConfig) -> l
     return out
 
 
+def piece_distance(x, y, cfg: RewardConfig | None = None) -> float:
+    """d(x, y) = d_spec + d_size of one fragment x (n,3) to one goal piece y (m,3); inf below min_points."""
+    return float(distance_matrix([x], [y], cfg)[0, 0])
+
+
 def distance_matrix(fragments, goal_fragments, cfg: RewardConfig | None = None) -> np.ndarray:
-    """(F,G) spectral distances; sigma is set once from the goal pieces (reference_sigma).
+    """(F,G) distances d_spec + d_size.
 
     Goal resamplings and descriptors are cached (keyed by the goal's bytes and the config),
     so repeated calls with the same goal, as in MPPI, only pay for the fragments.
@@ -112,39 +181,62 @@ def distance_matrix(fragments, goal_fragments, cfg: RewardConfig | None = None) 
 
 def distance_matrices(fragment_sets, goal_fragments, cfg: RewardConfig | None = None,
                       names=None) -> list[np.ndarray]:
-    """One (F_s,G) matrix per set of fragments (e.g. the K scenes of an MPPI batch) against one goal.
+    """One (F_s,G) matrix per set of fragments (e.g. the K scenes of an MPPI batch) against one goal."""
+    return _score_sets(fragment_sets, goal_fragments, cfg, names)[0]
+
+
+def distances_and_volumes(fragment_sets, goal_fragments, cfg: RewardConfig | None = None, names=None):
+    """(one (F_s,G) distance matrix per set, fragment volumes per set, goal volumes): what
+    ``reward_from_distances(D, G, cfg, volumes, goal_volumes)`` needs to score each set."""
+    return _score_sets(fragment_sets, goal_fragments, cfg, names)
+
+
+def _score_sets(fragment_sets, goal_fragments, cfg: RewardConfig | None = None, names=None):
+    """(distance matrices, fragment volumes per set, goal volumes).
 
     All sets' fragments go through one descriptor call, so the torch backend
     decomposes every scene's fragments in one batch instead of one scene at a time.
     """
     cfg = (cfg or RewardConfig()).validate()
     names = names or [f"fragment_sets[{s}]" for s in range(len(fragment_sets))]
-    sets = [[resample(_points(f, f"{name}[{i}]"), cfg) for i, f in enumerate(fs)]
-            for name, fs in zip(names, fragment_sets)]
+    raw = [[_points(f, f"{name}[{i}]") for i, f in enumerate(fs)] for name, fs in zip(names, fragment_sets)]
+    sizes = [[size_descriptor(f) for f in fs] for fs in raw]
+    sets = [[resample(f, cfg) for f in fs] for fs in raw]
     goals = [_points(g, f"goal_fragments[{i}]") for i, g in enumerate(goal_fragments)]
     ckey = repr(cfg)
     gkeys = [_hash(g) for g in goals]
+    gsizes = [_cached(("size", k), lambda g=g: size_descriptor(g)) for k, g in zip(gkeys, goals)]
     goals = [_cached(("resample", k, ckey), lambda g=g: resample(g, cfg)) for k, g in zip(gkeys, goals)]
     Ds = [np.full((len(fs), len(goals)), np.inf) for fs in sets]
-    valid = [g for g in goals if len(g) >= cfg.min_points]
+    vols = [np.array([sz[3] for sz in fs]) for fs in sizes]
+    gvols = np.array([sz[3] for sz in gsizes])
     flat = [f for fs in sets for f in fs]
-    if not flat or not valid:
-        return Ds
-    sigma = reference_sigma(valid, cfg)
+    if not flat or not any(len(g) >= cfg.min_points for g in goals):
+        return Ds, vols, gvols
+    sigma = cfg.sigma  # None: each cloud its own graph width (scale-free spectra)
     fd = iter(_descriptors(flat, sigma, cfg))
-    gd = [_cached(("desc", k, sigma, ckey), lambda g=g: _descriptors([g], sigma, cfg)[0]) for k, g in zip(gkeys, goals)]
-    for D in Ds:
+    gd = [_cached(("desc", k, ckey), lambda g=g: _descriptors([g], sigma, cfg)[0]) for k, g in zip(gkeys, goals)]
+    for D, fs in zip(Ds, sizes):
         for i in range(D.shape[0]):
             a = next(fd)
             for j, b in enumerate(gd):
                 if a is not None and b is not None:
-                    D[i, j] = descriptor_distance(*a, *b, cfg)
-    return Ds
+                    D[i, j] = (descriptor_distance(*a, *b, cfg)
+                               + size_distance(fs[i], gsizes[j], cfg.size_weight, cfg.fill_weight,
+                                                 cfg.profile_weight))
+    return Ds, vols, gvols
 
 
-def reward_from_distances(D: np.ndarray, G: int, cfg: RewardConfig) -> RewardResult:
-    """Matching, R(d) per goal piece, total and N_C from an (F,G) distance matrix (spectral_reward's last step)."""
-    pairs = match(D, cfg)
+def reward_from_distances(D: np.ndarray, G: int, cfg: RewardConfig, volumes=None,
+                          goal_volumes=None) -> RewardResult:
+    """Roles, values, total and N_C from an (F,G) distance matrix (spectral_reward's last step).
+
+    volumes (F,) and goal_volumes (G,) give the fragments' weights w_f; without them every fragment weighs 1.
+    """
+    D = np.asarray(D, np.float64).reshape(-1, G)
+    w = (fragment_weights(volumes, goal_volumes) if volumes is not None and goal_volumes is not None
+         else np.ones(len(D)))
+    pairs, stock, waste, values = assign(D, cfg, w)
     per_goal = np.zeros(G)
     success = cfg.tau if cfg.success_distance is None else cfg.success_distance
     cut_count = 0
@@ -152,7 +244,9 @@ def reward_from_distances(D: np.ndarray, G: int, cfg: RewardConfig) -> RewardRes
         per_goal[g] = piecewise_reward(D[f, g], cfg)
         cut_count += int(D[f, g] <= success)
     kappa = 1.0 / G if cfg.kappa is None else cfg.kappa
-    return RewardResult(float(kappa * per_goal.sum()), per_goal, pairs, cut_count, D)
+    unclipped = float(kappa * values.sum())
+    total = float(np.clip(unclipped, 0.0, cfg.r_max)) if cfg.clip_total else unclipped
+    return RewardResult(total, per_goal, pairs, cut_count, D, unclipped, stock, waste, values, w)
 
 
 def spectral_rewards(fragment_sets, goal_fragments, cfg: RewardConfig | None = None) -> list[RewardResult]:
@@ -160,7 +254,8 @@ def spectral_rewards(fragment_sets, goal_fragments, cfg: RewardConfig | None = N
     cfg = (cfg or RewardConfig()).validate()
     if not goal_fragments:
         raise ValueError("spectral_rewards needs at least one goal fragment")
-    return [reward_from_distances(D, len(goal_fragments), cfg) for D in distance_matrices(fragment_sets, goal_fragments, cfg)]
+    Ds, vols, gvols = _score_sets(fragment_sets, goal_fragments, cfg)
+    return [reward_from_distances(D, len(goal_fragments), cfg, v, gvols) for D, v in zip(Ds, vols)]
 
 
 def spectral_reward(fragments, goal_fragments, cfg: RewardConfig | None = None) -> RewardResult:
@@ -169,4 +264,5 @@ def spectral_reward(fragments, goal_fragments, cfg: RewardConfig | None = None) 
     G = len(goal_fragments)
     if G == 0:
         raise ValueError("spectral_reward needs at least one goal fragment")
-    return reward_from_distances(distance_matrix(fragments, goal_fragments, cfg), G, cfg)
+    Ds, vols, gvols = _score_sets([fragments], goal_fragments, cfg, names=("fragments",))
+    return reward_from_distances(Ds[0], G, cfg, vols[0], gvols)

@@ -7,9 +7,12 @@ Pipeline for one point cloud X (docs/reward.md has the derivations):
   3. L = D - W, smallest num_eig + 1 eigenpairs, the constant mode dropped;
   4. descriptor = (lambda_1..K, quantiles of the normalised HKS h_t(x) at t = c / lambda_K).
 
-d_spec(X, Y) = alpha * mean_k (log(lx_k + f) - log(ly_k + f))^2 + beta * mean_q (sx_q - sy_q)^2.
-sigma is shared by both graphs (fixed, or set by the reference Y), so a larger copy of a
-shape is sparser at fixed n, has weaker edges and smaller eigenvalues: absolute size counts.
+d_spec(X, Y) = alpha * mean_k (l_X,k - l_Y,k)^2 + beta * mean_q (sx_q - sy_q)^2, with
+l_k = log(lambda_k + f) - mean_j log(lambda_j + f) (log eigenvalue *ratios*).
+Each graph's sigma is its own mean kNN distance (unless reward.sigma fixes one), so the Laplacian
+depends only on d / sigma: a scaled copy, or the same piece sampled at another density, has the same
+spectrum up to one common factor, which the mean-centred logs remove.  d_spec is a *shape* distance,
+free of size and point count; the size of a piece is measured by topocut.reward.size (docs/reward.md).
 """
 from __future__ import annotations
 
@@ -52,8 +55,19 @@ def mean_knn_distance(points, k: int) -> float:
     return float(cKDTree(p).query(p, k + 1)[0][:, 1:].mean())
 
 
+def own_sigma(points, cfg: RewardConfig | None = None) -> float:
+    """The graph width of one (resampled) cloud: reward.sigma if set, else sigma_scale x its mean kNN distance."""
+    cfg = _cfg(cfg)
+    if cfg.sigma is not None:
+        return float(cfg.sigma)
+    s = cfg.sigma_scale * mean_knn_distance(points, cfg.knn)
+    if not s > 0:
+        raise ValueError(f"a cloud's mean kNN distance is {s}; pieces need distinct points (or set reward.sigma)")
+    return s
+
+
 def reference_sigma(goals, cfg: RewardConfig | None = None) -> float:
-    """The graph width used for every fragment compared with ``goals`` (list of (m,3) clouds)."""
+    """The mean graph width of ``goals`` (list of (m,3) clouds); kept for callers that fix one sigma."""
     cfg = _cfg(cfg)
     if cfg.sigma is not None:
         return float(cfg.sigma)
@@ -120,12 +134,13 @@ def hks_signature(evals: np.ndarray, evecs: np.ndarray, cfg: RewardConfig) -> np
     return np.concatenate(sigs, -1)
 
 
-def descriptor(points, sigma: float, cfg: RewardConfig | None = None, method: str = "eigsh"):
-    """(eigvals (K,), signature (S,)) of one cloud (N,3) with graph width sigma (scipy path)."""
+def descriptor(points, sigma: float | None = None, cfg: RewardConfig | None = None, method: str = "eigsh"):
+    """(eigvals (K,), signature (S,)) of one cloud (N,3) with graph width sigma (None: its own; scipy path)."""
     cfg = _cfg(cfg)
     p = resample(points, cfg)
     if len(p) < cfg.min_points:
         raise ValueError(f"a fragment needs at least reward.min_points={cfg.min_points} points, got {len(p)}")
+    sigma = own_sigma(p, cfg) if sigma is None else float(sigma)
     w, v = smallest_eigenpairs(laplacian(p, sigma, cfg.knn), cfg.num_eig + 1, method)
     w, v = np.maximum(w[1:], 0.0), v[:, 1:]  # drop the constant mode (lambda_0 = 0)
     return w, hks_signature(w, v, cfg)
@@ -135,22 +150,23 @@ def descriptor_distance(eig_x, sig_x, eig_y, sig_y, cfg: RewardConfig | None = N
     """d_spec from two descriptors; broadcasts over leading axes."""
     cfg = cfg or RewardConfig()
     f = cfg.eig_floor
-    d_eig = ((np.log(eig_x + f) - np.log(eig_y + f)) ** 2).mean(-1)
+    lx, ly = np.log(eig_x + f), np.log(eig_y + f)
+    lx, ly = lx - lx.mean(-1, keepdims=True), ly - ly.mean(-1, keepdims=True)  # ratios: no common scale
+    d_eig = ((lx - ly) ** 2).mean(-1)
     d_vec = ((sig_x - sig_y) ** 2).mean(-1)
     return cfg.alpha * d_eig + cfg.beta * d_vec
 
 
 def spectral_distance(x, y, cfg: RewardConfig | None = None, sigma: float | None = None) -> float:
-    """d_spec(x, y) for clouds (n,3), (m,3); y is the reference (goal) whose kNN scale sets sigma.
-
-    Returns inf when either cloud has fewer than cfg.min_points points.
+    """d_spec(x, y) for clouds (n,3), (m,3): the scale-free shape distance (each graph its own sigma unless
+    ``sigma`` or reward.sigma fixes one).  Symmetric.  Returns inf when either cloud has fewer than
+    cfg.min_points points.  The reward's distance adds the size terms: topocut.reward.piece_distance.
     """
     cfg = _cfg(cfg)
     x, y = resample(_points(x, "x"), cfg), resample(_points(y, "y"), cfg)  # once; resample is then a no-op
     if min(len(x), len(y)) < cfg.min_points:
         return float("inf")
-    s = reference_sigma([y], cfg) if sigma is None else float(sigma)
-    return float(descriptor_distance(*descriptor(x, s, cfg), *descriptor(y, s, cfg), cfg))
+    return float(descriptor_distance(*descriptor(x, sigma, cfg), *descriptor(y, sigma, cfg), cfg))
 
 
 def spectral_descriptors(batch, cfg: RewardConfig | None = None, sigma=None):

@@ -60,13 +60,16 @@ class SimConfig:
     osc_amplitude: float = 0.002  # blade oscillation along u [units]
     osc_frequency: float = 60.0  # [Hz]
     cut_substeps: int | None = None  # fixes the substeps of the travel (the speed follows); None = from speed
-    dwell_substeps: int = 50  # knife resting on the board before it is withdrawn
+    dwell_time: float = 0.005  # [s] knife resting on the board before the push / withdrawal
     check_every: int = 200  # substeps between divergence checks (host sync)
+    # -- separation: one velocity field per piece colour (docs/sim.md, "Pieces and contact") ----------
+    fields: int = 8  # velocity fields per grid node: touching pieces take different ones (1 = single-field MPM)
+    contact_friction: float = 0.3  # Coulomb coefficient between pieces (multi-field contact)
     # -- push (after a cut) --------------------------------------------------------
     push_mode: str = "separate"  # separate | press | settle | none (docs/sim.md)
-    push_accel: float = 12.0  # 'separate': sideways acceleration of each side of the last cut
-    push_substeps: int = 300  # forcing / pressing phase
-    settle_substeps: int = 300  # free settling afterwards
+    push_distance: float = 0.02  # 'separate': the knife slides the piece just cut off this far [units]
+    push_time: float = 0.08  # [s] the slide (or the press's hold); a smooth start and stop
+    settle_time: float = 0.02  # [s] free settling afterwards
     press_depth: float = 0.006  # 'press': how far a flat plate goes below the object's top
     press_speed: float = 0.3
 
@@ -150,6 +153,11 @@ class SimConfig:
             return self.resort_every
         return 64 if self.warp_scatter_enabled() else 0
 
+    def substeps(self, seconds: float) -> int:
+        """Substeps that cover ``seconds`` of simulated time (durations are in seconds so that a push or a
+        dwell lasts as long at every grid; the substep count follows dt)."""
+        return int(math.ceil(seconds / self.effective_dt() - 1e-9))
+
     def effective_dt(self) -> float:
         return self.dt if self.dt is not None else self.cfl * self.cfl_bound()
 
@@ -173,7 +181,7 @@ class SimConfig:
             bad("warp_scatter", f"{self.warp_scatter!r}; valid: auto, on, off")
         if self.warp_scatter == "on" and self.arch != "cuda":
             bad("warp_scatter", f"on needs arch=cuda (warp shuffles), got arch={self.arch!r}; use auto or off")
-        if self.warp_scatter_enabled() and self.batch_size * self.n_grid ** 3 >= 2 ** 31:
+        if self.warp_scatter_enabled() and self.batch_size * self.fields * self.n_grid ** 3 >= 2 ** 31:
             bad("warp_scatter", f"run keys (scene, cell) overflow 32 bits at batch_size={self.batch_size}, "
                                 f"n_grid={self.n_grid}; use fewer scenes or warp_scatter=off")
         if self.grid_layout not in ("auto", "aos", "soa"):
@@ -210,8 +218,15 @@ class SimConfig:
             bad("dt", f"{dt:.3g} violates the CFL bound dt <= dx / (c + v_knife) = {bound:.3g} "
                       f"(n_grid={self.n_grid}, wave speed c={self.wave_speed():.3g}); set sim.dt <= {bound:.3g} "
                       f"or sim.dt=null to use cfl * bound")
-        if self.dwell_substeps < 0:
-            bad("dwell_substeps", f"{self.dwell_substeps} must be >= 0")
+        for key in ("dwell_time", "push_time", "settle_time", "push_distance"):
+            if getattr(self, key) < 0:
+                bad(key, f"{getattr(self, key)} must be >= 0 ({'units' if key == 'push_distance' else 'seconds'})")
+        if not 1 <= self.fields <= 16:
+            bad("fields", f"{self.fields}; valid: 1 (single-field MPM) to 16 velocity fields per node")
+        if self.contact_friction < 0:
+            bad("contact_friction", f"{self.contact_friction} must be >= 0 (a Coulomb coefficient)")
+        if not 0 <= self.gravity <= 1000:
+            bad("gravity", f"{self.gravity}; valid: 0 to 1000 (units/s^2 along -z; 9.8 is Earth's)")
         if self.check_every < 1:
             bad("check_every", f"{self.check_every} must be >= 1 (substeps between divergence checks)")
         if not 0 < self.j_min < 1 < self.j_max:

@@ -2,10 +2,13 @@
 
 A cut moves a thin blade (``KnifeAction``) from just above the object down
 along its in-plane travel direction w to the board while it oscillates along
-its long axis u; it then rests ``dwell_substeps`` and is withdrawn.  In a
+its long axis u; it then rests ``dwell_time`` seconds.  Before it moves, the
+pieces its swept surface will separate are found on the host (pieces.py) and
+given velocity fields of their own, so the split is the blade's geometry.  In a
 batch every scene gets its own substep budget (its travel + dwell) and is
-frozen after it, so scene b's cut equals the same cut run alone.  A push
-(``SimConfig.push_mode``) settles the pieces afterwards.  See docs/sim.md.
+frozen after it, so scene b's cut equals the same cut run alone.  The push
+(``SimConfig.push_mode``) then slides the piece just cut off aside with the
+blade's flat, and the pieces settle.  See docs/sim.md.
 """
 from __future__ import annotations
 
@@ -16,6 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from topocut.sim import pieces as P
 from topocut.sim.action import KnifeAction, KnifeSweep
 from topocut.sim.config import SimConfig
 from topocut.sim.mpm import MPMSolver, init_taichi
@@ -28,8 +32,10 @@ class SimulationDiverged(RuntimeError):
     """NaN/Inf positions or a runaway J = det F; ``step`` is the first bad substep, ``scene`` its scene."""
 
     def __init__(self, step: int, scene: int):
-        super().__init__(f"simulation diverged at substep {step} (scene {scene}): NaN/Inf position or "
-                         f"J outside (sim.j_min, sim.j_max); lower sim.dt or sim.knife_speed")
+        super().__init__(f"simulation diverged at substep {step} (scene {scene}): a NaN/Inf position or J = det F "
+                         f"outside (sim.j_min, sim.j_max); usual causes: a large sim.gravity or sim.knife_speed, a "
+                         f"time step too long for the forces (lower sim.cfl or sim.dt), or J bounds tighter than "
+                         f"the motion")
         self.step, self.scene = step, scene
 
 
@@ -40,6 +46,7 @@ class SimState:
     material: np.ndarray  # N, i32 (0 core, 1 skin)
     damage: np.ndarray  # B,N bool
     sweeps: list = field(default_factory=list)  # B lists: the last cut's KnifeSweep per scene
+    piece: np.ndarray | None = None  # B,N i32: which piece the knife has left each particle in (pieces.split)
 
 
 @dataclass
@@ -80,6 +87,9 @@ class CuttingEnv:
         self.n = 0
         self.object = None
         self.sweeps: list[list[KnifeSweep]] = [[] for _ in range(self.B)]
+        self.piece = np.zeros((self.B, 0), np.int32)  # B,N: piece labels (host; the device holds their fields)
+        self.push_side = np.zeros(self.B, np.int32)  # the side of the last cut's blade that was cut off (0: none)
+        self.field_conflicts = 0  # neighbouring pieces that had to share a velocity field (pieces.colour)
         self.step_count = 0
 
     # -- particles ---------------------------------------------------------------------
@@ -109,7 +119,8 @@ class CuttingEnv:
     def state(self) -> SimState:
         s, n = self._need(), self.n
         return SimState(x=s.x.to_numpy()[:, :n], v=s.v.to_numpy()[:, :n], material=s.material.to_numpy()[:n],
-                        damage=s.damage.to_numpy()[:, :n].astype(bool), sweeps=[list(w) for w in self.sweeps])
+                        damage=s.damage.to_numpy()[:, :n].astype(bool), sweeps=[list(w) for w in self.sweeps],
+                        piece=self.piece.copy())
 
     def get_state(self, b: int = 0) -> dict:
         s, n = self._need(), self.n
@@ -118,10 +129,12 @@ class CuttingEnv:
         return {"x": s.x.to_numpy()[b, :n], "v": s.v.to_numpy()[b, :n], "C": s.C.to_numpy()[b, :n],
                 "F": s.F.to_numpy()[b, :n], "sigma_y": s.sigma_y.to_numpy()[b, :n],
                 "damage": s.damage.to_numpy()[b, :n].astype(bool), "material": s.material.to_numpy()[:n],
-                "sweeps": [w.asdict() for w in self.sweeps[b]], "object": self.object}
+                "sweeps": [w.asdict() for w in self.sweeps[b]], "object": self.object,
+                "piece": self.piece[b].copy(), "body": s.body.to_numpy()[b, :n]}
 
     def set_state(self, state: dict, b: int | None = None) -> None:
-        """Load a get_state() dict into scene b (None: every scene). Missing C/F/sigma_y/damage mean rest state."""
+        """Load a get_state() dict into scene b (None: every scene). Missing C/F/sigma_y/damage mean rest state,
+        a missing ``piece`` one piece (the fields of a state without ``body`` are coloured anew)."""
         x = np.asarray(state["x"], np.float32).reshape(-1, 3)
         n = len(x)
         if b is not None and not 0 <= b < self.B:
@@ -133,7 +146,16 @@ class CuttingEnv:
         cap = s.capacity
         defaults = {"v": np.zeros((n, 3)), "C": np.zeros((n, 3, 3)), "F": np.broadcast_to(np.eye(3), (n, 3, 3)),
                     "sigma_y": np.full(n, self.cfg.yield_stress), "damage": np.zeros(n)}
-        targets = {"x": s.x, "v": s.v, "C": s.C, "F": s.F, "sigma_y": s.sigma_y, "damage": s.damage}
+        piece = np.zeros(n, np.int32) if state.get("piece") is None else np.asarray(state["piece"], np.int32)
+        if state.get("body") is not None:
+            body = np.asarray(state["body"], np.int32)
+        else:
+            body = P.colour(x, piece, self.cfg.n_grid, self.cfg.fields)[0] if piece.max(initial=0) > 0 else piece
+        if self.piece.shape[1] != n:
+            self.piece = np.zeros((self.B, n), np.int32)
+        defaults["body"] = body
+        state = {**state, "body": body}
+        targets = {"x": s.x, "v": s.v, "C": s.C, "F": s.F, "sigma_y": s.sigma_y, "damage": s.damage, "body": s.body}
         for key, fld in targets.items():
             arr = fld.to_numpy()  # B,cap,...
             val = np.asarray(state.get(key, defaults.get(key)))
@@ -150,6 +172,9 @@ class CuttingEnv:
         sweeps = [KnifeSweep.fromdict(d) if isinstance(d, dict) else d for d in state.get("sweeps", [])]
         for sb in scenes:
             self.sweeps[sb] = list(sweeps)
+            self.piece[sb] = piece
+        self.push_side[list(scenes)] = 0
+        s.n_fields[None] = max(int(s.n_fields[None]), int(body.max(initial=0)) + 1)  # only grows: see _set_fields
         self.object = state.get("object", self.object)
         s.bad_step.fill(NO_STEP)
         s.k_on.fill(0)
@@ -166,7 +191,7 @@ class CuttingEnv:
             b = int(np.argmin(bad))
             raise SimulationDiverged(int(bad[b]), b)
 
-    def simulate(self, substeps: int, push_accel: float = 0.0, t0: float = 0.0, contact: int = 0) -> None:
+    def simulate(self, substeps: int, t0: float = 0.0, contact: int = 0) -> None:
         """Advance every scene by ``substeps`` substeps.
 
         An armed knife follows its motion from time t0; ``contact`` 0 treats it as a
@@ -182,9 +207,9 @@ class CuttingEnv:
             m = k if substeps - i >= k > 1 else 1
             if m > 1:
                 ts = [t0 + (i + j) * self.dt for j in range(m)]  # the same float64 times substep() gets
-                s.advance(self.n, self.step_count, ts, push_accel, contact)
+                s.advance(self.n, self.step_count, ts, contact)
             else:
-                s.substep(self.n, self.step_count, t0 + i * self.dt, push_accel, contact)
+                s.substep(self.n, self.step_count, t0 + i * self.dt, contact)
             i += m
             self.step_count += m
             if self.resort and self.step_count // self.resort > (self.step_count - m) // self.resort:
@@ -193,21 +218,56 @@ class CuttingEnv:
                 self._check()
         self._check()
 
-    def _arm_knife(self, o, u, w, nrm, half, depth, speed, amp) -> None:
-        """Knife pose per scene; ``speed`` a scalar or one per scene."""
+    def _arm_knife(self, o, u, w, nrm, half, depth, speed, amp, direction=None, target=None, smooth=0,
+                   on=None, sharp=0, hold=None) -> None:
+        """Knife pose per scene (B,3 arrays); ``speed``/``target`` scalars or one per scene.  It travels ``depth``
+        along ``direction`` (default w, its own edge direction), smoothly started and stopped if ``smooth``."""
         s = self.solver
-        for fld, val in ((s.k_o, o), (s.k_u, u), (s.k_w, w), (s.k_n, nrm), (s.k_half, half)):
+        direction = w if direction is None else direction
+        for fld, val in ((s.k_o, o), (s.k_u, u), (s.k_w, w), (s.k_n, nrm), (s.k_half, half), (s.k_dir, direction)):
             fld.from_numpy(np.asarray(val, np.float32).reshape(self.B, 3))
-        s.k_depth.from_numpy(np.asarray(depth, np.float32))
-        s.k_speed.from_numpy(np.ascontiguousarray(np.broadcast_to(np.asarray(speed, np.float32), (self.B,))))
-        s.k_amp.from_numpy(np.full(self.B, amp, np.float32))
-        s.k_on.fill(1)
+        per_scene = lambda v: np.ascontiguousarray(np.broadcast_to(np.asarray(v, np.float32), (self.B,)))  # noqa: E731
+        s.k_depth.from_numpy(per_scene(depth))
+        s.k_speed.from_numpy(per_scene(speed))
+        s.k_amp.from_numpy(per_scene(amp))
+        s.k_target.from_numpy(per_scene(self.cfg.knife_wedge * np.asarray(speed) if target is None else target))
+        s.k_smooth.fill(int(smooth))
+        s.k_sharp.fill(int(sharp))  # a cut: the blade damages what it occupies (not the push, not the press)
+        s.k_hold.from_numpy(np.zeros(self.B, np.int32) if hold is None else np.asarray(hold, np.int32))
+        s.k_on.from_numpy(np.ones(self.B, np.int32) if on is None else np.asarray(on, np.int32))
         s.reset_knife_stats()
+
+    # -- pieces -------------------------------------------------------------------------
+    def _split(self, x: np.ndarray, sweeps: list[KnifeSweep]) -> None:
+        """Before a cut: the pieces its swept surfaces make, their velocity fields and the fields' sides.
+
+        Scenes holding the same particles (MPMSolver rollouts from one state) share one neighbour search."""
+        cfg, s = self.cfg, self.solver
+        bonds = {}
+        body = s.body.to_numpy()
+        side = np.zeros((self.B, cfg.fields), np.int32)
+        reach = cfg.knife_half_thickness + cfg.margin + 2 * cfg.dx  # where the wedge acts on a node's fields
+        for b, sw in enumerate(sweeps):
+            key = next((c for c in bonds if np.array_equal(x[c], x[b])), None)
+            if key is None:
+                key, bonds[b] = b, P.bonds(x[b], cfg.spacing)
+            before = self.piece[b]
+            after = P.split(x[b], before, sw, cfg.spacing, bonds[key])
+            self.push_side[b] = P.cut_off_side(x[b], before, after, sw)
+            field, conflicts = P.colour(x[b], after, cfg.n_grid, cfg.fields)
+            self.field_conflicts += conflicts
+            self.piece[b], body[b, :self.n] = after, field
+            side[b] = P.field_sides(x[b], field, cfg.fields, sw, reach)
+        s.body.from_numpy(body)
+        s.field_side.from_numpy(side.reshape(-1))
+        s.n_fields[None] = max(int(s.n_fields[None]), int(body[:, :self.n].max()) + 1)  # only grows (see below)
+        # n_fields never shrinks while the solver lives: fields past a smaller count would keep stale nodes the
+        # clear no longer visits.  Empty fields cost a mass check per node.
 
     def cut(self, action: KnifeAction | list[KnifeAction]) -> CutInfo:
         """One cut per scene (a single action goes to every scene), all scenes in one launch sequence.
 
-        Scene b runs its own budget, ceil(depth_b / (speed_b dt)) + dwell_substeps substeps, and is frozen
+        Scene b runs its own budget, ceil(depth_b / (speed_b dt)) + dwell substeps, and is frozen
         (no phase touches it) for the rest of the batch's substeps, so its result does not depend on the
         other scenes: it equals a batch_size=1 cut with the same action from the same state.
         """
@@ -244,14 +304,20 @@ class CuttingEnv:
                                  f"use sim.cut_substeps >= {need} or a smaller sim.dt")
         else:
             speed = np.full(self.B, cfg.knife_speed)
+        # the swept surface of each scene's blade: what _split separates before the knife moves
+        sweeps = [KnifeSweep(origin=tuple(map(float, o0[b])), u=tuple(map(float, u)), w=tuple(map(float, w)),
+                             n=tuple(map(float, nrm)), half_length=cfg.knife_half_length + cfg.osc_amplitude,
+                             depth=float(depth[b]), half_thickness=cfg.knife_half_thickness + cfg.margin)
+                  for b, (u, w, nrm) in enumerate(frames)]
+        self._split(x, sweeps)
         # each scene's own budget (cut_substeps exactly: ceil(depth / (speed dt)) may round up by one)
         travel = [cfg.cut_substeps if cfg.cut_substeps is not None else int(math.ceil(depth[b] / (speed[b] * self.dt)))
                   for b in range(self.B)]
-        totals = np.asarray(travel, np.int64) + cfg.dwell_substeps
+        totals = np.asarray(travel, np.int64) + cfg.substeps(cfg.dwell_time)
         total = int(totals.max())
         half = [cfg.knife_half_length, cfg.knife_height / 2, cfg.knife_half_thickness]
         self._arm_knife(o0, [f[0] for f in frames], [f[1] for f in frames], [f[2] for f in frames],
-                        [half] * self.B, depth, speed, cfg.osc_amplitude)
+                        [half] * self.B, depth, speed, cfg.osc_amplitude, sharp=1)
         s.frozen_at.from_numpy((self.step_count + totals).astype(np.int32))  # scene b stops after its budget
         try:
             self.simulate(total, contact=0 if cfg.knife_mode == "wedge" else 1)
@@ -259,13 +325,8 @@ class CuttingEnv:
             s.k_on.fill(0)
             s.frozen_at.fill(NO_STEP)  # outside a cut every scene moves
         om = 2 * math.pi * cfg.osc_frequency
-        sweeps, ends = [], []
-        for b, (u, w, nrm) in enumerate(frames):
-            t_stop = depth[b] / speed[b]
-            ends.append(o0[b] + w * depth[b] + u * cfg.osc_amplitude * math.sin(om * t_stop))
-            sweeps.append(KnifeSweep(origin=tuple(map(float, o0[b])), u=tuple(map(float, u)), w=tuple(map(float, w)),
-                                     n=tuple(map(float, nrm)), half_length=cfg.knife_half_length + cfg.osc_amplitude,
-                                     depth=float(depth[b]), half_thickness=cfg.knife_half_thickness + cfg.margin))
+        ends = [o0[b] + w * depth[b] + u * cfg.osc_amplitude * math.sin(om * depth[b] / speed[b])
+                for b, (u, w, nrm) in enumerate(frames)]
         self.sweeps = [[sw] for sw in sweeps]
         duration = (totals * self.dt).astype(np.float32)  # B: each scene's own cut duration
         return CutInfo(sweeps=sweeps, force=s.k_imp.to_numpy() / duration[:, None], peak_force=s.k_peak.to_numpy(),
@@ -274,19 +335,31 @@ class CuttingEnv:
                        wall_time=time.perf_counter() - t_wall, substeps_per_scene=totals)
 
     def push(self) -> None:
-        """Settle the pieces after a cut according to sim.push_mode (docs/sim.md)."""
+        """After a cut, per sim.push_mode (docs/sim.md); then the pieces settle for sim.settle_time seconds.
+
+        'separate': the blade, still standing where it cut, slides sideways along its normal (horizontally)
+        by sim.push_distance over sim.push_time seconds, starting and stopping smoothly, towards the material
+        the cut separated from the rest (``push_side``: the smaller side of the split pieces): a cook sliding
+        a slice aside with the knife's flat.  Each velocity field is pushed only from its own side, so the
+        rest is not dragged along.  Scenes whose cut separated nothing are not pushed."""
         cfg, s = self.cfg, self._need()
         if cfg.push_mode == "none":
             return
-        if cfg.push_mode == "separate":
-            nrm = np.zeros((self.B, 3), np.float32)
-            pts = np.zeros((self.B, 3), np.float32)
+        if cfg.push_mode == "separate" and self.push_side.any():
+            o, u, w, nrm, d = (np.zeros((self.B, 3)) for _ in range(5))
             for b, sw in enumerate(self.sweeps):
-                if sw:  # scenes never cut are not pushed (a zero normal switches the force off)
-                    nrm[b], pts[b] = sw[-1].n, sw[-1].origin
-            s.push_n.from_numpy(nrm)
-            s.push_p.from_numpy(pts)
-            self.simulate(cfg.push_substeps, push_accel=cfg.push_accel)
+                if sw and self.push_side[b]:
+                    o_b, u[b], w[b], nrm[b] = sw[-1].as_arrays()
+                    o[b] = o_b + w[b] * sw[-1].depth  # where the edge stopped
+                    h = nrm[b] * [1, 1, 0]
+                    d[b] = self.push_side[b] * h / max(np.linalg.norm(h), 1e-9)
+            half = [cfg.knife_half_length, cfg.knife_height / 2, cfg.knife_half_thickness]
+            self._arm_knife(o, u, w, nrm, [half] * self.B, cfg.push_distance, cfg.push_distance / max(cfg.push_time, 1e-9),
+                            0.0, direction=d, target=0.0, smooth=1, on=self.push_side != 0, hold=self.push_side)
+            try:
+                self.simulate(cfg.substeps(cfg.push_time))
+            finally:
+                s.k_on.fill(0)
         elif cfg.push_mode == "press":  # a flat plate (the knife box laid horizontally) pressing down lightly
             x = s.x.to_numpy()[:, :self.n]
             top = x[:, :, 2].max(1)
@@ -296,8 +369,9 @@ class CuttingEnv:
             self._arm_knife(o, tile([1, 0, 0]), tile([0, 0, -1]), tile([0, 1, 0]), tile([0.4, 0.02, 0.4]),
                             depth, cfg.press_speed, 0.0)
             try:
-                self.simulate(int(math.ceil(depth.max() / (cfg.press_speed * self.dt))) + cfg.push_substeps,
+                self.simulate(int(math.ceil(depth.max() / (cfg.press_speed * self.dt))) + cfg.substeps(cfg.push_time),
                               contact=1)
             finally:
                 s.k_on.fill(0)
-        self.simulate(cfg.settle_substeps)
+        self.push_side[:] = 0
+        self.simulate(cfg.substeps(cfg.settle_time))

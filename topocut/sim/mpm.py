@@ -8,10 +8,15 @@ p2g, grid_op, g2p launch one phase each.  ``substep`` calls them from Python
 through a ti.graph, one Python call for all.  Jp holds J_p = det F_p, the
 quantity the damage rule reads.
 
-Per particle: material (0 core, 1 skin), damage (0/1, permanent) and the
-skin's current yield stress.  Per scene: the knife (an oriented box, one
-SDF evaluation per grid node), the push plane and ``frozen_at``, the first
+Per particle: material (0 core, 1 skin), damage (0/1, permanent), the
+skin's current yield stress and ``body``, the velocity field its piece moves
+in.  The grid holds ``K = sim.fields`` velocity fields per node and scene
+(slot b * K + f): pieces the knife separated scatter into different fields and
+meet only through contact (knife.py).  Per scene: the knife (an oriented box,
+one SDF evaluation per grid node), ``field_side`` and ``frozen_at``, the first
 substep at which the scene stops moving (a cut's per-scene substep budget).
+Materials live in materials.py, the knife and the contact between pieces in
+knife.py; this file holds the fields and the transfers.
 The scatter visits particles through ``order`` (per scene; re-sorted by cell
 on the device by ``sort_by_cell``), every other phase in memory order.
 
@@ -29,6 +34,8 @@ from taichi.lang.expr import Expr
 from taichi.lang.field import ScalarField
 
 from topocut.sim.config import SimConfig
+from topocut.sim.knife import Knife
+from topocut.sim.materials import Materials
 
 _STATE = {"arch": None}
 
@@ -62,17 +69,8 @@ def init_taichi(arch: str = "cpu", seed: int = 0, debug: bool = False, cpu_threa
     return arch
 
 
-@ti.func
-def polar_rotation(F):
-    """R of F = R S by Newton's iteration R <- (R + R^-T) / 2 (F is near a rotation; cheaper than an SVD)."""
-    R = F
-    for _ in ti.static(range(4)):
-        R = 0.5 * (R + R.inverse().transpose())
-    return R
-
-
 @ti.data_oriented
-class MPMSolver:
+class MPMSolver(Materials, Knife):
     """Fields of B scenes with room for ``capacity`` particles each; kernels read cfg constants."""
 
     def __init__(self, cfg: SimConfig, B: int, capacity: int):
@@ -89,13 +87,17 @@ class MPMSolver:
         self.Jp, self.sigma_y = ti.field(f32), ti.field(f32)  # B,N
         self.damage = ti.field(ti.i32)  # B,N
         self.material = ti.field(ti.i32)  # N
-        self.grid_v, self.grid_m = vec.field(), ti.field(f32)  # B,n,n,n
+        self.body = ti.field(ti.i32)  # B,N: the velocity field of the particle's piece (pieces.colour)
+        self.K = K = cfg.fields  # velocity fields per node and scene: grid slot b * K + f
+        self.grid_v, self.grid_m = vec.field(), ti.field(f32)  # B*K,n,n,n
+        self.n_fields = ti.field(ti.i32, shape=())  # fields 0 .. n_fields-1 may hold mass (the rest stay empty)
+        self.field_side = ti.field(ti.i32)  # B*K: the side of the blade field f's pieces are on (+1, -1, 0)
         self.lanes = -(-capacity // 32) * 32  # the warp scatter's particle slots per scene: no warp spans two
         # the particle the scatter's slot i of scene b handles: identity, or particles by base cell (sort_by_cell)
         self.order, self.cell_key = ti.field(ti.i32), ti.field(ti.i32)  # B,lanes
         self.cell_slot = ti.field(ti.i32)  # B*n^3: particles per cell, then their prefix sum (sort_by_cell)
         self._scan = None
-        particle = (self.x, self.v, self.C, self.F, self.Jp, self.sigma_y, self.damage)
+        particle = (self.x, self.v, self.C, self.F, self.Jp, self.sigma_y, self.damage, self.body)
         if cfg.arch == "cuda":  # every scalar component in an array of its own: a warp's 32 threads read 32
             for f in particle:  # neighbouring floats (one struct per particle: B=16 substep 316 -> 253 us, H100)
                 for e in f._get_field_members():
@@ -105,19 +107,20 @@ class MPMSolver:
         fb.dense(ti.i, capacity).place(self.material)
         if cfg.grid_layout_method() == "soa":  # an array each for m, v_x, v_y, v_z: a warp's atomics on a z row
             for e in (self.grid_m, *(ScalarField(c) for c in self.grid_v._get_field_members())):  # of nodes hit
-                fb.dense(ti.axes(0, 1, 2, 3), (B, n, n, n)).place(e)  # fewer memory sectors (10-15% on an H100)
+                fb.dense(ti.axes(0, 1, 2, 3), (B * K, n, n, n)).place(e)  # fewer memory sectors (10-15% on an H100)
         else:  # one struct per node: a CPU thread adds a node's four values one after another
-            fb.dense(ti.axes(0, 1, 2, 3), (B, n, n, n)).place(self.grid_v, self.grid_m)
+            fb.dense(ti.axes(0, 1, 2, 3), (B * K, n, n, n)).place(self.grid_v, self.grid_m)
+        fb.dense(ti.i, B * K).place(self.field_side)
         fb.dense(ti.ij, (B, self.lanes)).place(self.order, self.cell_key)
         self.can_sort = cfg.resort_interval() > 0  # the counters cost 4 bytes a node: only when re-sorting
         fb.dense(ti.i, B * n ** 3 if self.can_sort else 1).place(self.cell_slot)
-        # knife per scene: start edge midpoint, frame (u, w, n), half extents, travel, oscillation amplitude
-        self.k_o, self.k_u, self.k_w, self.k_n, self.k_half = (vec.field() for _ in range(5))
-        self.k_depth, self.k_amp, self.k_speed = ti.field(f32), ti.field(f32), ti.field(f32)
-        self.k_on = ti.field(ti.i32)
+        # knife per scene: start edge midpoint, frame (u, w, n), half extents, direction and length of travel,
+        # speed, oscillation amplitude, opening speed of the wedge, smooth start/stop (the push)
+        self.k_o, self.k_u, self.k_w, self.k_n, self.k_half, self.k_dir = (vec.field() for _ in range(6))
+        self.k_depth, self.k_amp, self.k_speed, self.k_target = (ti.field(f32) for _ in range(4))
+        self.k_on, self.k_smooth, self.k_sharp, self.k_hold = (ti.field(ti.i32) for _ in range(4))
         self.k_imp, self.k_imp_step = vec.field(), vec.field()  # momentum the knife gave the grid
         self.k_work, self.k_peak = ti.field(f32), ti.field(f32)
-        self.push_n, self.push_p = vec.field(), vec.field()  # last cut plane per scene
         self.bad_step = ti.field(ti.i32)  # first substep with NaN / runaway J (2**30 = none)
         # nodes [box[0:3], box[3:6]) of every scene hold all the scatter wrote since the last clear (sim.grid_box)
         self.use_box = cfg.grid_box_enabled()
@@ -127,13 +130,15 @@ class MPMSolver:
         # substep number from which scene b is frozen (2**30 = never): every phase skips it from then on,
         # so a batched cut gives scene b its own substep budget.  A field, so ti.graph runs read it live.
         self.frozen_at = ti.field(ti.i32)
-        fb.dense(ti.i, B).place(self.k_o, self.k_u, self.k_w, self.k_n, self.k_half, self.k_depth, self.k_amp,
-                                self.k_speed, self.k_on, self.k_imp, self.k_imp_step, self.k_work, self.k_peak,
-                                self.push_n, self.push_p, self.bad_step, self.frozen_at)
+        fb.dense(ti.i, B).place(self.k_o, self.k_u, self.k_w, self.k_n, self.k_half, self.k_dir, self.k_depth,
+                                self.k_amp, self.k_speed, self.k_target, self.k_on, self.k_smooth, self.k_sharp, self.k_hold,
+                                self.k_imp,
+                                self.k_imp_step, self.k_work, self.k_peak, self.bad_step, self.frozen_at)
         fb.dense(ti.i, 6).place(self.box)
         self.tree = fb.finalize()
         self.bad_step.fill(2 ** 30)
         self.frozen_at.fill(2 ** 30)
+        self.n_fields[None] = 1
         self.box.from_numpy(np.array([0, 0, 0, n, n, n], np.int32))  # a fresh grid: clear it all once
         self.order.from_numpy(np.broadcast_to(np.arange(self.lanes, dtype=np.int32), (B, self.lanes)).copy())
         self.p2g, self.grid_op, self.g2p = self._phase_kernels()
@@ -141,36 +146,6 @@ class MPMSolver:
 
     def destroy(self) -> None:
         self.tree.destroy()
-
-    # -- constitutive models (Kirchhoff stress tau = P F^T) ---------------------------
-    @ti.func
-    def fixed_corotated(self, F, R, J, scale):
-        mu, la = self.cfg.mu * scale, self.cfg.lam * scale
-        return 2 * mu * (F - R) @ F.transpose() + ti.Matrix.identity(ti.f32, 3) * la * J * (J - 1)
-
-    @ti.func
-    def von_mises_return(self, sig, b, p, scale):
-        """Project the Hencky strain onto the yield surface; soften sigma_y by gamma * |d eps_p|."""
-        eps = ti.Vector([ti.log(ti.max(sig[d, d], 1e-4)) for d in ti.static(range(3))])
-        dev = eps - eps.sum() / 3.0
-        norm = dev.norm() + 1e-12
-        sy = ti.max(self.sigma_y[b, p], 0.0)
-        if self.damage[b, p]:  # damaged skin (softened to zero, or torn by the J rule) holds no shear
-            sy = 0.0
-        dgamma = norm - sy / (2 * self.cfg.mu * scale)
-        if dgamma > 0:
-            eps -= dgamma / norm * dev
-            self.sigma_y[b, p] = sy - self.cfg.softening * dgamma
-            if self.sigma_y[b, p] <= 0:
-                self.damage[b, p] = 1
-        return ti.Matrix([[ti.exp(eps[0]), 0, 0], [0, ti.exp(eps[1]), 0], [0, 0, ti.exp(eps[2])]])
-
-    @ti.func
-    def damaged_flow(self, sig):
-        """A damaged core particle forgets its shear (flows), keeping a clamped volume ratio."""
-        J = ti.min(ti.max(sig[0, 0] * sig[1, 1] * sig[2, 2], 0.3), 3.0)
-        c = ti.pow(J, 1.0 / 3.0)
-        return ti.Matrix([[c, 0, 0], [0, c, 0], [0, 0, c]])
 
     @ti.func
     def base_node(self, xp):
@@ -188,10 +163,10 @@ class MPMSolver:
     @ti.func
     def clear_grid(self):
         if ti.static(self.use_box):  # only what the last scatter wrote; then the box is empty
-            for b, i, j, k in ti.ndrange(self.B, (self.box[0], self.box[3]), (self.box[1], self.box[4]),
-                                         (self.box[2], self.box[5])):
-                self.grid_v[b, i, j, k] = ti.Vector.zero(ti.f32, 3)
-                self.grid_m[b, i, j, k] = 0.0
+            for b, f, i, j, k in ti.ndrange(self.B, self.n_fields[None], (self.box[0], self.box[3]),
+                                            (self.box[1], self.box[4]), (self.box[2], self.box[5])):
+                self.grid_v[b * self.K + f, i, j, k] = ti.Vector.zero(ti.f32, 3)
+                self.grid_m[b * self.K + f, i, j, k] = 0.0
             for d in ti.static(range(3)):
                 self.box[d], self.box[d + 3] = self.n_grid, 0
         else:
@@ -211,7 +186,7 @@ class MPMSolver:
                     ti.atomic_max(self.box[d + 3], base[d] + 3)
 
     @ti.func
-    def scatter(self, n: ti.template(), step: ti.template(), push_accel: ti.template()):
+    def scatter(self, n: ti.template(), step: ti.template()):
         if ti.static(self.use_warp):
             ti.loop_config(block_dim=self.scatter_block)  # a multiple of 32: lane = thread index % 32
             for g in range(self.B * self.lanes):
@@ -220,26 +195,27 @@ class MPMSolver:
                 p = 0
                 if live:
                     p = self.order[b, i]
-                self.scatter_warp(b, p, live, step, push_accel)
+                self.scatter_warp(b, p, live, step)
         else:
             ti.loop_config(block_dim=self.scatter_block)
             for b, i in ti.ndrange(self.B, self.capacity):
                 if i < n and self.active(b, step):  # a frozen scene scatters nothing: its grid stays empty
-                    self.scatter_particle(b, self.order[b, i], step, push_accel)
+                    self.scatter_particle(b, self.order[b, i], step)
 
     @ti.func
-    def scatter_particle(self, b, p, step, push_accel):
-        base, fx, mass, mom, affine = self.particle_update(b, p, step, push_accel)
+    def scatter_particle(self, b, p, step):
+        base, fx, mass, mom, affine = self.particle_update(b, p, step)
         self.grow_box(base)
+        g = b * self.K + self.body[b, p]  # the grid slot of the particle's piece
         w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1) ** 2, 0.5 * (fx - 0.5) ** 2]
         for off in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
             dpos = (off.cast(ti.f32) - fx) * self.dx
             weight = w[off[0]][0] * w[off[1]][1] * w[off[2]][2]
-            self.grid_v[b, base + off] += weight * (mom + affine @ dpos)
-            self.grid_m[b, base + off] += weight * mass
+            self.grid_v[g, base + off] += weight * (mom + affine @ dpos)
+            self.grid_m[g, base + off] += weight * mass
 
     @ti.func
-    def scatter_warp(self, b, p, live, step, push_accel):
+    def scatter_warp(self, b, p, live, step):
         """scatter_particle with a warp-level segmented reduction (CUDA; Gao et al. 2018, sec. 4.2).
 
         The scatter is bound by its global atomics (4 per stencil node, 108 per particle).  Lanes whose
@@ -255,9 +231,10 @@ class MPMSolver:
         mom, affine = ti.Vector.zero(ti.f32, 3), ti.Matrix.zero(ti.f32, 3, 3)
         key = -1 - lane
         if live:
-            base, fx, mass, mom, affine = self.particle_update(b, p, step, push_accel)
+            base, fx, mass, mom, affine = self.particle_update(b, p, step)
             self.grow_box(base)
-            key = ((b * self.n_grid + base[0]) * self.n_grid + base[1]) * self.n_grid + base[2]
+            g = b * self.K + self.body[b, p]  # runs are per grid slot (scene and piece field) and base cell
+            key = ((g * self.n_grid + base[0]) * self.n_grid + base[1]) * self.n_grid + base[2]
         # sort the warp's lanes by key (bitonic, 15 compare-exchange stages on (key, lane)): particles of a
         # cell become one run wherever they sit in the warp; each lane then takes the particle of lane src
         src = lane
@@ -272,6 +249,7 @@ class MPMSolver:
         alive = key >= 0  # the particle this lane now holds is live
         n = self.n_grid
         base = ti.Vector([(key // (n * n)) % n, (key // n) % n, key % n])
+        slot = key // (n * n * n)
         mass = ti.simt.warp.shfl_sync_f32(full, mass, src)
         for d in ti.static(range(3)):
             fx[d] = ti.simt.warp.shfl_sync_f32(full, fx[d], src)
@@ -299,159 +277,58 @@ class MPMSolver:
                     val += ti.Vector([o0, o1, o2])
                     m += om
             if head and alive:
-                self.grid_v[b, base + off] += val
-                self.grid_m[b, base + off] += m
-
-    @ti.func
-    def particle_update(self, b, p, step, push_accel):
-        """Particle p's deformation update (plasticity, damage, the divergence flag; writes F, Jp) and what it
-        scatters: (base node, fx, mass, momentum, APIC affine matrix).  Tools with their own scatter (the
-        spoon's one-sided p2g) call it too, so every p2g shares one material model."""
-        base = self.base_node(self.x[b, p])
-        fx = self.x[b, p] * self.inv_dx - base.cast(ti.f32)
-        F = (ti.Matrix.identity(ti.f32, 3) + self.dt * self.C[b, p]) @ self.F[b, p]
-        J = F.determinant()
-        if J <= self.jc or J >= self.js:
-            self.damage[b, p] = 1
-        if not (self.cfg.j_min < J < self.cfg.j_max):  # also catches NaN
-            ti.atomic_min(self.bad_step[b], step)
-        mat = self.material[p]
-        scale = 1.0
-        R = ti.Matrix.identity(ti.f32, 3)
-        if self.damage[b, p] == 1:
-            scale = self.cfg.damaged_stiffness
-        if ti.static(self.rotation == "svd"):  # one SVD for every particle: a GPU warp runs one path
-            U, sig, V = ti.svd(F)
-            R = U @ V.transpose()
-            if mat == 1 or self.damage[b, p] == 1:
-                if mat == 1:
-                    sig = self.von_mises_return(sig, b, p, scale)
-                else:
-                    sig = self.damaged_flow(sig)
-                F = U @ sig @ V.transpose()
-                J = sig[0, 0] * sig[1, 1] * sig[2, 2]
-        else:
-            if mat == 1 or self.damage[b, p] == 1:  # plastic: needs the singular values
-                U, sig, V = ti.svd(F)
-                if mat == 1:
-                    sig = self.von_mises_return(sig, b, p, scale)
-                else:
-                    sig = self.damaged_flow(sig)
-                F = U @ sig @ V.transpose()
-                R = U @ V.transpose()
-                J = sig[0, 0] * sig[1, 1] * sig[2, 2]
-            else:  # healthy core: elastic only
-                R = polar_rotation(F)
-        self.F[b, p] = F
-        self.Jp[b, p] = J
-        tau = self.fixed_corotated(F, R, J, scale)
-        mass = self.vol * (self.cfg.rho_skin if mat == 1 else self.cfg.rho_core)
-        stress = -self.dt * self.vol * 4 * self.inv_dx * self.inv_dx * tau
-        affine = stress + mass * self.C[b, p]
-        mom = mass * self.v[b, p]
-        if push_accel != 0:  # 'separate' push: each side of the last cut is pushed away from it
-            side = ti.math.sign((self.x[b, p] - self.push_p[b]).dot(self.push_n[b]))
-            nh = ti.Vector([self.push_n[b][0], self.push_n[b][1], 0.0])
-            if nh.norm() > 1e-6:  # scenes without a cut have a zero normal
-                mom += mass * self.dt * push_accel * side * nh.normalized()
-        return base, fx, mass, mom, affine
-
-    @ti.func
-    def knife_motion(self, b, t):
-        """Edge midpoint and velocity of scene b's knife at time t (stopped once it travelled k_depth)."""
-        t_stop = self.k_depth[b] / self.k_speed[b]
-        moving = t < t_stop
-        te = ti.min(t, t_stop)
-        om = 2 * math.pi * self.cfg.osc_frequency
-        edge = self.k_o[b] + self.k_w[b] * self.k_speed[b] * te + self.k_u[b] * self.k_amp[b] * ti.sin(om * te)
-        vel = ti.Vector.zero(ti.f32, 3)
-        if moving:
-            vel = self.k_w[b] * self.k_speed[b] + self.k_u[b] * self.k_amp[b] * om * ti.cos(om * te)
-        return edge, vel
-
-    @ti.func
-    def knife_sdf(self, b, pos, edge):
-        """Signed distance to the inflated blade box and its outward normal."""
-        half = self.k_half[b]
-        d = pos - (edge - self.k_w[b] * half[1])
-        loc = ti.Vector([d.dot(self.k_u[b]), d.dot(self.k_w[b]), d.dot(self.k_n[b])])
-        q = ti.abs(loc) - half
-        qo = ti.max(q, 0.0)
-        sd = qo.norm() + ti.min(q.max(), 0.0) - self.cfg.margin
-        g = ti.Vector.zero(ti.f32, 3)
-        if qo.norm() > 0:
-            g = qo / qo.norm()
-        else:  # inside: the face of largest q
-            qm = q.max()
-            for i in ti.static(range(3)):
-                if q[i] == qm:
-                    g = ti.Vector([1.0 if i == 0 else 0.0, 1.0 if i == 1 else 0.0, 1.0 if i == 2 else 0.0])
-        g = g * ti.math.sign(loc + 1e-12)
-        nrm = g[0] * self.k_u[b] + g[1] * self.k_w[b] + g[2] * self.k_n[b]
-        return sd, nrm
-
-    @ti.func
-    def collide(self, v, vk, nrm, target, mu):
-        """Raise the normal velocity relative to the collider to >= target; Coulomb friction on the rest."""
-        vr = v - vk
-        vn = vr.dot(nrm)
-        out = v
-        if vn < target:
-            vt = vr - vn * nrm
-            vt *= ti.max(0.0, 1 - mu * (target - vn) / (vt.norm() + 1e-12))
-            out = vk + vt + target * nrm
-        return out
+                self.grid_v[slot, base + off] += val
+                self.grid_m[slot, base + off] += m
 
     @ti.func
     def update_grid(self, t: ti.template(), contact: ti.template()):
         if ti.static(self.use_box):
             for b, i, j, k in ti.ndrange(self.B, (self.box[0], self.box[3]), (self.box[1], self.box[4]),
                                          (self.box[2], self.box[5])):
-                self.update_node(b, i, j, k, t, contact)
+                self.update_node(b, ti.Vector([i, j, k]), t, contact)
         else:
-            for b, i, j, k in self.grid_m:
-                self.update_node(b, i, j, k, t, contact)
+            for b, i, j, k in ti.ndrange(self.B, self.n_grid, self.n_grid, self.n_grid):
+                self.update_node(b, ti.Vector([i, j, k]), t, contact)
 
     @ti.func
-    def update_node(self, b, i, j, k, t, contact: ti.template()):
-        m = self.grid_m[b, i, j, k]
-        if m > 0:
-            v = self.grid_v[b, i, j, k] / m
-            v[2] -= self.dt * self.cfg.gravity
-            pos = ti.Vector([i, j, k]).cast(ti.f32) * self.dx
-            if self.k_on[b] == 1:
-                edge, vk = self.knife_motion(b, t)
-                sd, nrm = self.knife_sdf(b, pos, edge)
-                v_old = v
-                touched = False
-                if contact == 0:  # wedge: a sharp blade splits material to either side, never pushes it ahead
-                    side = self.k_n[b] * ti.math.sign((pos - edge).dot(self.k_n[b]) + 1e-12)
-                    if sd < 0 or (sd < self.dx and ti.abs(nrm.dot(self.k_n[b])) > 0.5):
-                        target = self.k_speed[b] * self.cfg.knife_wedge if sd < 0 else 0.0
-                        v = self.collide(v, vk, side, target, self.cfg.knife_friction)
-                        touched = True
-                else:  # solid: nodes inside move with the body, a contact band around it slides with friction
-                    if sd < 0:
-                        v = vk
-                        touched = True
-                    elif sd < self.dx:
-                        v = self.collide(v, vk, nrm, 0.0, self.cfg.knife_friction)
-                        touched = True
-                if touched:  # only where the blade acted: atomics on one address contend on a GPU
-                    self.k_imp_step[b] += m * (v - v_old)
-            if ti.static(self.cfg.board):
-                if pos[2] <= self.cfg.board_z and v[2] < 0:
-                    vt = ti.Vector([v[0], v[1], 0.0])
-                    vt_n = vt.norm() + 1e-12
-                    v = vt * ti.max(0.0, 1 + self.cfg.friction * v[2] / vt_n)
-            if ti.static(self.cfg.walls):
-                I = ti.Vector([i, j, k])
-                for d in ti.static(range(3)):
-                    if I[d] < 3 and v[d] < 0:
-                        v[d] = 0
-                    if I[d] > self.n_grid - 3 and v[d] > 0:
-                        v[d] = 0
-            self.grid_v[b, i, j, k] = v
+    def update_node(self, b, I, t, contact: ti.template()):
+        """All velocity fields of node I of scene b: gravity, contact between fields, knife, board, walls."""
+        M, P, bodies = 0.0, ti.Vector.zero(ti.f32, 3), 0
+        for f in range(self.n_fields[None]):  # the node's centre of mass: what contact is measured against
+            m = self.grid_m[b * self.K + f, I]
+            if m > 0:
+                M, P, bodies = M + m, P + self.grid_v[b * self.K + f, I], bodies + 1
+        if M > 0:
+            pos = I.cast(ti.f32) * self.dx
+            g = ti.Vector([0.0, 0.0, -self.dt * self.cfg.gravity])
+            v_cm = P / M + g
+            for f in range(self.n_fields[None]):
+                m = self.grid_m[b * self.K + f, I]
+                if m > 0:
+                    v = self.grid_v[b * self.K + f, I] / m + g
+                    if bodies > 1:  # pieces meet here: no pulling, no interpenetration
+                        v = self.field_contact(b, f, I, v, v_cm)
+                    if self.k_on[b] == 1:
+                        v_old = v
+                        v, touched = self.knife_contact(b, f, pos, v, t, contact)
+                        if touched:  # only where the blade acted: atomics on one address contend on a GPU
+                            self.k_imp_step[b] += m * (v - v_old)
+                    self.grid_v[b * self.K + f, I] = self.boundaries(I, pos, v)
+
+    @ti.func
+    def boundaries(self, I, pos, v):
+        if ti.static(self.cfg.board):  # the board: no downward velocity, Coulomb friction on the rest
+            if pos[2] <= self.cfg.board_z and v[2] < 0:
+                vt = ti.Vector([v[0], v[1], 0.0])
+                vt_n = vt.norm() + 1e-12
+                v = vt * ti.max(0.0, 1 + self.cfg.friction * v[2] / vt_n)
+        if ti.static(self.cfg.walls):
+            for d in ti.static(range(3)):
+                if I[d] < 3 and v[d] < 0:
+                    v[d] = 0
+                if I[d] > self.n_grid - 3 and v[d] > 0:
+                    v[d] = 0
+        return v
 
     @ti.func
     def gather(self, n: ti.template(), step: ti.template(), t: ti.template()):
@@ -462,6 +339,7 @@ class MPMSolver:
                     self.record_knife(b, t)
                 if p < n:
                     self.gather_particle(b, p, step)
+                    self.blade_damage(b, p, t)
 
     @ti.func
     def record_knife(self, b, t):
@@ -482,7 +360,7 @@ class MPMSolver:
         for off in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
             dpos = (off.cast(ti.f32) - fx) * self.dx
             weight = w[off[0]][0] * w[off[1]][1] * w[off[2]][2]
-            g_v = self.grid_v[b, base + off]
+            g_v = self.grid_v[b * self.K + self.body[b, p], base + off]
             new_v += weight * g_v
             new_C += 4 * self.inv_dx * self.inv_dx * weight * g_v.outer_product(dpos)
         self.v[b, p], self.C[b, p] = new_v, new_C
@@ -497,9 +375,9 @@ class MPMSolver:
         s = self
 
         @ti.kernel
-        def p2g(n: ti.i32, step: ti.i32, push_accel: ti.f32):
+        def p2g(n: ti.i32, step: ti.i32):
             s.clear_grid()
-            s.scatter(n, step, push_accel)
+            s.scatter(n, step)
 
         @ti.kernel
         def grid_op(t: ti.f32, contact: ti.i32):
@@ -511,12 +389,12 @@ class MPMSolver:
 
         return p2g, grid_op, g2p
 
-    def substep(self, n: int, step: int, t: float = 0.0, push_accel: float = 0.0, contact: int = 0) -> None:
-        self.p2g(n, step, push_accel)
+    def substep(self, n: int, step: int, t: float = 0.0, contact: int = 0) -> None:
+        self.p2g(n, step)
         self.grid_op(t, contact)
         self.g2p(n, step, t)
 
-    def advance(self, n: int, step: int, ts, push_accel: float = 0.0, contact: int = 0) -> None:
+    def advance(self, n: int, step: int, ts, contact: int = 0) -> None:
         """len(ts) substeps, numbered step, step + 1, ... at times ts, from one Python call.
 
         Same kernels and arguments as len(ts) ``substep`` calls (so the same result bit for bit), but a
@@ -525,9 +403,9 @@ class MPMSolver:
         graph = self._graph(len(ts))
         if graph is None:  # no kernel graphs on this backend: the same launches from Python
             for j, t in enumerate(ts):
-                self.substep(n, step + j, t, push_accel, contact)
+                self.substep(n, step + j, t, contact)
             return
-        args = {"n": int(n), "push_accel": float(push_accel), "contact": int(contact)}
+        args = {"n": int(n), "contact": int(contact)}
         for j, t in enumerate(ts):
             args[f"step{j}"], args[f"t{j}"] = int(step) + j, float(t)
         graph.run(args)
@@ -538,11 +416,11 @@ class MPMSolver:
                 return ti.graph.Arg(ti.graph.ArgKind.SCALAR, name, dtype)
 
             try:
-                n, push, contact = arg("n", ti.i32), arg("push_accel", ti.f32), arg("contact", ti.i32)
+                n, contact = arg("n", ti.i32), arg("contact", ti.i32)
                 g = ti.graph.GraphBuilder()
                 for j in range(k):
                     step, t = arg(f"step{j}", ti.i32), arg(f"t{j}", ti.f32)
-                    g.dispatch(self.p2g, n, step, push)
+                    g.dispatch(self.p2g, n, step)
                     g.dispatch(self.grid_op, t, contact)
                     g.dispatch(self.g2p, n, step, t)
                 self._graphs[k] = g.compile()

@@ -33,7 +33,8 @@ from topocut.sim.env import NO_STEP, CuttingEnv, SimulationDiverged
 def cream_sim_config(sim: SimConfig, pen: PenConfig) -> SimConfig:
     """The simulator settings of the cream scene: soft, no softening, damage thresholds never reached."""
     return dataclasses.replace(sim, mu=pen.mu, lam=pen.lam, yield_stress=pen.yield_stress, softening=0.0,
-                               eps_c=0.9, eps_s=1e3, m=1.0, cut_substeps=None, friction=pen.friction)
+                               eps_c=0.9, eps_s=1e3, m=1.0, cut_substeps=None, friction=pen.friction,
+                               fields=1)  # cream is never cut: one velocity field
 
 
 def nozzle_layer(spacing: float, radius: float) -> np.ndarray:
@@ -155,13 +156,13 @@ class CreamPen:
         """
         s = self.solver
         top = self.cfg.board_z + s.dx
-        for b, i, j, k in s.grid_m:
-            if s.grid_m[b, i, j, k] > 0 and k * s.dx <= top:
-                v = s.grid_v[b, i, j, k]
+        for g, i, j, k in s.grid_m:  # every velocity field of every scene
+            if s.grid_m[g, i, j, k] > 0 and k * s.dx <= top:
+                v = s.grid_v[g, i, j, k]
                 if v[2] < 0:
                     vt = ti.Vector([v[0], v[1], 0.0])
                     v = vt * ti.max(0.0, 1 + self.cfg.friction * v[2] / (vt.norm() + 1e-12))
-                    s.grid_v[b, i, j, k] = v
+                    s.grid_v[g, i, j, k] = v
 
     def step(self, vel_xy: np.ndarray, b: bool) -> int:
         """One substep: toggle extrusion, maybe extrude a layer, advance MPM, move the pen; returns particles added."""
@@ -178,7 +179,7 @@ class CreamPen:
             self.stroke_steps += 1
         s, k = self.solver, self.env.step_count
         if self.n:
-            s.p2g(self.n, k, 0.0)
+            s.p2g(self.n, k)
             s.grid_op(self.t, 0)
             self.board_contact()
             s.g2p(self.n, k, self.t)

@@ -180,7 +180,7 @@ class ToolColliders:
         for b, p in ti.ndrange(s.B, s.capacity):
             if p < n and s.active(b, step):
                 xp = s.x[b, p]
-                base, fx, mass, mom, affine = s.particle_update(b, p, step, 0.0)  # the solver's material model
+                base, fx, mass, mom, affine = s.particle_update(b, p, step)  # the solver's material model
                 s.grow_box(base)  # writes a subset of base .. base + 2, as the solver's scatter
                 w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1) ** 2, 0.5 * (fx - 0.5) ** 2]
                 sp = 0
@@ -194,8 +194,8 @@ class ToolColliders:
                     if ok:
                         dpos = (off.cast(ti.f32) - fx) * s.dx
                         weight = w[off[0]][0] * w[off[1]][1] * w[off[2]][2]
-                        s.grid_v[b, base + off] += weight * (mom + affine @ dpos)
-                        s.grid_m[b, base + off] += weight * mass
+                        s.grid_v[b * s.K + s.body[b, p], base + off] += weight * (mom + affine @ dpos)
+                        s.grid_m[b * s.K + s.body[b, p], base + off] += weight * mass
 
     @ti.kernel
     def g2p_sided(self, n: ti.i32, step: ti.i32):
@@ -224,7 +224,7 @@ class ToolColliders:
                 for off in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
                     dpos = (off.cast(ti.f32) - fx) * s.dx
                     weight = w[off[0]][0] * w[off[1]][1] * w[off[2]][2]
-                    g_v = s.grid_v[b, base + off]
+                    g_v = s.grid_v[b * s.K + s.body[b, p], base + off]
                     if sp != 0:
                         sn = self.side(b, (base + off).cast(ti.f32) * s.dx)
                         if sn != 0 and sn != sp:
@@ -260,10 +260,11 @@ class ToolColliders:
         cup_mid = ti.static(self.spoon.cup_radius + self.spoon.cup_wall / 2)
         cup_half = ti.static(self.spoon.cup_wall / 2)
         cup_top = ti.static(s.cfg.board_z + self.spoon.cup_height)
-        for b, i, j, k in s.grid_m:
-            if s.grid_m[b, i, j, k] > 0:
+        for g, i, j, k in s.grid_m:  # g = b * K + f: every velocity field of scene b
+            b = g // s.K
+            if s.grid_m[g, i, j, k] > 0:
                 pos = ti.Vector([i, j, k]).cast(ti.f32) * s.dx
-                v = s.grid_v[b, i, j, k]
+                v = s.grid_v[g, i, j, k]
                 # cup wall: a tube in (radial distance, z)
                 dxy = ti.Vector([pos[0], pos[1]]) - cup_c
                 rho = dxy.norm() + 1e-12
@@ -286,4 +287,4 @@ class ToolColliders:
                         nrm = d / dist * ti.math.sign(dist - r_mid + 1e-9)
                         vb = self.pose[b, 2] + self.pose[b, 3].cross(d)
                         v = self.contact(v, vb, nrm)
-                s.grid_v[b, i, j, k] = v
+                s.grid_v[g, i, j, k] = v

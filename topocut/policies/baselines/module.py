@@ -272,5 +272,5 @@ class PosePolicy:
 
 
 def load_pose_policy(path, seed: int = 0, device: str = "cpu", steps: int | None = None) -> PosePolicy:
-    module = PoseDiffusionModule.load_from_checkpoint(str(path), map_location=device)
+    module = PoseDiffusionModule.load_from_checkpoint(str(path), map_location=device, weights_only=True)
     return PosePolicy(module, seed, device, steps)

@@ -1,0 +1,95 @@
+"""Pose-invariant size descriptor of a piece: principal extents and volume from the particle count.
+
+The spectral descriptor (topocut.reward.spectral) is scale-free: it sees the shape, not its size.  The
+task's own parameters (slice thickness, stick width, die size) are sizes, so the distance adds terms that
+measure them directly, invariant to rigid motions and to the point density:
+
+* particle spacing s: the median distance of a particle to its 4 nearest neighbours, divided by
+  ``NN_RATIO`` (0.97: the value of that median on the simulator's jittered lattice, ±0.25 s per axis,
+  for slabs of 2-8 layers and blocks, within ±2%), so s is the lattice spacing for any density;
+* volume V = N s^3 (each particle stands for one lattice cell);
+* principal extents e_1 <= e_2 <= e_3: e_k = sqrt(12 c_k + s^2), c_k the eigenvalues of the points'
+  covariance.  For a box of side L filled by a lattice of n = L / s layers the variance along the side is
+  s^2 (n^2 - 1) / 12, so e = n s = L exactly, at any density; for other shapes e is the side of the box with
+  the same second moment.
+
+* fill phi = V / (e_1 e_2 e_3): 1 for a box, pi/6 for a sphere, 1/2 for a wedge whose thickness goes to 0.
+
+size distance  d_size = a * sum_k (log e_xk - log e_yk)^2 + b * (log phi_x - log phi_y)^2   (a = size_weight,
+b = fill_weight).  A slab of thickness r t against the goal slab of thickness t: d_size = a log(r)^2 (its
+fill is the goal's); a wedge of the same volume, its thickness varying along the slab, has a larger thinnest
+extent *and* a smaller fill, so it is farther from the goal than a slab of the same thinnest extent.
+Extents and fill together fix the volume (V = phi e_1 e_2 e_3).
+
+* thickness profile: the piece's thickness along its thinnest principal axis, column by column: the
+  plane of the two other axes is binned into square cells of side 2 s (a grid at the centroid), each
+  cell's thickness is sqrt(12 var + s^2) of the coordinate along the thinnest axis (n layers -> n s, as
+  for the extents; a second moment, not max - min, so that it does not depend on how the cut planes meet the lattice), and the
+  profile is ``PROFILE_QUANTILES`` quantiles (10-90%) of the thickness over the particles (a particle carries
+  its cell's value; columns of < 3 particles left out).  A slab has one thickness everywhere; a wedge cut by a yawed knife has the same mean
+  thickness but a spread of them, which its extents and fill barely show.
+
+d_size += p * mean_q (log q_xq - log q_yq)^2  (p = profile_weight), when the goal piece y is a slab
+(e_2 >= PROFILE_ASPECT e_1: its thinnest axis is well defined); a slab r times the goal's thickness:
+d_size = (a + p) log(r)^2.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+NN_RATIO = 0.97  # median 4-NN distance / lattice spacing on a jittered lattice (jitter 0.25 spacing)
+NN_K = 4
+PROFILE_QUANTILES = 8
+PROFILE_ASPECT = 1.5  # the profile term counts when the goal piece's e_2 >= 1.5 e_1 (a slab)
+
+
+def particle_spacing(points: np.ndarray) -> float:
+    """The lattice spacing the particles were sampled at, from their nearest-neighbour distances."""
+    p = np.asarray(points, np.float64)
+    if len(p) < 2:
+        return 0.0
+    k = min(NN_K, len(p) - 1)
+    d = cKDTree(p).query(p, k + 1)[0][:, 1:]
+    return float(np.median(d) / NN_RATIO)
+
+
+def thickness_profile(local: np.ndarray, s: float, cell: float, q: int = PROFILE_QUANTILES) -> np.ndarray:
+    """Quantiles (q,) of the thickness along local[:, 0] over columns cell x cell in (local[:, 1], local[:, 2]);
+    a column's thickness is sqrt(12 var + s^2) of its particles' local[:, 0] (n lattice layers -> n s)."""
+    ij = np.floor(local[:, 1:] / cell).astype(np.int64)
+    _, col = np.unique(ij, axis=0, return_inverse=True)
+    col = col.reshape(-1)
+    n = np.bincount(col).astype(np.float64)
+    m1 = np.bincount(col, local[:, 0]) / n
+    m2 = np.bincount(col, local[:, 0] ** 2) / n
+    thick = np.sqrt(np.maximum(12.0 * (m2 - m1 ** 2), 0.0) + s ** 2)
+    keep = n[col] >= 3  # a column of one or two particles (a corner clipped by the grid) says nothing
+    thick = thick[col][keep] if keep.any() else thick[col]  # each particle carries its column's value
+    return np.quantile(thick, 0.1 + 0.8 * (np.arange(q) + 0.5) / q)  # the 10-90% range: robust to the rims
+
+
+def size_descriptor(points, spacing: float | None = None) -> np.ndarray:
+    """(e_1, e_2, e_3, V, thickness profile (PROFILE_QUANTILES,)) of a piece (N,3); extents sorted."""
+    p = np.asarray(points, np.float64)
+    s = particle_spacing(p) if spacing is None else float(spacing)
+    if len(p) < 4 or not s > 0:
+        return np.concatenate([[s, s, s, len(p) * s ** 3], np.full(PROFILE_QUANTILES, s)])
+    c, vec = np.linalg.eigh(np.cov(p.T, bias=True))  # ascending: vec[:, 0] the thinnest axis
+    e = np.sqrt(np.maximum(12.0 * c, 0.0) + s ** 2)
+    prof = thickness_profile((p - p.mean(0)) @ vec, s, 2.0 * s)
+    return np.concatenate([e, [len(p) * s ** 3], prof])
+
+
+def size_distance(sx, sy, size_weight: float = 3.0, fill_weight: float = 3.0, profile_weight: float = 3.0):
+    """d_size between two size descriptors (..., 4 + PROFILE_QUANTILES); broadcasts."""
+    tiny = 1e-30
+    lx, ly = np.log(np.maximum(np.asarray(sx, np.float64), tiny)), np.log(np.maximum(np.asarray(sy, np.float64), tiny))
+    le = lx[..., :3] - ly[..., :3]
+    lphi = (lx[..., 3] - lx[..., :3].sum(-1)) - (ly[..., 3] - ly[..., :3].sum(-1))
+    lq = lx[..., 4:] - ly[..., 4:]
+    # the profile needs a well-defined thinnest axis: only for goal pieces (y) at least PROFILE_ASPECT times as
+    # wide as thick (slabs).  A stick's or a die's thinnest axis is any direction in a square cross-section
+    # and columns along it would see the section at an arbitrary angle.
+    flat = np.asarray(sy, np.float64)[..., 1] >= PROFILE_ASPECT * np.asarray(sy, np.float64)[..., 0]
+    return size_weight * (le ** 2).sum(-1) + fill_weight * lphi ** 2 + profile_weight * flat * (lq ** 2).mean(-1)

@@ -1,0 +1,122 @@
+"""Pieces: which particles the knife has separated, and which velocity field each piece moves in.
+
+Pure numpy/scipy, run on the host once per cut (not per substep).  docs/sim.md, "Pieces and contact":
+
+- ``split``: a piece's particles stay connected where two neighbours (within ``LINK`` particle spacings)
+  are joined by a segment that does not cross the knife's swept surface.  The swept surface is the blade
+  plane's rectangle {|u.(q-o)| <= half_length, w.(q-o) <= depth}: everything the blade passed, from above the
+  object down to where its edge stopped.  The connected components of what stays linked are the new pieces,
+  so the split follows the blade's geometry wherever it falls relative to the grid, and a cut that stops
+  short (or misses) leaves the piece whole.
+- ``colour``: pieces whose particles can share a grid node take different velocity fields (a greedy
+  colouring of the "shares a stencil node" graph), so MPMSolver keeps them apart: multi-velocity-field
+  contact (Bardenhagen et al. 2000) lets them press on each other and slide, never pull.
+- ``field_sides``: for each field, the side of the blade its pieces near the blade are on (+1, -1), or 0
+  where that is mixed (an uncut piece the blade is inside): the knife pushes a field to its own side.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+LINK = 1.6  # neighbours closer than this many particle spacings are bonded (jittered lattice: 1 .. 1.5)
+MIN_PIECE = 8  # components with fewer particles are flakes: they join the nearest large piece
+REACH = 3  # pieces whose base cells lie within this many cells (Chebyshev) may share a node: colour apart
+
+
+def bonds(x: np.ndarray, spacing: float) -> np.ndarray:
+    """Neighbour pairs (M,2) of particles x (N,3) closer than LINK spacings."""
+    return cKDTree(x).query_pairs(LINK * spacing, output_type="ndarray")
+
+
+def crosses(x: np.ndarray, pairs: np.ndarray, sweep) -> np.ndarray:
+    """(M,) bool: the segment of each pair crosses the sweep's surface (its blade-plane rectangle)."""
+    o, u, w, n = sweep.as_arrays()
+    a, b = x[pairs[:, 0]], x[pairs[:, 1]]
+    da, db = (a - o) @ n, (b - o) @ n
+    opposite = (da >= 0) != (db >= 0)
+    t = np.where(opposite, da / np.where(opposite, da - db, 1.0), 0.0)
+    q = a + t[:, None] * (b - a) - o  # where the segment meets the plane
+    return opposite & (np.abs(q @ u) <= sweep.half_length) & (q @ w <= sweep.depth)
+
+
+def split(x: np.ndarray, piece: np.ndarray, sweep, spacing: float, pairs: np.ndarray | None = None) -> np.ndarray:
+    """New piece labels (N,) after ``sweep``: components of the bonds that join one piece and cross no swept
+    surface.  Labels are numbered by their lowest particle index; flakes (< MIN_PIECE) join the nearest piece."""
+    pairs = bonds(x, spacing) if pairs is None else pairs
+    keep = (piece[pairs[:, 0]] == piece[pairs[:, 1]]) & ~crosses(x, pairs, sweep)
+    e = pairs[keep]
+    N = len(x)
+    _, lab = connected_components(coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(N, N)), directed=False)
+    size = np.bincount(lab)
+    small = size[lab] < MIN_PIECE
+    if small.any() and (~small).any():
+        _, nearest = cKDTree(x[~small]).query(x[small])
+        lab[small] = lab[~small][nearest]
+    _, first = np.unique(lab, return_index=True)  # renumber by lowest particle index: stable across runs
+    rank = np.empty(lab.max() + 1, np.int64)
+    rank[lab[np.sort(first)]] = np.arange(len(first))
+    return rank[lab].astype(np.int32)
+
+
+def adjacency(x: np.ndarray, piece: np.ndarray, n_grid: int, reach: int = REACH) -> set[tuple[int, int]]:
+    """Pairs of pieces whose particles' base cells lie within ``reach`` cells of each other."""
+    cell = np.floor(x * n_grid - 0.5).astype(np.int64)
+    cp = np.unique(np.concatenate([cell, piece[:, None].astype(np.int64)], 1), axis=0)  # (cell, piece) rows
+    pairs = cKDTree(cp[:, :3].astype(float)).query_pairs(reach + 0.5, p=np.inf, output_type="ndarray")
+    a, b = cp[pairs[:, 0], 3], cp[pairs[:, 1], 3]
+    diff = a != b
+    return {(int(min(i, j)), int(max(i, j))) for i, j in zip(a[diff], b[diff])}
+
+
+def colour(x: np.ndarray, piece: np.ndarray, n_grid: int, fields: int) -> tuple[np.ndarray, int]:
+    """Velocity field (N,) per particle: neighbouring pieces get different ones (greedy, largest piece first).
+
+    Returns (field per particle, conflicts): a conflict is a pair of neighbouring pieces that had to share a
+    field because ``fields`` ran out (they may bond where they touch; raise sim.fields)."""
+    n_pieces = int(piece.max()) + 1 if len(piece) else 0
+    if n_pieces <= 1 or fields == 1:
+        return np.zeros(len(piece), np.int32), 0 if fields > 1 or n_pieces <= 1 else n_pieces - 1
+    nbr = [set() for _ in range(n_pieces)]
+    for i, j in adjacency(x, piece, n_grid):
+        nbr[i].add(j)
+        nbr[j].add(i)
+    of = np.full(n_pieces, -1, np.int64)
+    conflicts = 0
+    for p in np.argsort(-np.bincount(piece, minlength=n_pieces), kind="stable"):
+        used = np.bincount([of[q] for q in nbr[p] if of[q] >= 0], minlength=fields)
+        free = np.flatnonzero(used == 0)
+        of[p] = free[0] if len(free) else int(np.argmin(used))
+        conflicts += 0 if len(free) else int(used.min())
+    return of[piece].astype(np.int32), conflicts
+
+
+def field_sides(x: np.ndarray, field: np.ndarray, fields: int, sweep, reach: float) -> np.ndarray:
+    """(fields,) int: +1 / -1 where every particle of that field near the blade (within ``reach`` of its
+    plane, inside the swept rectangle grown by ``reach``) is on the +n / -n side; 0 where mixed or absent."""
+    o, u, w, n = sweep.as_arrays()
+    d = x - o
+    dn = d @ n
+    near = (np.abs(dn) < reach) & (np.abs(d @ u) <= sweep.half_length + reach) & (d @ w <= sweep.depth + reach)
+    out = np.zeros(fields, np.int32)
+    for f in range(fields):
+        s = dn[near & (field == f)]
+        if len(s):
+            out[f] = 1 if (s >= 0).all() else (-1 if (s < 0).all() else 0)
+    return out
+
+
+def cut_off_side(x: np.ndarray, before: np.ndarray, after: np.ndarray, sweep) -> int:
+    """The side (+1 / -1 of the blade normal) of the material this cut separated from the rest, 0 if none.
+
+    Of every piece the cut split, the pieces on the side with fewer particles are the ones cut off (a slice
+    off the loaf), which the push slides away."""
+    o, _, _, n = sweep.as_arrays()
+    split_parents = [p for p in np.unique(before) if len(np.unique(after[before == p])) > 1]
+    if not split_parents:
+        return 0
+    sel = np.isin(before, split_parents)
+    plus = int(((x[sel] - o) @ n >= 0).sum())
+    return 1 if plus <= sel.sum() - plus else -1

@@ -1,0 +1,215 @@
+"""The task protocol, the goal record, oracle steps and the geometry shared by the knife tasks.
+
+A task (one module per task in ``topocut.tasks``) owns its goal construction, its oracle sequence, its
+success condition and its scene set-up; stages, MPPI and evaluation ask the task found by
+``topocut.tasks.get_task(name)`` instead of branching on the name.
+
+Oracle steps (``Goal.steps``) are data: a ``Cut`` (one downward knife plane, a KnifeAction) or a ``Turn``
+(pieces picked up, rotated about a horizontal axis and laid on the board between two cut directions, as a
+cook lays a slab flat before cutting it into sticks).  The turn is a primitive the simulator has to
+provide (docs/tasks.md#turn-primitive); ``Turn.transform`` is its rigid motion, so the planes after a turn
+are given in the world frame *after* it.
+
+Frame of the knife tasks: the object's yaw gives two horizontal axes; a1 is the longer of the two (by
+particle extent, ties within 2% go to the local x axis), a2 the other, z up.  Faces are located with the
+object's SDF (max_j (s_j + depth_j), depth_j = -sdf(x_j)), so a piece of thickness t holds t / spacing
+layers.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from topocut.sim.action import KnifeAction
+
+
+@dataclass(frozen=True)
+class Cut:
+    """One knife cut: the plane of ``action`` (world frame at the time of the cut)."""
+
+    action: KnifeAction
+    kind: str = "cut"
+
+
+@dataclass(frozen=True)
+class Turn:
+    """Pick up the pieces named by ``pieces``, turn them rigidly and lay them on the board.
+
+    pieces: goal-piece selector, ``"slab"`` = the material of the first slab (every particle whose label
+    at the time of the turn lies inside it: the slab freed by the first cut).  The rigid motion is
+    x' = R (x - center) + target with R the rotation by ``angle`` (rad) about ``axis`` (unit, horizontal,
+    world) -- ``transform`` applies it.  ``target``'s z is the centroid height at which the turned pieces
+    rest on the board (the simulator may let them settle from slightly above).
+    """
+
+    pieces: str
+    axis: tuple
+    angle: float
+    center: tuple
+    target: tuple
+    note: str = ""
+    kind: str = "turn"
+
+    def rotation(self) -> np.ndarray:
+        from scipy.spatial.transform import Rotation
+
+        return Rotation.from_rotvec(np.asarray(self.axis, np.float64) * self.angle).as_matrix()
+
+    def transform(self, points: np.ndarray) -> np.ndarray:
+        p = np.asarray(points, np.float64)
+        return (p - np.asarray(self.center)) @ self.rotation().T + np.asarray(self.target)
+
+
+@dataclass
+class Goal:
+    fragments: list  # [(m_i,3) f32] target pieces at particle resolution, in the object's initial pose
+    planes: list  # [KnifeAction] the cuts of ``steps``, in order (the knife-only view of the oracle)
+    points: np.ndarray  # M,3 f32 the ideally cut object (FPS-downsampled to task.num_goal_points)
+    labels: np.ndarray  # M, i32 0 = not a goal piece, i+1 = goal piece i
+    task: str = "slice"
+    object: str = ""
+    axes: np.ndarray = field(default=None)  # 3,3 rows a1, a2, z (world)
+    steps: list = field(default_factory=list)  # [Cut | Turn] the oracle sequence
+
+    @property
+    def turns(self) -> list:
+        return [s for s in self.steps if isinstance(s, Turn)]
+
+
+@runtime_checkable
+class Task(Protocol):
+    """What a task provides (module docstrings: Task, Randomisations, Success)."""
+
+    name: str
+    tool: str  # "knife" | "pen" | "spoon"
+    stages: tuple  # the stages with a pipeline for this task
+
+    def make_goal(self, cfg, object: str, pose=None, spacing: float = 0.008, board_z: float = 0.05, seed: int = 0,
+                  skin_thickness: float = 0.01):
+        """The task's goal (a Goal for the knife tasks)."""
+
+    def oracle(self, goal) -> list:
+        """The ideal step sequence (Cut / Turn) for ``goal``."""
+
+    def success(self, result, cfg) -> bool:
+        """Episode success from a RewardResult."""
+
+    def scene(self, cfg, sim):
+        """Scene set-up: what the simulate stage builds for this task (docs/tasks.md)."""
+
+
+class KnifeTask:
+    """Shared behaviour of the knife tasks (slice, stick, dice, pyramid)."""
+
+    name = ""
+    tool = "knife"
+    stages = ("simulate", "mppi", "teleop", "merge", "pretrain", "bc", "eval")
+
+    def make_goal(self, cfg, object: str, pose=None, spacing: float = 0.008, board_z: float = 0.05, seed: int = 0,
+                  skin_thickness: float = 0.01) -> Goal:
+        from topocut.metrics import fps
+        from topocut.sim.objects import ObjectPose, object_sdf, sample_object
+
+        cfg = cfg.validate()
+        pose = pose or ObjectPose()
+        pts, _ = sample_object(object, pose, spacing, skin_thickness=skin_thickness, seed=seed, board_z=board_z)
+        p64 = pts.astype(np.float64)
+        axes = object_axes(p64, pose.yaw)
+        pad = -object_sdf(object, p64, pose, board_z)  # each particle's depth below the surface
+        steps, labels = self.pieces(cfg, p64, axes, pad, spacing, board_z)
+        ids = [i for i in range(1, labels.max(initial=0) + 1) if (labels == i).any()]
+        if not ids:
+            raise ValueError(f"task {self.name!r} produced no goal piece on {object!r} at spacing {spacing}: "
+                             f"increase task.thickness/width/size or decrease spacing")
+        fragments = [pts[labels == i] for i in ids]
+        remap = np.zeros(labels.max() + 1, np.int32)  # a plane that caught no particle leaves an empty label:
+        remap[ids] = np.arange(1, len(ids) + 1)  # renumber so that label i + 1 is fragments[i]
+        labels = remap[labels]
+        keep = np.arange(len(pts))
+        if 0 < cfg.num_goal_points < len(pts):
+            keep = fps(p64, cfg.num_goal_points)
+        planes = [s.action for s in steps if isinstance(s, Cut)]
+        return Goal(fragments, planes, pts[keep], labels[keep].astype(np.int32), self.name, object, axes, steps)
+
+    def pieces(self, cfg, pts, axes, pad, spacing, board_z):  # -> (steps, labels (N,))
+        raise NotImplementedError
+
+    def oracle(self, goal: Goal) -> list:
+        return list(goal.steps)
+
+    def success(self, result, cfg) -> bool:
+        """Every goal piece made (N_C = G) or the total at task.success_threshold."""
+        G = len(getattr(result, "per_goal", []))
+        return bool(result.total >= cfg.success_threshold or (G and result.cut_count >= G))
+
+    def scene(self, cfg, sim):
+        """The object on the board and the knife (topocut.sim.CuttingEnv); push after each cut iff cfg.push."""
+        return {"env": "topocut.sim.CuttingEnv", "push": bool(cfg.push), "turns": self.name in ("stick", "dice")}
+
+
+# -- geometry ---------------------------------------------------------------------------------------------
+def object_axes(points: np.ndarray, yaw: float) -> np.ndarray:
+    """Rows (a1, a2, z): a1 the longer horizontal axis of the yawed object, a2 the other."""
+    ex = np.array([np.cos(yaw), np.sin(yaw), 0.0])
+    ey = np.array([-np.sin(yaw), np.cos(yaw), 0.0])
+    ext = [np.ptp(points @ e) for e in (ex, ey)]
+    a1, a2 = (ey, -ex) if ext[1] > 1.02 * ext[0] else (ex, ey)  # (a1, a2, z) stays right-handed
+    return np.stack([a1, a2, np.array([0.0, 0.0, 1.0])])
+
+
+def plane(normal, point, board_z) -> Cut:
+    return Cut(KnifeAction.from_plane(normal, point, board_z))
+
+
+def slices(pts, axes, step, count, board_z, pad):
+    """Planes normal to axes[0] every ``step`` from the +end; (steps, piece labels (N,))."""
+    s = pts @ axes[0]
+    hi, lo = (s + pad).max(), s.min()
+    labels = np.zeros(len(pts), np.int32)
+    steps = []
+    for i in range(1, count + 1):
+        cut = hi - i * step
+        if cut <= lo:  # the plane would miss the object: no further full piece
+            break
+        steps.append(plane(axes[0], pts.mean(0) + (cut - pts.mean(0) @ axes[0]) * axes[0], board_z))
+        labels[(s > cut) & (s <= hi - (i - 1) * step)] = i
+    return steps, labels
+
+
+def first_slab(pts, axes, thickness, board_z, pad, key="task.thickness"):
+    """The first slab (thickness off the +a1 face): (its Cut, mask (N,))."""
+    steps, lab = slices(pts, axes, thickness, 1, board_z, pad)
+    if not steps:
+        raise ValueError(f"{key}={thickness} exceeds the object's extent")
+    return steps[0], lab == 1
+
+
+def lay_flat(pts, slab, axes, board_z, gap: float = 0.02) -> Turn:
+    """Turn the freed slab 90 deg about a2 so that its thickness is vertical (a1 -> -z, z -> a1): its outer
+    face ends on the board, its cut face up, its former height along +a1, laid ``gap`` beyond the object."""
+    p = pts[slab]
+    c = p.mean(0)
+    a1, a2, z = axes
+    far = (pts @ a1).max()  # the object's +a1 end (before the slab is taken away)
+    height = np.ptp(p @ z)
+    thick = np.ptp(p @ a1)
+    target = c + (far + gap + height / 2 - c @ a1) * a1
+    target = target - (target @ z) * z + (board_z + thick / 2) * z
+    return Turn("slab", tuple(a2.tolist()), float(np.pi / 2), tuple(c.tolist()), tuple(target.tolist()),
+                note="lay the slab flat: a1 -> -z, z -> +a1, about a2 through its centroid")
+
+
+def bands(values, start, step, count, sign=-1):
+    """Band index 1..count of each value counting from ``start`` in direction ``sign`` (0 outside)."""
+    k = np.floor((values - start) * sign / step).astype(np.int64) + 1  # 1 for the first band
+    k[(k < 1) | (k > count)] = 0
+    return k
+
+
+def band_cuts(turned_or_world_point, normal, positions, board_z):
+    """Cuts normal to ``normal`` through the points p0 + (pos - p0.n) n."""
+    p0 = np.asarray(turned_or_world_point, np.float64)
+    n = np.asarray(normal, np.float64)
+    return [plane(n, p0 + (pos - p0 @ n) * n, board_z) for pos in positions]

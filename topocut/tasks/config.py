@@ -1,0 +1,143 @@
+"""Task configuration (paper §4 task setup and the appendix's additional tasks; docs/reward.md#goals, docs/tasks.md).
+
+The cutting tasks (slice, stick, dice, pyramid) use the knife; cream_writing uses a cream pen
+(``PenConfig``) and scooping a spoon and a cup (``SpoonConfig``).  The two additive/scooping
+tasks only have the simulate (and, for writing, mppi) stages: ``check_stage`` refuses the others.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+CUTTING_TASKS = ("slice", "stick", "dice", "pyramid")
+TASKS = CUTTING_TASKS + ("cream_writing", "scooping")
+# stages each non-cutting task has a pipeline for (cutting tasks run every stage)
+TASK_STAGES = {"cream_writing": ("simulate", "mppi"), "scooping": ("simulate",)}
+
+
+@dataclass
+class PenConfig:
+    """Cream pen: a nozzle at a fixed height above the board extrudes a von Mises "cream" (docs/tasks.md)."""
+
+    height: float = 0.03  # nozzle above the board's top face [units]
+    nozzle_radius: float = 1.0  # in particle spacings: a layer = lattice points within it (1.0 -> 5, a plus)
+    extrude_speed: float = 1.5  # downward speed of the cream leaving the nozzle [units/s]; a layer per spacing
+    speed: float = 1.2  # pen speed while writing [units/s]
+    travel_speed: float = 2.0  # pen speed between strokes (extrusion off)
+    friction: float = 4.0  # Coulomb coefficient of cream on the board: it sticks where it lands (food's: 0.5)
+    step: float = 0.02  # longest pen move of one action (dx, dy, b) [units]
+    yield_stress: float = 4.0  # cream's von Mises yield stress, per particle (the food's skin: 60)
+    mu: float = 400.0  # cream's shear modulus (softer than the food: a larger stable dt)
+    lam: float = 800.0
+    settle_substeps: int = 300  # free settling after the last stroke
+    max_particles: int = 12000  # capacity reserved for extruded particles
+
+
+@dataclass
+class SpoonConfig:
+    """Ice-cream scooping: a spherical-cap spoon, a cylindrical cup and an elastoplastic block (docs/tasks.md)."""
+
+    radius: float = 0.06  # spoon bowl: spherical shell of this inner radius (>= ~3 cells: the band is a cell)
+    thickness: float = 0.01  # shell thickness
+    opening: float = 0.0  # rim plane at opening * radius from the centre along the bowl's axis (0: hemisphere)
+    depth: float = 0.045  # how deep the bowl dips into the block (height of the scooped cap)
+    advance: float = 0.02  # forward travel while the bowl curls through the block
+    speed: float = 0.5  # spoon speed [units/s]
+    block: list[float] = field(default_factory=lambda: [0.24, 0.24, 0.1])  # block size (x, y, z)
+    block_center: list[float] = field(default_factory=lambda: [0.33, 0.5])  # block centre on the board (x, y)
+    cup_center: list[float] = field(default_factory=lambda: [0.7, 0.5])  # cup axis (x, y)
+    cup_radius: float = 0.1  # inner radius
+    cup_height: float = 0.07
+    cup_wall: float = 0.01
+    yield_stress: float = 30.0  # the ice cream's von Mises yield stress (material 1 everywhere)
+    # the 2-D placement actions: (x, y) of each scoop's bowl centre relative to the block centre
+    scoops: list[list[float]] = field(default_factory=lambda: [[-0.03, -0.06], [-0.03, 0.06]])
+
+
+@dataclass
+class TaskConfig:
+    name: str = "slice"  # slice | stick | dice | pyramid | cream_writing | scooping
+    thickness: float = 0.03  # slice thickness (scene units), along the object's longest horizontal axis
+    width: float = 0.03  # stick width, along the other horizontal axis
+    size: float = 0.03  # dice side; pyramid: leg length of the corner tetrahedron
+    max_cuts: int = 5  # cuts per episode; also bounds the number of goal pieces
+    success_threshold: float = 0.95  # episode success when the total spectral reward (in [0, r_max]) reaches this
+    push: bool = False  # gentle downward push after each cut (stick and dice in the paper)
+    num_goal_points: int = 2048  # Goal.points/labels are FPS-downsampled to this many points (0: keep all)
+    sample_tilt: bool = False  # MPPI also samples the knife tilt (pyramid: the goal plane is tilted)
+    # -- cream writing -----------------------------------------------------------
+    word: str = "CORL"  # letters written, one stroke (cluster) each; topocut.tasks.letters.LETTERS
+    letter_height: float = 0.12  # cap height of a letter [units]; width is LETTER_ASPECT times it
+    letter_gap: float = 0.06  # space between letters [units] (>= ~5 spacings, or discovery joins them)
+    pen: PenConfig = field(default_factory=PenConfig)
+    # -- scooping ----------------------------------------------------------------
+    spoon: SpoonConfig = field(default_factory=SpoonConfig)
+    # the stage running this task: conf/task/{cream_writing,scooping}.yaml fill it from ${stage.name} so that
+    # validate() refuses a stage without a pipeline for the task ("" = not checked)
+    stage: str = ""
+
+    def validate(self) -> TaskConfig:
+        if self.name not in TASKS:
+            raise ValueError(f"task.name={self.name!r}; valid: {', '.join(TASKS)}")
+        for k in ("thickness", "width", "size", "letter_height"):
+            if getattr(self, k) <= 0:
+                raise ValueError(f"task.{k}={getattr(self, k)} must be > 0")
+        if self.max_cuts < 1:
+            raise ValueError(f"task.max_cuts={self.max_cuts} must be >= 1")
+        if self.name in ("stick", "dice") and self.max_cuts < 2:  # one cut frees the slab, the next the first piece
+            raise ValueError(f"task.max_cuts={self.max_cuts}: task {self.name!r} needs at least 2 (a slab, then its pieces)")
+        if self.num_goal_points < 0:
+            raise ValueError(f"task.num_goal_points={self.num_goal_points} must be >= 0")
+        if self.stage:
+            check_stage(self.stage, self.name)
+        if self.name == "cream_writing":
+            self._validate_writing()
+        if self.name == "scooping":
+            self._validate_scooping()
+        return self
+
+    def _validate_writing(self) -> None:
+        from topocut.tasks.letters import LETTERS
+
+        bad = [c for c in self.word.upper() if c not in LETTERS]
+        if not self.word or bad:
+            raise ValueError(f"task.word={self.word!r}: no stroke for {bad or 'an empty word'}; "
+                             f"valid letters: {''.join(sorted(LETTERS))}")
+        if self.letter_gap < 0:
+            raise ValueError(f"task.letter_gap={self.letter_gap} must be >= 0")
+        p = self.pen
+        for k in ("height", "nozzle_radius", "extrude_speed", "speed", "travel_speed", "step", "yield_stress", "mu",
+                  "lam"):
+            if getattr(p, k) <= 0:
+                raise ValueError(f"task.pen.{k}={getattr(p, k)} must be > 0")
+        if p.max_particles < 100:
+            raise ValueError(f"task.pen.max_particles={p.max_particles} must be >= 100")
+
+    def _validate_scooping(self) -> None:
+        s = self.spoon
+        for k in ("radius", "thickness", "depth", "advance", "speed", "cup_radius", "cup_height", "cup_wall",
+                  "yield_stress"):
+            if getattr(s, k) <= 0:
+                raise ValueError(f"task.spoon.{k}={getattr(s, k)} must be > 0")
+        if not -1.0 < s.opening < 1.0:
+            raise ValueError(f"task.spoon.opening={s.opening} must lie in (-1, 1)")
+        if s.depth >= 2 * s.radius:
+            raise ValueError(f"task.spoon.depth={s.depth} must be < the bowl's diameter 2*radius={2 * s.radius}")
+        if len(s.block) != 3 or min(s.block) <= 0:
+            raise ValueError(f"task.spoon.block must be 3 positive sizes (x, y, z), got {list(s.block)}")
+        for k in ("block_center", "cup_center"):
+            if len(getattr(s, k)) != 2:
+                raise ValueError(f"task.spoon.{k} must be (x, y), got {list(getattr(s, k))}")
+        if not s.scoops or any(len(a) != 2 for a in s.scoops):
+            raise ValueError(f"task.spoon.scoops must be a non-empty list of (x, y) offsets, got {s.scoops}")
+        gap = abs(s.cup_center[0] - s.block_center[0]) - s.block[0] / 2 - s.cup_radius - s.cup_wall
+        if gap < 0:
+            raise ValueError(f"task.spoon.cup_center={list(s.cup_center)} puts the cup inside the block "
+                             f"(x gap {gap:.3f} < 0)")
+
+
+def check_stage(stage: str, task: str) -> None:
+    """Refuse stage x task combinations without a pipeline (e.g. stage=bc task=scooping)."""
+    allowed = TASK_STAGES.get(task)
+    if allowed is not None and stage not in allowed:
+        raise ValueError(f"task={task} runs with stage in ({', '.join(allowed)}) only, got stage={stage} "
+                         f"(stage.name); tasks for stage={stage}: {', '.join(CUTTING_TASKS)}")

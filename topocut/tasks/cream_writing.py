@@ -1,0 +1,40 @@
+"""Cream writing (paper appendix, "Additional Manipulation Tasks"): write a word with a cream pen.
+
+**Task.** A nozzle at a fixed height above the board extrudes a von Mises cream; each continuous stroke is
+one cluster.  Goal: one bead-shaped point cloud per letter of ``task.word`` (topocut.tasks.letters).
+**Oracle.** The scripted writer: each letter's stroke polyline, pen down, then lifted to the next letter
+(topocut.planning.writer).
+**Randomisations.** None beyond the word, letter height and gap (task config).
+**Success.** The total at task.success_threshold (per-letter spectral reward, one stroke per letter).
+Stages: simulate and mppi only.  Scene: topocut.sim.pen (CreamPen, cream_sim_config).
+"""
+from __future__ import annotations
+
+
+class CreamWritingTask:
+    name = "cream_writing"
+    tool = "pen"
+    stages = ("simulate", "mppi")
+
+    def make_goal(self, cfg, object: str = "", pose=None, spacing: float = 0.008, board_z: float = 0.05,
+                  seed: int = 0, skin_thickness: float = 0.01):
+        """(per-letter goal clouds, the letters' stroke polylines): topocut.tasks.letters.word_goal."""
+        from topocut.tasks.letters import word_goal
+
+        cfg.validate()
+        return word_goal(cfg.word, cfg.letter_height, cfg.letter_gap, spacing, board_z)
+
+    def oracle(self, goal) -> list:
+        return list(goal[1])  # the stroke polylines, in writing order
+
+    def success(self, result, cfg) -> bool:
+        return bool(result.total >= cfg.success_threshold)
+
+    def scene(self, cfg, sim):
+        """The cream solver settings on a copy of ``sim`` (topocut.sim.pen.cream_sim_config)."""
+        from topocut.sim.pen import cream_sim_config
+
+        return cream_sim_config(sim, cfg.pen)
+
+
+TASK = CreamWritingTask()

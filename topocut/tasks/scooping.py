@@ -1,0 +1,40 @@
+"""Ice-cream scooping (paper appendix, "Additional Manipulation Tasks"): scoop chunks into a cup.
+
+**Task.** A spherical-shell spoon scoops chunks of an elastoplastic block and pours them into a cup; each
+chunk in the cup is its own cluster.  Goal: one target chunk per scoop (the spherical cap of height
+``spoon.depth`` swept by the advance; topocut.planning.scoop.target_chunk).
+**Oracle.** The spoon primitive at each ``spoon.scoops`` placement (topocut.sim.spoon.scoop_keyframes).
+**Randomisations.** None beyond the placements and the block / cup layout (task.spoon).
+**Success.** Every chunk in the cup as its own cluster and the total at task.success_threshold.
+Stages: simulate only.  Scene: topocut.planning.scoop.ScoopScene (spoon, cup, block).
+"""
+from __future__ import annotations
+
+
+class ScoopingTask:
+    name = "scooping"
+    tool = "spoon"
+    stages = ("simulate",)
+
+    def make_goal(self, cfg, object: str = "", pose=None, spacing: float = 0.008, board_z: float = 0.05,
+                  seed: int = 0, skin_thickness: float = 0.01):
+        """One target chunk per scoop: [target_chunk] * len(spoon.scoops)."""
+        from topocut.planning.scoop import target_chunk
+
+        cfg.validate()
+        return [target_chunk(cfg.spoon, spacing)] * len(cfg.spoon.scoops)
+
+    def oracle(self, goal) -> list:
+        return []  # the placements live in task.spoon.scoops
+
+    def success(self, result, cfg) -> bool:
+        return bool(result.total >= cfg.success_threshold)
+
+    def scene(self, cfg, sim):
+        """The scooping scene class (topocut.planning.scoop.ScoopScene); the pipeline builds it."""
+        from topocut.planning.scoop import ScoopScene
+
+        return ScoopScene
+
+
+TASK = ScoopingTask()

@@ -1,0 +1,55 @@
+"""Stick: a slab cut into sticks of ``thickness`` x ``width`` with one long axis.
+
+**Task.** Cut a slab of ``task.thickness`` off the +a1 end, then cut it into sticks of width ``task.width``.
+A stick is thickness x width x L with L the slab's longer in-plane side, so it has one long axis:
+if the slab is at least as tall as it is wide (cube, tall objects) the sticks stand upright (cuts normal to
+a2 across the standing slab); if it is wider than tall (steak, cake, donut edge slabs) the slab is first
+laid flat (``Turn``: 90 deg about a2, cut face up) and cut normal to its former height, so the sticks lie
+along a2.  Goal pieces: the full sticks (bands holding >= half a full stick's particles), initial pose.
+**Oracle.** Slab cut; [lay the slab flat]; ``max_cuts - 1`` cuts at the band edges that lie inside the slab
+(bands anchored at a face or centred, whichever makes the most full sticks).
+**Randomisations.** As slice; thickness and width per task config.
+**Success.** Every stick made (N_C = G) or the total at task.success_threshold.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from topocut.tasks.base import KnifeTask, first_slab, lay_flat, plane
+from topocut.tasks.grid import best_grid
+
+
+class StickTask(KnifeTask):
+    name = "stick"
+
+    def pieces(self, cfg, pts, axes, pad, spacing, board_z):
+        a1, a2, z = axes
+        cut0, slab = first_slab(pts, axes, cfg.thickness, board_z, pad)
+        p, d = pts[slab], pad[slab]
+        s2, h = p @ a2, p @ z
+        tall = np.ptp(h) >= 0.95 * np.ptp(s2)  # a square slab (the cube) keeps its sticks upright
+        budget = cfg.max_cuts - 1
+        steps = [cut0]
+        if tall:  # upright sticks: bands across a2
+            length = np.ptp(h) + spacing
+            faces = [((s2 - d).min(), (s2 + d).max())]
+            coords = s2[:, None]
+        else:  # lay the slab flat, bands along its former height
+            length = np.ptp(s2) + spacing
+            faces = [(board_z, (h + d).max())]
+            coords = h[:, None]
+        full = cfg.thickness * cfg.width * length / spacing ** 3
+        lab, cuts, _ = best_grid(coords, faces, [cfg.width], budget, full)
+        labels = np.zeros(len(pts), np.int32)
+        labels[slab] = lab
+        if tall:
+            base = p.mean(0)  # the knife centred on the slab, so a finite blade cuts the slab first
+            steps += [plane(a2, base + (c - base @ a2) * a2, board_z) for c in cuts[0]]
+        else:
+            turn = lay_flat(pts, slab, axes, board_z)
+            t, c0 = np.asarray(turn.target), np.asarray(turn.center)
+            steps += [turn] + [plane(a1, t + (c - c0 @ z) * a1, board_z) for c in cuts[0]]
+        return steps, labels
+
+
+TASK = StickTask()
