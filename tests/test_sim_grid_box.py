@@ -86,7 +86,7 @@ def _spoon_run(grid_box: str):
         if sided:
             tools.p2g_sided(env.n, k)
         else:
-            s.p2g(env.n, k, 0.0)
+            s.p2g(env.n, k)
         s.grid_op(k * env.dt, 0)
         tools.collide_tools()
         if sided:

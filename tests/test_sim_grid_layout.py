@@ -37,7 +37,7 @@ def test_one_p2g_is_bit_identical(runs):
     grids = []
     for env, _ in runs:
         env.load_particles(x.astype(np.float32), np.zeros(len(x), np.int32), v=v)
-        env.solver.p2g(env.n, 0, 0.0)
+        env.solver.p2g(env.n, 0)
         grids.append((env.solver.grid_m.to_numpy(), env.solver.grid_v.to_numpy()))
     (m0, v0), (m1, v1) = grids
     assert abs(m0.sum() - 2 * len(x) * env.solver.vol * env.cfg.rho_core) < 1e-4 * m0.sum()  # all mass landed

@@ -62,7 +62,7 @@ def test_every_particle_scattered_once_when_the_count_shrinks():
     for n in (900, 451):  # 451: the old order held particles >= 451 in slots < 451
         env.set_state({"x": x[:n], "material": mat[:n]}, b=None)
         s = env.solver
-        s.p2g(env.n, 0, 0.0)
+        s.p2g(env.n, 0)
         want = vol * (env.cfg.rho_skin * mat[:n].sum() + env.cfg.rho_core * (n - mat[:n].sum()))
         assert abs(s.grid_m.to_numpy().sum() - want) < 1e-5 * want, n
 

@@ -79,7 +79,7 @@ for name, x in [("crowded", 0.5 + 0.004 * rng.random((3000, 3))),     # ~all in 
         assert e.cfg.grid_layout_method() == ("aos" if warp == "off" else "soa")
         e.load_particles(x.astype(np.float32), np.zeros(len(x), np.int32), v=np.full(x.shape, 0.3, np.float32))
         s = e.solver
-        s.p2g(e.n, 0, 0.0)
+        s.p2g(e.n, 0)
         grids.append((s.grid_m.to_numpy(), s.grid_v.to_numpy()))
         s.destroy()
     (m0, v0), (m1, v1) = grids

@@ -25,7 +25,6 @@ GPU's warp scatter and its visiting order) sits beside the fields it reads; the 
 """
 
 
-import math
 import warnings
 
 import numpy as np
