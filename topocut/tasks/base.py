@@ -17,6 +17,7 @@ layers.
 """
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
@@ -100,11 +101,12 @@ class Task(Protocol):
         """Scene set-up: what the simulate stage builds for this task (docs/tasks.md)."""
 
 
-class KnifeTask:
-    """Shared behaviour of the knife tasks (slice, stick, dice, pyramid)."""
+class KnifeTask(ABC):
+    """Shared behaviour of the knife tasks (slice, stick, dice, pyramid); each defines ``pieces``."""
 
     name = ""
     tool = "knife"
+    turns = False  # whose oracle lays pieces down between cut directions (Turn steps)
     stages = ("simulate", "mppi", "teleop", "merge", "pretrain", "bc", "eval")
 
     def make_goal(self, cfg, object: str, pose=None, spacing: float = 0.008, board_z: float = 0.05, seed: int = 0,
@@ -133,8 +135,9 @@ class KnifeTask:
         planes = [s.action for s in steps if isinstance(s, Cut)]
         return Goal(fragments, planes, pts[keep], labels[keep].astype(np.int32), self.name, object, axes, steps)
 
-    def pieces(self, cfg, pts, axes, pad, spacing, board_z):  # -> (steps, labels (N,))
-        raise NotImplementedError
+    @abstractmethod
+    def pieces(self, cfg, pts, axes, pad, spacing, board_z):
+        """The oracle's steps and each point's goal piece: (steps, labels (N,), 0 = not a goal piece)."""
 
     def oracle(self, goal: Goal) -> list:
         return list(goal.steps)
@@ -146,7 +149,7 @@ class KnifeTask:
 
     def scene(self, cfg, sim):
         """The object on the board and the knife (topocut.sim.CuttingEnv); push after each cut iff cfg.push."""
-        return {"env": "topocut.sim.CuttingEnv", "push": bool(cfg.push), "turns": self.name in ("stick", "dice")}
+        return {"env": "topocut.sim.CuttingEnv", "push": bool(cfg.push), "turns": self.turns}
 
 
 # -- geometry ---------------------------------------------------------------------------------------------

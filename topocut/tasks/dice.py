@@ -23,6 +23,7 @@ from topocut.tasks.grid import best_grid
 
 class DiceTask(KnifeTask):
     name = "dice"
+    turns = True
 
     def pieces(self, cfg, pts, axes, pad, spacing, board_z):
         if cfg.max_cuts < 3:

@@ -21,6 +21,7 @@ from topocut.tasks.grid import best_grid
 
 class StickTask(KnifeTask):
     name = "stick"
+    turns = True
 
     def pieces(self, cfg, pts, axes, pad, spacing, board_z):
         a1, a2, z = axes
