@@ -60,7 +60,7 @@ PY
     ;;
   block-dim)  # scatter / gather threads per block (Taichi's launch bounds cap registers at 65536 / (2 block_dim)),
     # every case timed in one process (the defaults: 289 s on an H100 with a cold cache, ~45 s of compiling a case)
-    cases=${CASES:-"scatter_block_dim=128 scatter_block_dim=384 scatter_block_dim=448"}
+    cases=${CASES:-"tuning.scatter_block_dim=128 tuning.scatter_block_dim=384 tuning.scatter_block_dim=448"}
     timeout 560 python3 benchmarks/sim_throughput.py --device cuda --grids ${GRIDS:-84 128} --batches ${BATCHES:-16} \
       --no-ref --repeats 5 --set $cases 2>&1 | tee -a "$OUT/block_dim.txt" ;;
   bench-rest)

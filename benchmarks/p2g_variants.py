@@ -41,7 +41,7 @@ from topocut.sim.objects import sample_object
 @ti.data_oriented
 class PolarMPM(ReferenceMPM):
     """The reference with the rotation of F = R S by Newton's iteration instead of an SVD (the full
-    model's ``core_rotation=polar``): a cheaper per-particle update, same scatter."""
+    model's ``sim.tuning.core_rotation=polar``): a cheaper per-particle update, same scatter."""
 
     @ti.func
     def rotation(self, F):

@@ -10,12 +10,14 @@ and as three kernels per substep ("ref3", the shape the full model's phases have
     python benchmarks/sim_throughput.py --device cpu --quick
     python benchmarks/sim_throughput.py --device cuda     # 64^3, 84^3 (~20k particles), 128^3; B = 1 and 16
 
-Prints per case the wall time per substep (the median of ``--repeats`` cuts, and their range),
+Prints per case the wall time per substep (the median of ``--repeats`` cuts, and their range; a cut's wall
+time includes the host's piece finding before the knife moves, printed apart as "split ms" per cut, and
+"us sim" is the substep without it),
 particle-substeps/s, the ratios full/mpm3d and full/ref3 (references timed as often), the first-run
 compile time (warm-up; the offline cache hides it on reruns) and per grid the batching gain B_max/B_1.
 ``--fuse 1`` times the full model with one Python call per phase (the path before kernel graphs),
-``--warp-scatter``, ``--resort`` and ``--set KEY=VAL,...`` (any SimConfig keys, e.g. ``--set
-grid_layout=aos grid_layout=soa``) take several values, each a case timed in the same process (single GPU
+``--warp-scatter``, ``--resort`` and ``--set KEY=VAL,...`` (any SimConfig keys, the switches of sim.tuning
+as ``tuning.KEY``, e.g. ``--set tuning.grid_layout=aos tuning.grid_layout=soa``) take several values, each a case timed in the same process (single GPU
 scenes move by tens of percent between processes).  ``--profile`` adds Taichi's kernel profiler (device
 time per offloaded task; it syncs after each launch, so the wall times of that run are not comparable).
 """
@@ -27,7 +29,7 @@ import taichi as ti
 import yaml
 
 from topocut.sim.action import KnifeAction
-from topocut.sim.config import SimConfig
+from topocut.sim.config import SimConfig, TuningConfig
 from topocut.sim.env import CuttingEnv, cell_order
 from topocut.sim.mpm import init_taichi
 from topocut.sim.objects import sample_object
@@ -176,11 +178,13 @@ def full_model(n_grid: int, B: int, arch: str, fuse: int | None, rotation: str, 
     """Rate, wall time per substep (median over ``repeats`` cuts, and its range), particles, substeps and
     warm-up time of a batched cut through a cube."""
     kw = dict(extra or {})
+    tuning = dict(core_rotation=rotation, grid_box=grid_box, warp_scatter=warp_scatter, resort_every=resort)
     if fuse is not None:
-        kw["fuse_substeps"] = fuse
+        tuning["fuse_substeps"] = fuse
+    tuning.update(kw.pop("tuning", {}))  # --set tuning.KEY=... wins
     t = time.perf_counter()
-    env = CuttingEnv(SimConfig(n_grid=n_grid, batch_size=B, arch=arch, dwell_time=0.0, core_rotation=rotation,
-                               grid_box=grid_box, warp_scatter=warp_scatter, resort_every=resort, **kw))
+    env = CuttingEnv(SimConfig(n_grid=n_grid, batch_size=B, arch=arch, dwell_time=0.0, tuning=TuningConfig(**tuning),
+                               **kw))
     env.reset("cube")
     env.simulate(3)  # compile the phases
     env.cut(KnifeAction(0.5, 0.5, depth=0.002))  # knife path and the kernel graph
@@ -188,26 +192,34 @@ def full_model(n_grid: int, B: int, arch: str, fuse: int | None, rotation: str, 
     warmup = time.perf_counter() - t
     if profile:
         ti.profiler.clear_kernel_profiler_info()
-    us = []
+    us, split = [], []
     for _ in range(repeats):  # a single GPU scene is launch-bound: its time moves by tens of percent per run
         env.reset("cube")
         info = env.cut([KnifeAction(0.5 + 0.02 * b / max(B - 1, 1), 0.5, yaw=0.1 * b) for b in range(B)])
         us.append(info.wall_time / info.substeps * 1e6)
+        split.append(info.split_time)
     med = float(np.median(us))
+    split_ms = float(np.median(split)) * 1e3  # the host's piece finding before the knife moves (once per cut)
     out = dict(rate=B * env.n / (med * 1e-6), us=med, us_min=min(us), us_max=max(us), n=env.n,
-               steps=info.substeps, warmup=warmup)
+               steps=info.substeps, warmup=warmup, split_ms=split_ms, us_sim=med - split_ms * 1e3 / info.substeps)
     env.solver.destroy()
     return out
 
 
 def overrides(text: str) -> dict:
-    """'grid_layout=soa,cfl=0.4' -> SimConfig keyword arguments (values read as YAML scalars)."""
+    """'tuning.grid_layout=soa,cfl=0.4' -> SimConfig keyword arguments, sim.tuning's in a dict under "tuning"
+    (values read as YAML scalars)."""
+    valid = [k for k in SimConfig.__dataclass_fields__ if k != "tuning"]
+    valid += [f"tuning.{k}" for k in TuningConfig.__dataclass_fields__]
     out = {}
     for item in filter(None, text.split(",")):
         k, _, v = item.partition("=")
-        if k not in SimConfig.__dataclass_fields__:
-            raise SystemExit(f"--set: unknown SimConfig key {k!r}; valid: {', '.join(SimConfig.__dataclass_fields__)}")
-        out[k] = yaml.safe_load(v)
+        if k not in valid:
+            raise SystemExit(f"--set: unknown SimConfig key {k!r}; valid: {', '.join(valid)}")
+        if k.startswith("tuning."):
+            out.setdefault("tuning", {})[k.removeprefix("tuning.")] = yaml.safe_load(v)
+        else:
+            out[k] = yaml.safe_load(v)
     return out
 
 
@@ -217,16 +229,16 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="small grids and batch for a CPU smoke run")
     ap.add_argument("--grids", type=int, nargs="+", help="n_grid values (default 64 84 128; quick 24 32)")
     ap.add_argument("--batches", type=int, nargs="+", help="batch sizes (default 1 16; quick 1 4)")
-    ap.add_argument("--fuse", type=int, default=None, help="sim.fuse_substeps (default: SimConfig's)")
-    ap.add_argument("--rotation", default="auto", help="sim.core_rotation: auto | polar | svd")
-    ap.add_argument("--grid-box", default="auto", help="sim.grid_box: auto | on | off")
+    ap.add_argument("--fuse", type=int, default=None, help="sim.tuning.fuse_substeps (default: TuningConfig's)")
+    ap.add_argument("--rotation", default="auto", help="sim.tuning.core_rotation: auto | polar | svd")
+    ap.add_argument("--grid-box", default="auto", help="sim.tuning.grid_box: auto | on | off")
     ap.add_argument("--warp-scatter", nargs="+", default=["auto"],
-                    help="sim.warp_scatter values, each timed in this process: auto | on | off")
+                    help="sim.tuning.warp_scatter values, each timed in this process: auto | on | off")
     ap.add_argument("--resort", type=int, nargs="+", default=[-1],
-                    help="sim.resort_every values, each timed in this process: -1 auto | 0 never | substeps")
+                    help="sim.tuning.resort_every values, each timed in this process: -1 auto | 0 never | substeps")
     ap.add_argument("--set", nargs="+", default=[""], metavar="KEY=VAL,...",
                     help="further SimConfig overrides, each group a case timed in this process "
-                         "(e.g. grid_layout=aos grid_layout=soa)")
+                         "(e.g. tuning.grid_layout=aos tuning.grid_layout=soa)")
     ap.add_argument("--no-ref", action="store_true", help="time the full model only (no reference kernels)")
     ap.add_argument("--profile", action="store_true", help="print Taichi's kernel profiler per case")
     ap.add_argument("--repeats", type=int, default=3, help="timed runs per case; the median is reported")
@@ -239,15 +251,17 @@ def main() -> None:
     batches = args.batches or ((1, 4) if args.quick else (1, 16))
     # every case in one process: a single scene's time moves by tens of percent between processes
     cases = [(w, r, o) for w in args.warp_scatter for r in args.resort for o in args.set]
-    box = {B: SimConfig(arch=args.device, batch_size=B, grid_box=args.grid_box).grid_box_enabled() for B in batches}
-    print(f"device={args.device}  grids={grids}  batches={batches}  fuse={args.fuse or SimConfig().fuse_substeps}"
-          f"  rotation={SimConfig(arch=args.device, core_rotation=args.rotation).core_rotation_method()}"
+    dev, tune = args.device, TuningConfig(core_rotation=args.rotation, grid_box=args.grid_box)
+    box = {B: tune.grid_box_enabled(dev, B) for B in batches}
+    print(f"device={dev}  grids={grids}  batches={batches}  fuse={args.fuse or tune.fuse_substeps}"
+          f"  rotation={tune.core_rotation_method(dev)}"
           f"  grid_box={args.grid_box} {box}"
-          f"  warp_scatter={[SimConfig(arch=args.device, warp_scatter=w).warp_scatter_enabled() for w in args.warp_scatter]}"
-          f"  resort_every={[SimConfig(arch=args.device, warp_scatter=w, resort_every=r).resort_interval() for w, r, _ in cases]}"
+          f"  warp_scatter={[TuningConfig(warp_scatter=w).warp_scatter_enabled(dev) for w in args.warp_scatter]}"
+          f"  resort_every={[TuningConfig(warp_scatter=w, resort_every=r).resort_interval(dev) for w, r, _ in cases]}"
           f"  set={args.set}")
     print(f"{'grid':>5} {'B':>3} {'scatter':>7} {'resort':>6} {'N':>7} {'steps':>6} {'us/substep':>10} {'full p-st/s':>12} "
-          f"{'mpm3d p-st/s':>13} {'ref3 p-st/s':>12} {'full/mpm3d':>10} {'full/ref3':>9} {'warm-up s':>9} {'us range':>13}")
+          f"{'mpm3d p-st/s':>13} {'ref3 p-st/s':>12} {'full/mpm3d':>10} {'full/ref3':>9} {'warm-up s':>9} {'us range':>13} "
+          f"{'split ms':>8} {'us sim':>7}")
     rates = {}
     for g in grids:
         for B in batches:
@@ -269,7 +283,8 @@ def main() -> None:
                 rates[g, B, ws, r, o] = (f["rate"], mpm3d, ref3)
                 print(f"{g:>5} {B:>3} {ws:>7} {r:>6} {f['n']:>7} {f['steps']:>6} {f['us']:>10.1f} {f['rate']:>12.3e} "
                       f"{mpm3d:>13.3e} {ref3:>12.3e} {f['rate'] / mpm3d:>10.3f} {f['rate'] / ref3:>9.3f} "
-                      f"{f['warmup']:>9.1f} {f['us_min']:>6.1f}-{f['us_max']:<6.1f} {o}", flush=True)
+                      f"{f['warmup']:>9.1f} {f['us_min']:>6.1f}-{f['us_max']:<6.1f} {f['split_ms']:>8.1f} "
+                      f"{f['us_sim']:>7.1f} {o}", flush=True)
         b0, b1 = batches[0], batches[-1]
         for ws, r, o in cases:
             (f0, m0, r0), (f1, m1, r1) = rates[g, b0, ws, r, o], rates[g, b1, ws, r, o]

@@ -3,27 +3,30 @@
 Policies: ``oracle`` (the goal's ideal planes for the true pose: the R̂ reference), ``heuristic``
 (the same planes for the nominal pose, open loop), ``mppi`` (the expert), ``pddp``, ``pddp_noperc``,
 ``pddp_graphconv``, ``dp3``, ``3dda`` (checkpoints from the bc stage: the versions in
-``eval.checkpoints``, latest for the others).
+``eval.checkpoints``, latest for the others; with ``eval.train_seeds=k > 1`` the k checkpoints of that training
+run trained with seeds ``seed .. seed+k-1``, each evaluated as ``<policy>@s<seed>`` and pooled by the report).
 Episodes are committed one by one; an interrupted evaluation resumes.
 """
 from __future__ import annotations
 
 import dataclasses
+import json
 from pathlib import Path
 
 from omegaconf import OmegaConf
 
 from pipelines._common import as_dict
-from topocut.eval.config import LEARNED
+from topocut.policies import registry
 from topocut.utils.context import RunContext
 
 CONF_TASKS = Path(__file__).resolve().parent.parent / "conf" / "task"
-SCRIPTED = ("oracle", "heuristic", "mppi")
+SCRIPTED, LEARNED = registry.scripted(), registry.learned()  # topocut.policies.registry: the one policy list
 
 
 def task_configs(names, max_cuts: int, overrides=None) -> dict:
     """TaskConfig per task from conf/task/<name>.yaml (one source of truth for task parameters), with
-    ``overrides[name]`` (eval.task_overrides) on top."""
+    ``overrides[name]`` (eval.task_overrides) on top; the cut budget is eval.max_cuts, raised to the task's
+    own minimum (``min_cuts``: a die needs 3)."""
     from topocut.goals.config import TaskConfig
 
     out = {}
@@ -33,7 +36,9 @@ def task_configs(names, max_cuts: int, overrides=None) -> dict:
             raise KeyError(f"eval.tasks: unknown task {name!r}; valid: {', '.join(sorted(p.stem for p in CONF_TASKS.glob('*.yaml')))}")
         over = (overrides or {}).get(name, {})
         cfg = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(TaskConfig), OmegaConf.load(f), over))
-        cfg.max_cuts = max_cuts
+        from topocut.tasks import get_task
+
+        cfg.max_cuts = max(max_cuts, get_task(name).min_cuts)  # dice need 3 cuts even where eval.max_cuts is 2
         cfg.validate()
         out[name] = cfg
     return out
@@ -50,16 +55,65 @@ def artifact_config(eval, sim, topology, reward, planner, observation, sampler, 
                    ("tasks", {n: dataclasses.asdict(t) for n, t in task_cfgs.items()}), ("seed", seed))
 
 
+def _train_seed(manifest: dict):
+    """The seed a checkpoint was trained with (the bc stage records it in the manifest and its config)."""
+    seed = manifest.get("seed", (manifest.get("config") or {}).get("seed"))
+    return int(seed) if isinstance(seed, int) and not isinstance(seed, bool) else None
+
+
+def _training_run(manifest: dict) -> str:
+    """What makes checkpoints the same training run but for the seed: their config without it, and their inputs."""
+    config = {k: v for k, v in (manifest.get("config") or {}).items() if k != "seed"}
+    return json.dumps([config, manifest.get("inputs") or {}], sort_keys=True, default=str)
+
+
+def seed_checkpoints(store, name: str, version: str = "latest", seeds=None) -> list[tuple[int | None, Path]]:
+    """[(training seed, checkpoint path)] of ``checkpoint/<name>`` to evaluate.
+
+    ``seeds`` None: the ``version`` (pinned or latest) alone.  Otherwise, per seed, the newest version trained with
+    that seed whose training config (but the seed) and inputs equal ``version``'s: the siblings a Hydra multirun
+    (`-m stage=bc seed=0,1,2`) commits.  A seed without one is a MissingArtifact naming the command that trains it.
+    """
+    from topocut.data.store import CorruptArtifact, MissingArtifact
+
+    anchor = store.resolve("checkpoint", name, version)
+    manifest = store.manifest(anchor)
+    if seeds is None:
+        return [(_train_seed(manifest), anchor)]
+    run, found = _training_run(manifest), {}
+    for v in reversed(store.versions("checkpoint", name)):
+        try:
+            m = store.manifest(store.root / "checkpoint" / name / v)
+        except CorruptArtifact:  # an unreadable or other-schema version is no sibling of a readable one
+            continue
+        seed = _train_seed(m)
+        if seed in seeds and seed not in found and _training_run(m) == run:
+            found[seed] = v
+    missing = [s for s in seeds if s not in found]
+    if missing:
+        raise MissingArtifact(
+            f"checkpoint/{name}: eval.train_seeds={len(seeds)} pools the checkpoints trained with seeds "
+            f"{', '.join(map(str, seeds))} like {anchor.name} (same training config and inputs); none was trained "
+            f"with seed {', '.join(map(str, missing))}. Train them with `python -m topocut.run -m stage=bc "
+            f"seed={','.join(map(str, seeds))}` (same overrides otherwise), or set eval.train_seeds=1")
+    return [(s, store.resolve("checkpoint", name, found[s])) for s in seeds]
+
+
 def build_policies(ctx: RunContext, names, env, sim, planner, reward, topology, task_cfgs, sampler=None,
-                   versions=None):
+                   versions=None, train_seeds: int = 1, runs: dict | None = None):
+    """{run name: policy}, {run name: checkpoint ref}.  A learned policy is one run (its name) with
+    ``train_seeds=1``, else one run ``<name>@s<seed>`` per training seed ctx.seed .. ctx.seed+k-1; ``runs``, when
+    given, receives {run name: {"policy", "train_seed", "checkpoint"}} (the report's policies.json)."""
+    from topocut.eval.report import run_name
     from topocut.planning import HeuristicPolicy, MPPIPolicy, sim_rollout_factory
     from topocut.planning.heuristic import FixedTrajectoryPolicy
 
-    bad = [n for n in names if n not in SCRIPTED + LEARNED]
-    if bad:
-        raise ValueError(f"eval.policies: unknown policy {bad[0]!r}; valid: {', '.join(SCRIPTED + LEARNED)}")
-    policies, inputs = {}, {}
+    registry.check(names, "eval.policies")
+    seeds = None if train_seeds == 1 else [ctx.seed + i for i in range(train_seeds)]
+    policies, inputs, runs = {}, {}, runs if runs is not None else {}
     for name in names:
+        if name in SCRIPTED:
+            runs[name] = {"policy": name, "train_seed": None, "checkpoint": None}
         if name == "oracle":
             policies[name] = HeuristicPolicy()
         elif name == "heuristic":
@@ -69,24 +123,25 @@ def build_policies(ctx: RunContext, names, env, sim, planner, reward, topology, 
             factory = sim_rollout_factory(env, reward, topology, board_z=sim.board_z, push=push)
             policies[name] = MPPIPolicy(planner, factory, seed=ctx.seed)
         else:
-            path = ctx.store.resolve("checkpoint", name, (versions or {}).get(name, "latest"))
-            inputs[name] = ctx.store.ref(path)
-            if name.startswith("pddp"):
-                from topocut.policies.config import SamplerConfig
-                from topocut.policies.module import PDDPPolicy
-
-                policies[name] = PDDPPolicy(str(path / "model.ckpt"), sampler=sampler or SamplerConfig(),
-                                            device=ctx.device, seed=ctx.seed, board_z=sim.board_z)
-            else:
-                from topocut.policies.baselines.module import load_pose_policy
-
-                policies[name] = load_pose_policy(path / "model.ckpt", seed=ctx.seed, device=ctx.device)
+            for seed, path in seed_checkpoints(ctx.store, name, (versions or {}).get(name, "latest"), seeds):
+                run = name if seeds is None else run_name(name, seed)
+                inputs[run] = ctx.store.ref(path)
+                runs[run] = {"policy": name, "train_seed": seed, "checkpoint": inputs[run]}
+                policies[run] = _load_learned(ctx, name, path, sim, sampler)
     return policies, inputs
 
 
+def _load_learned(ctx, name: str, path: Path, sim, sampler):
+    # the sampler's seed is the evaluation's, whatever seed trained the checkpoint: training seeds differ in
+    # their weights alone
+    return registry.load_learned(name, path / "model.ckpt", device=ctx.device, seed=ctx.seed,
+                                 board_z=getattr(sim, "board_z", 0.05), sampler=sampler)
+
+
 def run(ctx: RunContext, eval, sim, topology, reward, planner, observation, data, sampler=None) -> dict:
+    from topocut.data.store import write_json_atomic
     from topocut.eval.protocol import episode_specs, make_observe_fn, run_evaluation
-    from topocut.eval.report import write_report
+    from topocut.eval.report import RUNS_FILE, write_report
     from topocut.sim import CuttingEnv, init_taichi
 
     specs = episode_specs(eval)
@@ -97,16 +152,21 @@ def run(ctx: RunContext, eval, sim, topology, reward, planner, observation, data
 
         teleop = teleop_references(ctx.store, eval.tasks, eval.unseen, eval.max_cuts)
     sim = dataclasses.replace(sim, arch=ctx.device)  # one backend for Taichi, Warp and torch
-    init_taichi(arch=ctx.device, seed=ctx.seed)
+    # eval.cpu_threads=1: atomic adds in a fixed order, reproducible CPU numbers (a no-op when an earlier stage of
+    # the process started Taichi)
+    init_taichi(arch=ctx.device, seed=ctx.seed,
+                cpu_threads=(eval.cpu_threads or None) if ctx.device == "cpu" else None)
     env = CuttingEnv(sim, batch_size=max(1, sim.batch_size) if "mppi" in eval.policies else 1)
+    runs: dict = {}
     policies, inputs = build_policies(ctx, eval.policies, env, sim, planner, reward, topology, task_cfgs, sampler,
-                                      versions=eval.checkpoints)
+                                      versions=eval.checkpoints, train_seeds=eval.train_seeds, runs=runs)
     inputs.update({f"teleop/{t.spec.key}": t.ref for t in teleop})
     config = artifact_config(eval, sim, topology, reward, planner, observation, sampler, task_cfgs, ctx.seed)
     writer, existing = ctx.store.begin("eval", eval.name, config, inputs, extra={"seed": ctx.seed,
                                                                                 "device": ctx.device})
     if existing is not None:
         return {"eval": str(existing), "reused": True}
+    write_json_atomic(writer.path / RUNS_FILE, runs)  # run name -> policy and training seed, for the report
     observe_fn = make_observe_fn(eval.observation, eval.num_points, observation, seed=eval.seed)
     run_evaluation(specs, policies, env, task_cfgs, writer.path, reward, topology, observe_fn, cfg=eval,
                    progress=ctx.progress, logger=ctx.logger, spacing=sim.spacing)
@@ -118,9 +178,16 @@ def run(ctx: RunContext, eval, sim, topology, reward, planner, observation, data
     if eval.gifs > 0:
         render_episodes(specs, policies, env, task_cfgs, writer.path / "gifs", eval, reward, topology,
                         observe_fn, sim.spacing)
-    report = write_report(writer.path, reference=eval.reference, normalize_by=eval.normalize_by)
+    report = write_report(writer.path, reference=eval.reference, normalize_by=eval.normalize_by,
+                          compare_to=eval.comparison, confidence=eval.confidence,
+                          n_resamples=eval.bootstrap_resamples, seed=eval.bootstrap_seed)
     rows = report["rows"]
-    path = writer.commit({"episodes": len(specs) * len(policies) + len(teleop), "policies": list(policies)})
+    seeds = {}
+    for r in runs.values():
+        if r["train_seed"] is not None:
+            seeds.setdefault(r["policy"], []).append(r["train_seed"])
+    path = writer.commit({"episodes": len(specs) * len(policies) + len(teleop), "policies": list(policies),
+                          "train_seeds": seeds})
     ctx.logger.log_image("eval/results", path / "results.png")
     print((path / "results.md").read_text())
     return {"eval": str(path), "episodes": len(specs) * len(policies) + len(teleop), "rows": len(rows),
@@ -165,7 +232,7 @@ def render_episodes(specs, policies, env, task_cfgs, out_dir, eval, reward, topo
     from topocut.sim.render import render_particles, write_gif
     from topocut.topology import discover
 
-    name = "pddp" if "pddp" in policies else next(iter(policies))
+    name = next((n for n in policies if n.split("@")[0] == "pddp"), next(iter(policies)))
     rec = _Recorder(env)
     for task in eval.tasks:
         for spec in [s for s in specs if s.task == task][: eval.gifs]:

@@ -10,6 +10,7 @@ samples from its own seed, so a resumed run writes what an uninterrupted one wou
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import logging
 import os
@@ -57,12 +58,12 @@ def planner_for_task(planner, task):
 
 
 def episode_scene(object, task, sim, seed: int, planner=None):
-    """(pose, goal) of one episode: the goal on the simulator's board (sim.board_z), as env.reset places the
-    object; with ``planner``, a goal plane tilted beyond planner.tilt_max raises instead of being clipped."""
-    from topocut.goals import make_goal
+    """(pose, goal) of one episode: the task's goal on the simulator's board (sim.board_z), as env.reset places
+    the object; with ``planner``, a goal plane tilted beyond planner.tilt_max raises instead of being clipped."""
+    from topocut.tasks import get_task
 
     pose = object_pose(object, seed)
-    goal = make_goal(task, object.name, pose, spacing=sim.spacing, board_z=sim.board_z)
+    goal = get_task(task.name).make_goal(task, object.name, pose, spacing=sim.spacing, board_z=sim.board_z)
     need = max((abs(p.tilt) for p in goal.planes), default=0.0)
     if planner is not None and need > planner.tilt_max:
         raise ValueError(f"task={task.name}: the goal's planes tilt up to {need:.4f} rad, beyond "
@@ -71,15 +72,24 @@ def episode_scene(object, task, sim, seed: int, planner=None):
 
 
 def run(ctx: RunContext, sim, object, task, topology, reward, planner, data, compare_heuristic: bool = True) -> dict:
-    if task.name == "cream_writing":
+    """The task says what runs (``tool``); a task without an mppi stage (scooping) is refused, naming it."""
+    from topocut.config import task_for_stage
+
+    tool = task_for_stage(task, "mppi").tool
+    if tool == "pen":  # MPPI over the strokes of the pen's tasks
         return run_writing(ctx, sim, task, topology, reward, planner, compare_heuristic)
-    if task.name == "scooping":
-        raise ValueError("task=scooping has no MPPI stage (the spoon primitive is scripted); valid tasks for "
-                         "stage=mppi: slice, stick, dice, pyramid, cream_writing")
+    return run_knife(ctx, sim, object, task, topology, reward, planner, data, compare_heuristic)
+
+
+def run_knife(ctx: RunContext, sim, object, task, topology, reward, planner, data, compare_heuristic: bool) -> dict:
+    """MPPI demonstrations of a knife task: the planner plans the cuts, the goal's turns run between them."""
     planner = planner_for_task(planner, task)  # pyramid: the goal plane is tilted
     from topocut.data.episodes import EpisodeDataset, EpisodeWriter
     from topocut.planning import HeuristicPolicy, MPPIPolicy, run_episode, sim_rollout_factory
     from topocut.sim import CuttingEnv, init_taichi
+    from topocut.tasks import get_task
+
+    success = functools.partial(get_task(task.name).success, cfg=task)  # RewardResult -> the task's success
 
     config = as_dict(("sim", sim), ("object", object), ("task", task), ("topology", topology),
                      ("reward", reward), ("planner", planner), ("episodes", data.episodes),
@@ -112,17 +122,19 @@ def run(ctx: RunContext, sim, object, task, topology, reward, planner, data, com
             if compare_heuristic:  # the same episode under the heuristic, for docs/data.md's comparison
                 env.reset(object.name, pose, seed=seed)
                 _, hs = run_episode(env, goal, HeuristicPolicy(goal), reward, topology, task.max_cuts, task.push,
-                                    success_threshold=task.success_threshold)
+                                    success_threshold=task.success_threshold, success_fn=success)
                 record["heuristic_final_reward"] = hs["final_reward"]
             env.reset(object.name, pose, seed=seed)
             steps, summary = run_episode(env, goal, expert, reward, topology, task.max_cuts, task.push,
-                                         progress=advance, success_threshold=task.success_threshold, seed=seed)
+                                         progress=advance, success_threshold=task.success_threshold, seed=seed,
+                                         success_fn=success)
             meta = {"task": task.name, "object": object.name, "seed": seed, "pose": pose,
                     "task_params": task, "material": {k: getattr(sim, k) for k in ("mu", "lam", "rho_core", "rho_skin",
                                                                                     "eps_c", "eps_s", "m") if hasattr(sim, k)},
                     "goal": goal.points, "goal_labels": goal.labels, "status": summary["status"],
                     "final_reward": summary["final_reward"], "success": summary["success"]}
-            record.update({k: summary[k] for k in ("status", "num_cuts", "final_reward", "success", "rewards")})
+            record.update({k: summary[k] for k in ("status", "num_cuts", "final_reward", "success", "rewards",
+                                                   "turns")})
             if summary["status"] != "ok":  # why it failed, in the episode log and the dataset's episode entry
                 meta["error"] = record["error"] = summary.get("error", "unknown")
                 log.warning("mppi episode %d (seed %d) failed after %d cuts: %s", e, seed, summary["num_cuts"],
@@ -166,15 +178,16 @@ def run(ctx: RunContext, sim, object, task, topology, reward, planner, data, com
 def run_writing(ctx: RunContext, sim, task, topology, reward, planner, compare_scripted: bool = True) -> dict:
     """task=cream_writing: MPPI over each letter's stroke (K = planner.num_samples scenes), scored by its
     spectral reward; writes ``sim/cream_writing-<word>-mppi`` (states, per-letter rewards, frames)."""
-    from topocut.planning.writer import StrokeMPPI, StrokeMPPIConfig, cluster_check, write_scripted, writing_scene
+    from topocut.planning.stroke_mppi import StrokeMPPI, StrokeMPPIConfig
     from topocut.sim.pen import CreamPen
     from topocut.sim.render import write_gif
+    from topocut.tasks.writing_scene import cluster_check, write_scripted, writing_scene
 
     mcfg = StrokeMPPIConfig(num_samples=planner.num_samples, iterations=planner.iterations,
                             temperature=planner.temperature)
     config = as_dict(("sim", sim), ("task", task), ("topology", topology), ("reward", reward), ("planner", mcfg),
                      ("compare_scripted", compare_scripted), ("seed", ctx.seed))
-    writer, reused, sim = begin_sim(ctx, f"cream_writing-{task.word}-mppi", config, sim)
+    writer, reused, sim = begin_sim(ctx, f"{task.name}-{task.word}-mppi", config, sim)
     if reused is not None:
         return reused
     goals, strokes, start, draw = writing_scene(sim, task)
@@ -189,7 +202,7 @@ def run_writing(ctx: RunContext, sim, task, topology, reward, planner, compare_s
                            f"MPPI stroke {i + 1}: {task.word[i]}"))
         advance(1, info=f"letter {task.word[i]}")
 
-    with progress_bar(f"mppi cream_writing/{task.word}", len(strokes), ctx.progress) as advance:
+    with progress_bar(f"mppi {task.name}/{task.word}", len(strokes), ctx.progress) as advance:
         res = StrokeMPPI(pen, goals, mcfg, reward, seed=ctx.seed).write(strokes, on_letter=on_letter)
     x, stroke = pen.particles()
     check = cluster_check(x[0], stroke, topology, device=ctx.device)

@@ -1,7 +1,9 @@
-"""stage=simulate: a scripted cut sequence (the goal's ideal planes) on one object.
+"""stage=simulate: the task's oracle sequence on one scene, stored as a versioned ``sim`` artifact.
 
-Stores per-cut particle states (positions, damage, cluster labels, knife sweeps)
-as a versioned ``sim`` artifact and renders PNG frames coloured by cluster id and a GIF.
+The task (``topocut.tasks.get_task(task.name)``) says which scene runs (``tool``): the knife tasks execute
+their goal's ideal steps (``Goal.steps``: cuts, and the turns between them, topocut.sim.CuttingEnv.turn) and
+store per-step particle states (positions, damage, cluster labels, knife sweeps); cream writing runs the scripted
+writer and scooping the spoon primitive.  PNG frames coloured by cluster id and a GIF.
 """
 from __future__ import annotations
 
@@ -16,13 +18,17 @@ from topocut.utils.progress import progress_bar
 
 
 def run(ctx: RunContext, sim, object, task, topology, frames_per_cut: int = 6) -> dict:
-    if task.name == "cream_writing":
-        return run_writing(ctx, sim, task, topology)
-    if task.name == "scooping":
-        return run_scooping(ctx, sim, task, topology)
-    from topocut.goals import make_goal
+    from topocut.config import task_for_stage
+
+    tool = task_for_stage(task, "simulate").tool
+    return {"knife": run_knife, "pen": run_writing, "spoon": run_scooping}[tool](ctx, sim, object, task, topology)
+
+
+def run_knife(ctx: RunContext, sim, object, task, topology) -> dict:
+    """The goal's ideal steps (at most task.max_cuts cuts, the turns between them), push after cuts iff task.push."""
     from topocut.sim import CuttingEnv
     from topocut.sim.render import render_particles, write_gif
+    from topocut.tasks import get_task, truncate_steps
     from topocut.topology import discover
 
     config = as_dict(("sim", sim), ("object", object), ("task", task), ("topology", topology), ("seed", ctx.seed))
@@ -30,21 +36,39 @@ def run(ctx: RunContext, sim, object, task, topology, frames_per_cut: int = 6) -
     if reused is not None:
         return reused
     pose = object_pose(object, ctx.seed)
-    goal = make_goal(task, object.name, pose, spacing=sim.spacing, board_z=sim.board_z, seed=ctx.seed)
+    t = get_task(task.name)
+    goal = t.make_goal(task, object.name, pose, spacing=sim.spacing, board_z=sim.board_z, seed=ctx.seed)
     env = CuttingEnv(sim, batch_size=1)
     st = env.reset(object.name, pose, seed=ctx.seed)
     x0 = st.x[0]
     limits = (x0.min(0) - 0.03, x0.max(0) + 0.03)
-    topo = discover(x0, st.damage[0], None, cfg=topology, device=ctx.device)
-    labels = topo.labels
+    labels = discover(x0, st.damage[0], None, cfg=topology, device=ctx.device).labels
     frames_dir = writer.path / "frames"
-    frames = [render_particles(x0, labels, frames_dir / "cut0.png", title=f"{object.name}: start", limits=limits, size=6)]
+
+    def draw(x, lab, name, title):
+        return render_particles(x, lab, frames_dir / f"{name}.png", title=title, limits=limits, size=6)
+
+    frames = [draw(x0, labels, "cut0", f"{object.name}: start")]
     arrays = {"x_0": x0, "damage_0": st.damage[0], "labels_0": labels, "material": st.material}
-    records = []
-    planes = goal.planes[: task.max_cuts]
-    with progress_bar(f"simulate {object.name}/{task.name}", len(planes), ctx.progress) as advance:
-        for i, action in enumerate(planes, start=1):
-            info = env.cut(action)
+    records, turns = [], []
+    steps = truncate_steps(t.oracle(goal), task.max_cuts)
+    i = 0  # cuts made
+    with progress_bar(f"simulate {object.name}/{task.name}", len(steps), ctx.progress) as advance:
+        for step in steps:
+            if step.kind == "turn":  # lay the piece down; discovery keeps the ids (no new sweep: empty sweeps)
+                mask = env.turn(step)
+                st = env.state()
+                topo = discover(st.x[0], st.damage[0], st.sweeps[0], previous_labels=labels, cfg=topology,
+                                device=ctx.device)
+                labels = topo.labels
+                arrays.update({f"x_turn{i}": st.x[0], f"labels_turn{i}": labels})
+                frames.append(draw(st.x[0], labels, f"turn{i}", f"turn after cut {i}: {topo.num_clusters} pieces"))
+                turns.append({"after_cut": i, "turned": int(mask[0].sum()), "pieces": int(topo.num_clusters),
+                              "turn": {k: getattr(step, k) for k in ("pieces", "axis", "angle", "center", "target")}})
+                advance(1, info=f"turn after cut {i}")
+                continue
+            i += 1
+            info = env.cut(step.action)
             if task.push:
                 env.push()
             st = env.state()
@@ -52,28 +76,22 @@ def run(ctx: RunContext, sim, object, task, topology, frames_per_cut: int = 6) -
                             device=ctx.device)
             labels = topo.labels
             arrays.update({f"x_{i}": st.x[0], f"damage_{i}": st.damage[0], f"labels_{i}": labels})
-            dmg = np.where(st.damage[0], 1, 0)
-            frames.append(render_particles(st.x[0], np.where(dmg > 0, 7, 0), frames_dir / f"cut{i}_damage.png",
-                                           title=f"cut {i}: damaged particles", limits=limits, size=6))
-            frames.append(render_particles(st.x[0], labels, frames_dir / f"cut{i}.png",
-                                           title=f"cut {i}: {topo.num_clusters} pieces", limits=limits, size=6))
-            records.append({"cut": i, "action": action.asdict(), "sweep": info.sweeps[0].asdict(),
+            frames.append(draw(st.x[0], np.where(st.damage[0], 7, 0), f"cut{i}_damage", f"cut {i}: damaged particles"))
+            frames.append(draw(st.x[0], labels, f"cut{i}", f"cut {i}: {topo.num_clusters} pieces"))
+            records.append({"cut": i, "action": step.action.asdict(), "sweep": info.sweeps[0].asdict(),
                             "pieces": int(topo.num_clusters), "damaged": int(st.damage[0].sum()),
                             "force": float(np.linalg.norm(info.force[0])), "work": float(info.work[0]),
                             "substeps": int(info.substeps), "wall_s": round(info.wall_time, 3),
                             "topology_s": round(topo.timings.get("total", sum(topo.timings.values())), 3)})
             advance(1, info=f"{topo.num_clusters} pieces")
     np.savez_compressed(writer.path / "states.npz", **arrays)
-    (writer.path / "cuts.json").write_text(json.dumps({"object": object.name, "pose": pose.__dict__,
-                                                       "task": task.name, "cuts": records}, indent=2, default=float))
+    (writer.path / "cuts.json").write_text(json.dumps({"object": object.name, "pose": pose.__dict__, "task": task.name,
+                                                       "cuts": records, "turns": turns}, indent=2, default=float))
     write_gif(frames, writer.path / "cut.gif", fps=2)
-    summary = {"cuts": len(records), "pieces": records[-1]["pieces"] if records else 1,
+    summary = {"cuts": len(records), "turns": len(turns), "pieces": records[-1]["pieces"] if records else 1,
                "particles": int(len(x0)), "sim_s_per_cut": float(np.mean([r["wall_s"] for r in records] or [0])),
                "topology_s_per_cut": float(np.mean([r["topology_s"] for r in records] or [0]))}
-    path = writer.commit(summary)
-    ctx.logger.log({f"simulate/{k}": v for k, v in summary.items()})
-    ctx.logger.log_image("simulate/last_frame", path / "frames" / f"cut{len(records)}.png")
-    return {"artifact": str(path), **summary}
+    return _commit(ctx, writer, summary, "simulate", Path(frames[-1]).relative_to(writer.path))
 
 
 def _commit(ctx, writer, summary: dict, stage: str, image) -> dict:
@@ -83,14 +101,14 @@ def _commit(ctx, writer, summary: dict, stage: str, image) -> dict:
     return {"artifact": str(path), **summary}
 
 
-def run_writing(ctx: RunContext, sim, task, topology) -> dict:
-    """task=cream_writing: the scripted writer writes task.word; frames coloured by stroke (= cluster)."""
-    from topocut.planning.writer import cluster_check, write_scripted, writing_scene
+def run_writing(ctx: RunContext, sim, object, task, topology) -> dict:
+    """The pen's tasks: the scripted writer writes task.word; frames coloured by stroke (= cluster)."""
     from topocut.sim.pen import CreamPen
     from topocut.sim.render import write_gif
+    from topocut.tasks.writing_scene import cluster_check, write_scripted, writing_scene
 
     config = as_dict(("sim", sim), ("task", task), ("topology", topology), ("seed", ctx.seed))
-    writer, reused, sim = begin_sim(ctx, f"cream_writing-{task.word}", config, sim)
+    writer, reused, sim = begin_sim(ctx, f"{task.name}-{task.word}", config, sim)
     if reused is not None:
         return reused
     goals, strokes, start, draw = writing_scene(sim, task)
@@ -102,7 +120,7 @@ def run_writing(ctx: RunContext, sim, task, topology) -> dict:
         arrays.update({f"x_{i + 1}": x[0], f"stroke_{i + 1}": stroke})
         frames.append(draw(x[0], stroke, writer.path / "frames" / f"letter{i + 1}.png", f"stroke {i + 1}: {task.word[i]}"))
 
-    with progress_bar(f"simulate cream_writing/{task.word}", 1, ctx.progress) as advance:
+    with progress_bar(f"simulate {task.name}/{task.word}", 1, ctx.progress) as advance:
         res = write_scripted(pen, strokes, goals, on_letter=on_letter)
         advance(1, info=f"reward {res['total']:.3f}")
     x, stroke = pen.particles()
@@ -121,16 +139,16 @@ def run_writing(ctx: RunContext, sim, task, topology) -> dict:
     return _commit(ctx, writer, summary, "simulate", Path(frames[-1]).relative_to(writer.path))
 
 
-def run_scooping(ctx: RunContext, sim, task, topology) -> dict:
-    """task=scooping: the spoon primitive at each placement of task.spoon.scoops; chunks in the cup are clusters."""
-    from topocut.planning.scoop import scoop_episode
+def run_scooping(ctx: RunContext, sim, object, task, topology) -> dict:
+    """The spoon's tasks: the spoon primitive at each placement of task.spoon.scoops; chunks in the cup are clusters."""
     from topocut.sim.render import write_gif
+    from topocut.tasks.scooping_scene import scoop_episode
 
     config = as_dict(("sim", sim), ("task", task), ("topology", topology), ("seed", ctx.seed))
-    writer, reused, sim = begin_sim(ctx, "scooping", config, sim)
+    writer, reused, sim = begin_sim(ctx, task.name, config, sim)
     if reused is not None:
         return reused
-    with progress_bar("simulate scooping", len(task.spoon.scoops), ctx.progress) as advance:
+    with progress_bar(f"simulate {task.name}", len(task.spoon.scoops), ctx.progress) as advance:
         res = scoop_episode(sim, task, topology, writer.path / "frames", seed=ctx.seed,
                             on_scoop=lambda i, r: advance(1, info=f"scoop {i + 1}: {r['chunks_in_cup']} chunks in cup"))
     np.savez_compressed(writer.path / "states.npz", **res.pop("arrays"))

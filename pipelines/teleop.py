@@ -36,13 +36,14 @@ def record_session(session, path, backend: str = "auto") -> Path:
 
 def run(ctx: RunContext, sim, object, task, topology, reward, data, replay: str | None = None,
         backend: str = "auto") -> dict:
+    from topocut.config import task_for_stage
     from topocut.data.episodes import EpisodeDataset, EpisodeWriter
-    from topocut.goals import make_goal
     from topocut.planning.teleop import TeleopSession, load_log
     from topocut.planning.teleop import replay as replay_log
     from topocut.sim import CuttingEnv, init_taichi
     from topocut.sim.objects import ObjectPose
 
+    make_goal = task_for_stage(task, "teleop").make_goal  # the task's goal (a stage it lacks is refused)
     log_path = None
     if replay is not None:  # checked before the simulator starts
         log_path = Path(replay)

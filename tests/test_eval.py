@@ -232,6 +232,10 @@ def test_summary_normalises_by_reference_hand_computed():
     dp3 = rows["dp3", "in"]  # reference mean over slice = (2 + 4 + 6) / 3 = 4
     assert dp3["episodes"] == 2 and dp3["failures"] == 1 and dp3["reference_R_mean"] == 4.0
     assert math.isclose(dp3["R_hat_mean"], (1.5 / 4 + 3 / 4) / 2) and math.isclose(dp3["R_hat_std"], 0.1875)
+    # two episodes: the bootstrap means are 0.375, 0.5625 or 0.75, so the 95% interval is the extremes
+    assert (dp3["R_hat_lo"], dp3["R_hat_hi"]) == (0.375, 0.75) and (dp3["N_C_lo"], dp3["N_C_hi"]) == (2.0, 4.0)
+    assert dp3["pairs"] == 2 and dp3["dR_hat_mean"] == -0.1875 and dp3["dR_hat_tie"] is False  # 1.5-2, 3-4 over 4
+    assert math.isnan(rows["dp3", "out"]["R_hat_lo"]) and rows["dp3", "out"]["dR_hat_tie"] is None  # one episode
     assert dp3["N_C_mean"] == 3.0 and dp3["N_C_std"] == 1.0 and dp3["R_mean"] == 2.25
     assert math.isclose(rows["dp3", "out"]["R_hat_mean"], 0.5) and rows["oracle", "in"]["R_hat_mean"] == 0.75
     rows = {(r["policy"], r["split"]): r for r in summarize(EPISODES, "oracle", "task_split")}
@@ -249,13 +253,17 @@ def test_write_report_files(tmp_path):
     out = write_report(tmp_path, "oracle", console=False)
     with open(out["csv"]) as f:
         rows = list(csv.DictReader(f))
-    assert len(rows) == 6 and {r["policy"] for r in rows} == {"oracle", "dp3", "pddp"}
+    # per policy: two Table-1 cells (in, out), the task over both splits, everything
+    assert len(rows) == 12 and {r["policy"] for r in rows} == {"oracle", "dp3", "pddp"}
+    assert [(r["task"], r["split"], r["object"]) for r in rows if r["policy"] == "dp3"] == [
+        ("slice", "in", "all"), ("slice", "out", "all"), ("slice", "all", "all"), ("all", "all", "all")]
     md = out["md"].read_text()
     # our table: oracle row shows raw R (3.00 in-distribution), PDDP best in-distribution R̂ 4/4 = 1.00 bold,
-    # DP3 best out-of-distribution R̂ 2/4 = 0.50 bold; the paper's table follows with its numbers
+    # DP3 best out-of-distribution R̂ 2/4 = 0.50 bold; means with their 95% intervals where a cell has two
+    # episodes; the paper's table follows with its numbers
     ours, paper = md.split("Paper (Table 1)")
-    assert "| Oracle (goal planes) (reference, raw R) | 3.00 | 4.00 |" in ours
-    assert "| PDDP (Ours) | **1.00** | **5.00** |" in ours and "| DP3 | 0.56 | 3.00 |" in ours
+    assert "| Oracle (goal planes) (reference, raw R) | 3.00 [2.00, 4.00] | 4.00 [4.00, 4.00] |" in ours
+    assert "| PDDP (Ours) | **1.00** | **5.00** |" in ours and "| DP3 | 0.56 [0.38, 0.75] | 3.00 [2.00, 4.00] |" in ours
     assert re.search(r"\| DP3 \| [^\n]*\*\*0\.50\*\* \| \*\*1\.00\*\*", ours)
     assert "| 3D Diffuser Actor | 0.83 | 2.91 | 0.66 | 1.00 | 0.52 | 2.54 | 0.58 | 2.42 | 0.31 | **0.95** |" in paper
     assert out["png"].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and out["wandb"] is False

@@ -49,7 +49,7 @@ def test_stick_and_dice_dimensions():
     f = d.fragments[0].astype(float)
     for ax in d.axes:
         assert extent(f, ax) == pytest.approx(0.032 - SP, abs=0.5 * SP)
-    with pytest.raises(ValueError, match=r"task.max_cuts=2: task 'dice' needs at least 3"):
+    with pytest.raises(ValueError, match=r"task.max_cuts=2 is too few for task=dice: it needs at least 3"):
         make_goal(TaskConfig(name="dice", size=0.032, max_cuts=2), "cube", ObjectPose(), SP)
 
 
@@ -87,7 +87,7 @@ def test_goal_points_and_labels():
     assert set(np.unique(g.labels)) <= {0, 1, 2} and (g.labels > 0).any()
     with pytest.raises(ValueError, match="task.name"):
         make_goal(TaskConfig(name="julienne"), "cake")
-    with pytest.raises(ValueError, match=r"task.max_cuts=1: task 'dice' needs at least 2"):
+    with pytest.raises(ValueError, match=r"task.max_cuts=1 is too few for task=dice: it needs at least 3"):
         make_goal(TaskConfig(name="dice", max_cuts=1), "cube")
     with pytest.raises(ValueError, match=r"task.size=0.5 exceeds"):
         make_goal(TaskConfig(name="dice", size=0.5), "cube")

@@ -108,9 +108,12 @@ def test_policy_modules_use_synchronised_epoch_means():
     pddp.sample_masks = lambda batch, steps=0: torch.tensor([[1, 1, 1, 1]] * (len(batch["mask"]) - 1) + [[0, 0, 0, 0]])
     logged = _capture(pddp)
     for B in (3, 1):  # batches of 3 and 1 samples; the last sample of each gets every point wrong
-        pddp.validation_step({"mask": torch.ones(B, 4, dtype=torch.long)}, 0)
+        prev = torch.tensor([[1, 1, 0, 0]] * B) if B == 3 else torch.ones(B, 4, dtype=torch.long)
+        pddp.validation_step({"mask": torch.ones(B, 4, dtype=torch.long), "prev_mask": prev}, 0)
     pddp.on_validation_epoch_end()
-    assert logged == {"val/loss": pytest.approx(0.5), "val/mask_acc": pytest.approx(2 / 4)}  # 2 of 4 samples right
+    assert logged == {"val/loss": pytest.approx(0.5), "val/mask_acc": pytest.approx(2 / 4),  # 2 of 4 samples right
+                      "val/mask_acc_majority": pytest.approx(1.0),  # every target all ones: a constant 1 is right
+                      "val/mask_acc_prev_plane": pytest.approx((3 * 0.5 + 1) / 4)}  # the floors beside it
 
     pose = PoseDiffusionModule(kind="dp3", enc_dim=8, down_dims=(8, 16), horizon=2)
     errs = iter([torch.tensor([[0.0] * 6, [0.0] * 6, [2.0, 0, 1, 0, 0, 0]]), torch.tensor([[0.0, 1, 1, 0, 0, 0]])])
@@ -163,3 +166,28 @@ def test_padding_rows_are_marked_and_left_out_of_losses_and_accuracy():
     assert logged["val/cluster_acc"] == pytest.approx(2 / 3)  # particle 0 wrong once, not twice (2/4)
     assert logged["val/chamfer"] == pytest.approx(0.1, abs=1e-6)
     assert float(cluster_accuracy(torch.ones(1, 4, dtype=torch.long), b["f_t1"])[0]) == 0.5  # what the copy did
+
+
+def test_cluster_accuracy_on_the_mask_rules_errors_and_the_error_reduction():
+    """Two samples of N=8 points, one input cluster, the mask cuts off the first half (rule ids 1 | 0).
+    Sample 1: truth = no separation (rule right on 4 of 8 after matching); the model says "one cluster": right on
+    all 8, so on the rule's 4 wrong points it scores 4/4.  Sample 2: truth = the mask's split (rule right on 8 of
+    8: no wrong point, no value); the model says "one cluster": 4 of 8.  Pooled over the rule's wrong points: 4/4.
+    cluster_acc = (1 + 0.5) / 2 = 0.75, mask_rule_acc = (0.5 + 1) / 2 = 0.75: error reduction 1 - 0.25/0.25 = 0."""
+    module = DynamicsModule(DynamicsConfig(**TINY))
+    logits = torch.zeros(2, N, module.cfg.num_labels)
+    logits[..., 0] = 1.0  # every point class 0
+    module.forward = lambda b: (b["x_t1"].clone(), logits)
+    logged = _capture(module)
+    module.validation_step(_batch([WHOLE, SPLIT], [True, True]), 0)
+    module.on_validation_epoch_end()
+    assert logged["val/cluster_acc"] == pytest.approx(0.75) and logged["val/mask_rule_acc"] == pytest.approx(0.75)
+    assert logged["val/cluster_acc_rule_wrong"] == pytest.approx(1.0)
+    assert logged["val/cluster_acc_rule_wrong_seen"] == pytest.approx(1.0)
+    assert "val/cluster_acc_rule_wrong_unseen" not in logged  # no unseen sample: no value, not a NaN
+    assert logged["val/cluster_err_reduction"] == pytest.approx(0.0)
+    from topocut.models.losses import error_reduction, matched_correct
+
+    assert error_reduction(0.96, 0.92) == pytest.approx(0.5) and error_reduction(0.9, 1.0) is None
+    ok = matched_correct(torch.tensor([[0, 0, 1, 1, 2]]), torch.tensor([[5, 5, 5, 7, -1]]))
+    assert ok.tolist() == [[True, True, False, True, False]]  # ids matched 0->5, 1->7; the ignored point False

@@ -84,7 +84,7 @@ def test_network_shapes_and_set_equivariance(graph, goal_mode, score_param):
         torch.nn.init.normal_(p, std=0.2)
     B, N, G = 2, 24, 10
     d = 2 if graph == "uniform" else 3
-    z, goal, hist = torch.randn(B, N, 32), torch.rand(B, G, 3), torch.randn(B, 3, 7)
+    z, goal, hist = torch.randn(B, N, 32), torch.randn(B, G, 32), torch.randn(B, 3, 7)  # goal: z_g = Φ(X_g, F_g)
     x = torch.randint(0, d, (B, N))
     sigma = torch.tensor([0.1, 2.0])
     ctx = net.context(z, goal, hist)
@@ -95,10 +95,17 @@ def test_network_shapes_and_set_equivariance(graph, goal_mode, score_param):
     out_p = net(x[:, perm], sigma, net.context(z[:, perm], goal[:, torch.randperm(G)], hist))
     torch.testing.assert_close(out_p, out[:, perm], atol=1e-4, rtol=1e-4)  # a set, not a sequence
     assert not torch.allclose(out, net(x, sigma, net.context(z, goal, hist.flip(1))))  # history matters
+    assert not torch.allclose(out, net(x, sigma, net.context(z, goal.flip(-1), hist)))  # the goal matters
+    # padding copies of a goal point (goal_valid False) change nothing: pooled and attended to once
+    padded = torch.cat([goal, goal[:, :3]], 1)
+    valid = torch.cat([torch.ones(B, G, dtype=torch.bool), torch.zeros(B, 3, dtype=torch.bool)], 1)
+    torch.testing.assert_close(net(x, sigma, net.context(z, padded, hist, valid)), out, atol=1e-5, rtol=1e-5)
 
 
 def test_paper_sizes():
     net = PDDPNet(PDDPConfig())
+    assert net.goal_enc[0].weight.shape == (64, 96)  # goal encoder 96 -> 64 -> 96 over z_g = Φ(X_g, F_g)
+    assert PDDPNet(PDDPConfig(goal_input="xyz")).goal_enc[0].weight.shape == (64, 3)  # the task-blind legacy
     assert len(net.blocks) == 12
     assert net.blocks[0].attn.kv.weight.shape == (288, 96)  # 96 -> 288 fused qkv
     assert net.blocks[0].mlp[0].weight.shape == (384, 96)
@@ -138,8 +145,10 @@ def synthetic_steps(n_steps, n_points=64, seed=0):
     steps = []
     for _ in range(n_steps):
         x = box_points(rng, n_points)
+        goal = box_points(rng, 16)
         steps.append({"x_t": x, "f_t": np.zeros(n_points, np.int32), "mask": cut_mask(x, action),
-                      "history": np.zeros((3, 7), np.float32), "goal": box_points(rng, 16)})
+                      "action": action.to_vector(), "history": np.zeros((3, 7), np.float32), "goal": goal,
+                      "goal_labels": (goal[:, 0] > 0.55).astype(np.int32)})
     return steps, action
 
 
@@ -176,8 +185,9 @@ def test_training_reduces_loss_and_policy_acts(one_thread):
     assert isinstance(policy, Policy)
     rng = np.random.default_rng(5)
     pts = box_points(rng, 200)  # more points than the network sees: the mask is spread back to all of them
-    policy.reset(type("Goal", (), {"points": box_points(rng, 16)})())
-    obs = make_obs(pts, np.zeros(200, np.int32), policy.goal, history=history_from_actions([]))
+    goal = box_points(rng, 16)
+    policy.reset(type("Goal", (), {"points": goal, "labels": (goal[:, 0] > 0.55).astype(np.int32)})())
+    obs = make_obs(pts, np.zeros(200, np.int32), policy.goal, policy.goal_labels, history=history_from_actions([]))
     a = policy.act(obs)
     assert a is not None and policy.last_mask.shape == (200,)
     assert np.degrees(np.arccos(min(1.0, abs(a.normal @ action.normal)))) < 20.0
@@ -195,8 +205,9 @@ def test_trainer_logs_metrics(tmp_path, one_thread):
                         default_root_dir=tmp_path)
     trainer.fit(module, dl, dl)
     m = trainer.callback_metrics
-    assert {"train/loss", "val/loss", "val/mask_acc"} <= set(m)
+    assert {"train/loss", "val/loss", "val/mask_acc", "val/mask_acc_majority", "val/mask_acc_prev_plane"} <= set(m)
     assert 0.0 <= float(m["val/mask_acc"]) <= 1.0
+    assert 0.5 <= float(m["val/mask_acc_majority"]) <= 1.0  # the best constant mask is right on >= half the points
     ckpt = tmp_path / "p.ckpt"
     trainer.save_checkpoint(ckpt)
     policy = PDDPPolicy(str(ckpt), sampler="euler", steps=4, plane="lsq")

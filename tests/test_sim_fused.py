@@ -1,6 +1,6 @@
 """Graph stepping (MPMSolver.advance: k substeps per Python call) against per-phase calls, and the SVD rotation.
 
-``sim.fuse_substeps`` only changes who launches the kernels (a ti.graph from C++
+``sim.tuning.fuse_substeps`` only changes who launches the kernels (a ti.graph from C++
 instead of three Python calls per substep): the same kernels get the same
 arguments, so with the session's single CPU thread the two paths must agree bit
 for bit, over a batched cut with the knife, a push and the settling.
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from topocut.sim.action import KnifeAction
-from topocut.sim.config import SimConfig
+from topocut.sim.config import SimConfig, TuningConfig
 
 ACTIONS = [KnifeAction(0.5, 0.5, depth=5.0), KnifeAction(0.45, 0.5, yaw=0.3)]
 SMALL = dict(n_grid=32, batch_size=2, push_time=0.008, settle_time=0.0074)  # 37: a chunk of 16 and a rest
@@ -85,10 +85,10 @@ def test_advance_falls_back_to_python_calls_without_kernel_graphs(env, monkeypat
 
 
 def test_svd_rotation_matches_polar_iteration(env):
-    """core_rotation=svd (the GPU default) takes R = U V^T for the healthy core instead of Newton's polar
+    """sim.tuning.core_rotation=svd (the GPU default) takes R = U V^T for the healthy core instead of Newton's polar
     iteration: the same rotation, so the same cut up to float rounding."""
     polar, _ = _run(env, 16)
-    svd_env = _env(core_rotation="svd")
+    svd_env = _env(tuning=TuningConfig(core_rotation="svd"))
     svd, _ = _run(svd_env, 16)
     assert svd_env.solver.rotation == "svd" and env.solver.rotation == "polar"
     dx = env.cfg.dx
@@ -100,9 +100,9 @@ def test_svd_rotation_matches_polar_iteration(env):
 
 
 def test_stepping_options_are_validated():
-    with pytest.raises(ValueError, match=r"sim\.core_rotation.*auto, polar, svd"):
-        SimConfig(core_rotation="qr").validate()
-    with pytest.raises(ValueError, match=r"sim\.fuse_substeps"):
-        SimConfig(fuse_substeps=0).validate()
-    assert SimConfig(arch="cuda").core_rotation_method() == "svd"
-    assert SimConfig().core_rotation_method() == "polar"
+    with pytest.raises(ValueError, match=r"sim\.tuning\.core_rotation: 'qr'; valid: auto, polar, svd"):
+        SimConfig(tuning=TuningConfig(core_rotation="qr")).validate()
+    with pytest.raises(ValueError, match=r"sim\.tuning\.fuse_substeps: 0 must lie in \[1, 256\]"):
+        SimConfig(tuning=TuningConfig(fuse_substeps=0)).validate()
+    assert TuningConfig().core_rotation_method("cuda") == "svd"
+    assert TuningConfig().core_rotation_method("cpu") == "polar"

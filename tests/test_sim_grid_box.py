@@ -1,4 +1,4 @@
-"""sim.grid_box: the grid clear and update visit only the box of nodes the last scatter wrote.
+"""sim.tuning.grid_box: the grid clear and update visit only the box of nodes the last scatter wrote.
 
 A node outside the box has no mass, so grid_op skips it either way: the box changes which nodes are
 visited, never a value.  With the session's single CPU thread a batched cut, push and settle must
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from topocut.sim.action import KnifeAction
-from topocut.sim.config import SimConfig
+from topocut.sim.config import SimConfig, TuningConfig
 
 ACTIONS = [KnifeAction(0.5, 0.5, depth=5.0), KnifeAction(0.45, 0.5, yaw=0.3)]
 SMALL = dict(n_grid=32, batch_size=2, push_time=0.008, settle_time=0.0074)
@@ -18,7 +18,7 @@ SMALL = dict(n_grid=32, batch_size=2, push_time=0.008, settle_time=0.0074)
 def _run(grid_box: str):
     from topocut.sim.env import CuttingEnv
 
-    env = CuttingEnv(SimConfig(**SMALL, grid_box=grid_box))
+    env = CuttingEnv(SimConfig(**SMALL, tuning=TuningConfig(grid_box=grid_box)))
     assert env.solver is None or env.solver.use_box == (grid_box == "on")
     env.reset("cube")
     info = env.cut(ACTIONS)
@@ -57,21 +57,22 @@ def test_box_is_the_stencil_bounds_of_the_last_scatter(runs):
 
 
 def test_grid_box_validation():
-    with pytest.raises(ValueError, match=r"sim\.grid_box.*auto, on, off"):
-        SimConfig(grid_box="maybe").validate()
-    assert SimConfig().grid_box_enabled() and SimConfig(arch="cuda", batch_size=16).grid_box_enabled()
-    assert not SimConfig(arch="cuda").grid_box_enabled()  # a single GPU scene: the box's serial tasks cost more
-    assert not SimConfig(arch="cuda", grid_box="off").grid_box_enabled()
+    with pytest.raises(ValueError, match=r"sim\.tuning\.grid_box: 'maybe'; valid: auto, on, off"):
+        SimConfig(tuning=TuningConfig(grid_box="maybe")).validate()
+    auto = TuningConfig()
+    assert auto.grid_box_enabled("cpu", 1) and auto.grid_box_enabled("cuda", 16)
+    assert not auto.grid_box_enabled("cuda", 1)  # a single GPU scene: the box's serial tasks cost more
+    assert not TuningConfig(grid_box="off").grid_box_enabled("cuda", 16)
 
 
 def _spoon_run(grid_box: str):
     """A sided (spoon) substep, then solver substeps, then sided ones with the spoon pressing into a block."""
     from topocut.goals.config import SpoonConfig
-    from topocut.planning.scoop import block_particles
     from topocut.sim.env import CuttingEnv
     from topocut.sim.spoon import ToolColliders, bowl_axis
+    from topocut.tasks.scooping_scene import block_particles
 
-    sim = SimConfig(n_grid=32, grid_box=grid_box)
+    sim = SimConfig(n_grid=32, tuning=TuningConfig(grid_box=grid_box))
     sp = SpoonConfig()
     env = CuttingEnv(sim)
     x = block_particles(sp, sim.spacing, sim.board_z, seed=0)

@@ -1,4 +1,4 @@
-"""sim.grid_layout: grid mass and momentum in one struct per node (aos) or one array per component (soa).
+"""sim.tuning.grid_layout: grid mass and momentum in one struct per node (aos) or one array per component (soa).
 
 The layout moves where a node's four floats live, never what is added to them: with the session's single
 CPU thread (atomics in a fixed order) one p2g must give the same grid bit for bit, and a batched cut and
@@ -11,14 +11,14 @@ import pytest
 from taichi.lang.field import ScalarField
 
 from topocut.sim.action import KnifeAction
-from topocut.sim.config import SimConfig
+from topocut.sim.config import SimConfig, TuningConfig
 from topocut.sim.objects import sample_object
 
 
 def _run(layout: str):
     from topocut.sim.env import CuttingEnv
 
-    env = CuttingEnv(SimConfig(n_grid=32, batch_size=2, push_time=0.006, grid_layout=layout))
+    env = CuttingEnv(SimConfig(n_grid=32, batch_size=2, push_time=0.006, tuning=TuningConfig(grid_layout=layout)))
     env.reset("cube")
     info = env.cut([KnifeAction(0.5, 0.5, depth=5.0), KnifeAction(0.45, 0.5, yaw=0.3)])
     env.push()
@@ -68,7 +68,7 @@ def test_soa_places_each_component_in_its_own_array(runs):
 
 
 def test_grid_layout_config():
-    assert SimConfig().grid_layout_method() == "aos" and SimConfig(arch="cuda").grid_layout_method() == "soa"
-    assert SimConfig(arch="cuda", grid_layout="aos").grid_layout_method() == "aos"
-    with pytest.raises(ValueError, match=r"sim\.grid_layout: 'rows'; valid: auto, aos, soa"):
-        SimConfig(grid_layout="rows").validate()
+    assert TuningConfig().grid_layout_method("cpu") == "aos" and TuningConfig().grid_layout_method("cuda") == "soa"
+    assert TuningConfig(grid_layout="aos").grid_layout_method("cuda") == "aos"
+    with pytest.raises(ValueError, match=r"sim\.tuning\.grid_layout: 'rows'; valid: auto, aos, soa"):
+        SimConfig(tuning=TuningConfig(grid_layout="rows")).validate()

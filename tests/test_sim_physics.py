@@ -210,14 +210,14 @@ def test_cut_substeps_that_outrun_the_cfl_bound_are_refused(env, monkeypatch):
 
 
 def test_config_ranges_and_gif_timing(tmp_path):
-    for kw, key in ((dict(check_every=0), "check_every"), (dict(dwell_time=-1.0), "dwell_time"),
+    for kw, key in ((dict(tuning=dict(check_every=0)), "tuning.check_every"), (dict(dwell_time=-1.0), "dwell_time"),
                     (dict(j_min=1.2), "j_min"), (dict(friction=-0.1), "friction")):
         with pytest.raises(ValueError, match=rf"sim\.{key}"):
             SimConfig(**kw).validate()
     from topocut.sim.env import CuttingEnv
 
     # the batch the env is built with, not the config's default, decides the warp-scatter key range
-    with pytest.raises(ValueError, match=r"sim\.warp_scatter: run keys .* batch_size=16"):
+    with pytest.raises(ValueError, match=r"sim\.tuning\.warp_scatter: run keys .* batch_size=16"):
         CuttingEnv(SimConfig(arch="cuda", n_grid=512), batch_size=16)
     from PIL import Image
 

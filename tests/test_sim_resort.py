@@ -1,4 +1,4 @@
-"""sim.resort_every: the scatter visits each scene's particles in base-cell order, re-sorted as they move.
+"""sim.tuning.resort_every: the scatter visits each scene's particles in base-cell order, re-sorted as they move.
 
 Only the visiting order changes (MPMSolver.order): every particle is scattered exactly once, the grid
 gets the same sums up to float summation order, and the particles keep their indices for every API.
@@ -10,7 +10,7 @@ tests/test_sim_warp_scatter.py.)
 import numpy as np
 import pytest
 
-from topocut.sim import CuttingEnv, KnifeAction, SimConfig
+from topocut.sim import CuttingEnv, KnifeAction, SimConfig, TuningConfig
 
 N_GRID = 32
 
@@ -26,17 +26,17 @@ def shuffled_block(n: int, seed: int) -> np.ndarray:
 
 
 def test_resort_interval_config():
-    assert SimConfig(arch="cuda").resort_interval() == 64  # auto: with the warp scatter
-    assert SimConfig(arch="cuda", warp_scatter="off").resort_interval() == 0
-    assert SimConfig().resort_interval() == 0 and SimConfig(resort_every=8).resort_interval() == 8
-    with pytest.raises(ValueError, match=r"sim\.resort_every: -2; valid: -1 \(auto\), 0"):
-        SimConfig(resort_every=-2).validate()
-    with pytest.raises(ValueError, match=r"sim\.resort_every: cell indices overflow 32 bits"):
-        SimConfig(n_grid=128, batch_size=1024, resort_every=16).validate()
+    assert TuningConfig().resort_interval("cuda") == 64  # auto: with the warp scatter
+    assert TuningConfig(warp_scatter="off").resort_interval("cuda") == 0
+    assert TuningConfig().resort_interval("cpu") == 0 and TuningConfig(resort_every=8).resort_interval("cpu") == 8
+    with pytest.raises(ValueError, match=r"sim\.tuning\.resort_every: -2; valid: -1 \(auto\), 0"):
+        SimConfig(tuning=TuningConfig(resort_every=-2)).validate()
+    with pytest.raises(ValueError, match=r"sim\.tuning\.resort_every: cell indices overflow 32 bits"):
+        SimConfig(n_grid=128, batch_size=1024, tuning=TuningConfig(resort_every=16)).validate()
 
 
 def test_order_is_each_scenes_stable_cell_sort():
-    env = CuttingEnv(SimConfig(n_grid=N_GRID, batch_size=2, resort_every=16))
+    env = CuttingEnv(SimConfig(n_grid=N_GRID, batch_size=2, tuning=TuningConfig(resort_every=16)))
     x0 = shuffled_block(700, 0)
     env.load_particles(x0, np.zeros(len(x0), np.int32))
     x1 = x0[::-1].copy()  # scene 1: the same points in reverse memory order, so its visiting order differs
@@ -48,13 +48,13 @@ def test_order_is_each_scenes_stable_cell_sort():
         np.testing.assert_array_equal(order[b, 700:], np.arange(700, s.lanes))  # appended particles: in place
     assert not np.array_equal(order[0, :700], order[1, :700])
     # without re-sorting the scatter visits memory order
-    plain = CuttingEnv(SimConfig(n_grid=N_GRID, resort_every=0))
+    plain = CuttingEnv(SimConfig(n_grid=N_GRID, tuning=TuningConfig(resort_every=0)))
     plain.load_particles(x0, np.zeros(len(x0), np.int32))
     np.testing.assert_array_equal(plain.solver.order.to_numpy()[0], np.arange(plain.solver.lanes))
 
 
 def test_every_particle_scattered_once_when_the_count_shrinks():
-    env = CuttingEnv(SimConfig(n_grid=N_GRID, resort_every=16))
+    env = CuttingEnv(SimConfig(n_grid=N_GRID, tuning=TuningConfig(resort_every=16)))
     x = shuffled_block(900, 1)
     mat = (np.arange(900) % 3 == 0).astype(np.int32)  # a third skin (rho 1), the rest core (rho 4)
     env.load_particles(x, mat)
@@ -68,8 +68,8 @@ def test_every_particle_scattered_once_when_the_count_shrinks():
 
 
 def _cut(resort_every: int):
-    env = CuttingEnv(SimConfig(n_grid=N_GRID, batch_size=2, resort_every=resort_every, push_time=0.008,
-                               settle_time=0.008))
+    env = CuttingEnv(SimConfig(n_grid=N_GRID, batch_size=2, push_time=0.008, settle_time=0.008,
+                               tuning=TuningConfig(resort_every=resort_every)))
     env.reset("cube")
     env.cut([KnifeAction(0.5, 0.5, depth=5.0), KnifeAction(0.45, 0.5, yaw=0.3)])
     env.push()

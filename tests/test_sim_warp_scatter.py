@@ -1,4 +1,4 @@
-"""sim.warp_scatter: a warp's lanes with the same base cell sum their stencils before the atomics (CUDA).
+"""sim.tuning.warp_scatter: a warp's lanes with the same base cell sum their stencils before the atomics (CUDA).
 
 On the CPU: the particle order it relies on (CuttingEnv.reset orders particles by cell) and the config
 checks.  On a machine with an NVIDIA GPU: the warp scatter against the plain one, in a CUDA subprocess
@@ -13,7 +13,7 @@ import sys
 import numpy as np
 import pytest
 
-from topocut.sim import CuttingEnv, SimConfig
+from topocut.sim import CuttingEnv, SimConfig, TuningConfig
 from topocut.sim.env import cell_order
 from topocut.sim.objects import sample_object
 
@@ -46,24 +46,24 @@ def test_reset_orders_particles_by_cell():
 
 
 def test_warp_scatter_config():
-    assert SimConfig(arch="cuda").warp_scatter_enabled() and not SimConfig().warp_scatter_enabled()
-    assert not SimConfig(arch="cuda", warp_scatter="off").warp_scatter_enabled()
-    with pytest.raises(ValueError, match=r"sim\.warp_scatter: on needs arch=cuda"):
-        SimConfig(warp_scatter="on").validate()
-    with pytest.raises(ValueError, match=r"sim\.warp_scatter.*auto, on, off"):
-        SimConfig(warp_scatter="yes").validate()
-    with pytest.raises(ValueError, match=r"sim\.warp_scatter: run keys .* overflow"):
+    assert TuningConfig().warp_scatter_enabled("cuda") and not TuningConfig().warp_scatter_enabled("cpu")
+    assert not TuningConfig(warp_scatter="off").warp_scatter_enabled("cuda")
+    with pytest.raises(ValueError, match=r"sim\.tuning\.warp_scatter: on needs sim\.arch=cuda"):
+        SimConfig(tuning=TuningConfig(warp_scatter="on")).validate()
+    with pytest.raises(ValueError, match=r"sim\.tuning\.warp_scatter: 'yes'; valid: auto, on, off"):
+        SimConfig(tuning=TuningConfig(warp_scatter="yes")).validate()
+    with pytest.raises(ValueError, match=r"sim\.tuning\.warp_scatter: run keys .* overflow"):
         SimConfig(arch="cuda", n_grid=128, batch_size=1024).validate()
 
 
 GPU_CHECK = r"""
 import numpy as np
-from topocut.sim import CuttingEnv, KnifeAction, SimConfig
+from topocut.sim import CuttingEnv, KnifeAction, SimConfig, TuningConfig
 
 def env(warp, B=2, resort=-1, layout="auto"):
-    e = CuttingEnv(SimConfig(arch="cuda", n_grid=48, batch_size=B, warp_scatter=warp, dwell_time=0.002,
-                             resort_every=resort, grid_layout=layout))
-    assert e.cfg.warp_scatter_enabled() == (warp == "on")
+    e = CuttingEnv(SimConfig(arch="cuda", n_grid=48, batch_size=B, dwell_time=0.002,
+                             tuning=TuningConfig(warp_scatter=warp, resort_every=resort, grid_layout=layout)))
+    assert e.cfg.tuning.warp_scatter_enabled("cuda") == (warp == "on")
     return e
 
 # 1. one p2g from the same particles: grid mass and momentum agree node by node (float order only), the
@@ -76,7 +76,7 @@ for name, x in [("crowded", 0.5 + 0.004 * rng.random((3000, 3))),     # ~all in 
     grids = []
     for warp, layout in (("off", "aos"), ("on", "auto")):  # the order as loaded (resort_every=0): runs as named
         e = env(warp, resort=0, layout=layout)
-        assert e.cfg.grid_layout_method() == ("aos" if warp == "off" else "soa")
+        assert e.cfg.tuning.grid_layout_method("cuda") == ("aos" if warp == "off" else "soa")
         e.load_particles(x.astype(np.float32), np.zeros(len(x), np.int32), v=np.full(x.shape, 0.3, np.float32))
         s = e.solver
         s.p2g(e.n, 0)
@@ -126,7 +126,7 @@ e.solver.destroy()
 # float atomics: a batched cut at 384 (the batch default) against 128 differs no more than 128 does from itself
 out = {}
 for tag, bd in (("a", 128), ("b", 128), ("c", 384)):
-    e = CuttingEnv(SimConfig(arch="cuda", n_grid=48, batch_size=4, scatter_block_dim=bd))
+    e = CuttingEnv(SimConfig(arch="cuda", n_grid=48, batch_size=4, tuning=TuningConfig(scatter_block_dim=bd)))
     assert e.solver.scatter_block == bd
     e.reset("cube")
     e.cut([KnifeAction(0.5 + 0.01 * b, 0.5, yaw=0.2 * b) for b in range(4)])

@@ -1,6 +1,8 @@
 """Table 2 collector: one row per perception checkpoint configuration, read back from the store."""
 import json
 
+import pytest
+
 from topocut.data.store import ArtifactStore
 from topocut.models.table2 import collect, markdown
 
@@ -67,3 +69,21 @@ def test_noise_std_is_listed_when_noisy_runs_differ_in_it(tmp_path):
     _run(store, g, {}, {})
     _run(store, {**g, "noise_std": 0.01}, {}, {})
     assert sorted(r["other"] for r in collect(tmp_path)) == ["model.noise_std=0.002", "model.noise_std=0.01"]
+
+
+def test_rows_carry_the_mask_rule_floor_and_what_the_model_adds_to_it(tmp_path):
+    """on_rule_errors_*: F's accuracy where the rule is wrong; err_reduction_*: logged, or for a checkpoint from
+    before it was logged, 1 - (1 - acc) / (1 - rule) from its accuracies (seen 0.96 vs 0.92: half the errors)."""
+    store = ArtifactStore(tmp_path)
+    g = {"model": "graph_transformer", "sort": True, "noise": True, "num_points": 256}
+    _run(store, g, {}, {"val/cluster_acc_seen": 0.96, "val/mask_rule_acc_seen": 0.92,
+                        "val/cluster_acc_unseen": 0.9, "val/mask_rule_acc_unseen": 1.0})
+    _run(store, {**g, "num_points": 128}, {}, {"val/cluster_acc_seen": 0.9, "val/mask_rule_acc_seen": 0.95,
+                                               "val/cluster_acc_rule_wrong_seen": 0.25,
+                                               "val/cluster_err_reduction_seen": -1.0})
+    old, new = collect(tmp_path)[::-1]
+    assert old["err_reduction_seen"] == pytest.approx(0.5) and old["err_reduction_unseen"] is None  # rule: no error
+    assert old["on_rule_errors_seen"] is None  # not recoverable from accuracies
+    assert new["on_rule_errors_seen"] == 0.25 and new["err_reduction_seen"] == -1.0
+    text = markdown([new])
+    assert "on_rule_errors_seen" in text and "| 0.250 | — | -1.000 | — |" in text

@@ -6,10 +6,13 @@ import pytest
 from hydra import compose, initialize_config_dir
 
 from topocut.config import STAGES, ConfigError, register_configs, validate
-from topocut.goals.config import TASK_STAGES, TaskConfig
+from topocut.goals.config import TaskConfig
+from topocut.tasks import TASKS, get_task
 
 CONF = str(Path(__file__).resolve().parents[1] / "conf")
 register_configs()
+# the tasks that run with some stages only (their conf/task yaml fills task.stage from stage.name)
+PARTIAL = sorted(n for n in TASKS if set(STAGES) - set(get_task(n).stages))
 
 
 def _compose(*overrides):
@@ -17,12 +20,13 @@ def _compose(*overrides):
         return compose(config_name="config", overrides=list(overrides))
 
 
-@pytest.mark.parametrize("task", sorted(TASK_STAGES))
+@pytest.mark.parametrize("task", PARTIAL)
 @pytest.mark.parametrize("stage", STAGES)
 def test_new_tasks_run_only_with_their_stages(stage, task):
+    assert PARTIAL == ["cream_writing", "scooping"]
     cfg = _compose(f"stage={stage}", f"task={task}", "logger=none")
     assert cfg.task.stage == stage  # interpolated from stage.name
-    if stage in TASK_STAGES[task]:
+    if stage in get_task(task).stages:
         validate(cfg)
     else:
         with pytest.raises(ConfigError, match=rf"task={task} runs with stage in \(.*\) only, got stage={stage} "

@@ -80,6 +80,7 @@ def test_turn_lays_the_slab_flat_on_the_board():
                                           + np.ptp(slab @ g.axes[0]) / 2, abs=H)
     assert np.ptp(q @ g.axes[0]) == pytest.approx(np.ptp(slab[:, 2]), abs=1e-9)  # former height along a1
     assert (q @ g.axes[0]).min() > (p @ g.axes[0]).max()  # laid beyond the object
+    assert (q @ g.axes[1]).min() > (p @ g.axes[1]).max()  # and beside it: stick cuts (normal to a2) miss the rest
     # after the turn, every cut plane crosses the laid slab
     for s in g.steps[2:]:
         d = (q - s.action.plane_point(0.05)) @ s.action.normal

@@ -39,7 +39,7 @@ def test_word_layout_and_closed_O():
 
 
 def test_identical_strokes_score_the_full_reward_per_letter():
-    from topocut.planning.writer import letter_rewards
+    from topocut.tasks.writing_scene import letter_rewards
 
     goals, _ = word_goal("LO", 0.12, 0.06, 0.01, 0.05)
     x = np.concatenate(goals[::-1])  # strokes written in the other order: matching pairs them up
@@ -79,7 +79,7 @@ def test_extrusion_rate_position_and_velocity(pen):
 
 
 def test_pen_lifted_between_strokes_gives_two_clusters(pen):
-    from topocut.planning.writer import cluster_check
+    from topocut.tasks.writing_scene import cluster_check
 
     pen.reset((0.4, 0.5))
     pen.move([0.08, 0.0], True)

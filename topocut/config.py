@@ -121,6 +121,10 @@ def unknown_key_error(full_key: str, schema: type) -> ConfigError:
     valid = [f.name for f in fields(schema)]
     group, _, leaf = full_key.rpartition(".")
     close = difflib.get_close_matches(leaf, valid, n=1)
+    # a key one level down, such as sim.warp_scatter for sim.tuning.warp_scatter (moved into sim.tuning)
+    nested = [f"{f.name}.{leaf}" for f in fields(schema)
+              if is_dataclass(f.default_factory) and leaf in {g.name for g in fields(f.default_factory)}]
+    close = close or nested
     hint = f" (did you mean {group + '.' if group else ''}{close[0]}?)" if close else ""
     return ConfigError(f"{full_key}: unknown key{hint}; valid keys of {group or 'the root config'}: "
                        f"{', '.join(valid)}")
@@ -205,8 +209,7 @@ def validate(cfg: DictConfig) -> None:
            f"{cfg.trainer.max_steps} is not valid; -1 (no limit) or >= 1")
     # Taichi's random_seed is an int32 and episode seeds are mixed modulo 2**31 - 1 (mix_seed)
     _check(0 <= cfg.seed < 2 ** 31 - 1, "seed", f"{cfg.seed} is not valid; must lie in [0, 2**31 - 1)")
-    _check(cfg.task.name not in ("stick", "dice") or cfg.task.max_cuts >= 2, "task.max_cuts",
-           f"task={cfg.task.name} needs at least 2 cuts (the slab, then its width); got {cfg.task.max_cuts}")
+    _check_task_cuts(cfg.task.name, cfg.task.max_cuts)
     sim = OmegaConf.to_object(cfg.sim)
     try:
         sim.validate()
@@ -222,6 +225,28 @@ def validate(cfg: DictConfig) -> None:
             msg = str(e)
             raise ConfigError(msg if msg.startswith(group.split(".")[0]) else f"{group}: {msg}") from e
     _check_stage_args(cfg)
+
+
+def _check_task_cuts(name: str, max_cuts: int) -> None:
+    """task.max_cuts against the task's own minimum (``min_cuts``: dice 3, stick 2, ...), asked of the task."""
+    from topocut.tasks import check_max_cuts, get_task
+
+    try:
+        check_max_cuts(max_cuts, get_task(name))
+    except ValueError as e:
+        msg = str(e)
+        raise ConfigError(msg.replace(f"task.max_cuts={max_cuts} ", f"task.max_cuts: {max_cuts} ", 1)) from e
+
+
+def task_for_stage(task, stage: str):
+    """The task object (topocut.tasks.get_task) a stage runs; a stage the task has no pipeline for is a
+    ConfigError (exit status 2) naming task and stage.name and the tasks that run it."""
+    from topocut.tasks import task_for_stage as lookup
+
+    try:
+        return lookup(task, stage)
+    except ValueError as e:
+        raise ConfigError(str(e)) from e
 
 
 def _check_stage_args(cfg: DictConfig) -> None:

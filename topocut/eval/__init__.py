@@ -1,4 +1,5 @@
-"""Evaluation protocol (paper §4, Table 1): episode specs, rollouts, resumable runner, report.
+"""Evaluation protocol (paper §4, Table 1): episode specs, rollouts, resumable runner, report with bootstrap
+intervals and paired differences (``topocut.eval.stats``).
 
 Pure numpy at import time; the simulator, topology and reward modules are imported when an
 episode runs.
@@ -13,6 +14,8 @@ from topocut.eval.protocol import (
                                    run_evaluation,
 )
 from topocut.eval.report import PAPER_TABLE1, summarize, write_report
+from topocut.eval.stats import Interval, bootstrap_mean, paired_difference
 
 __all__ = ["EvalConfig", "smoke", "EpisodeSpec", "EpisodeResult", "episode_specs", "evaluate_episode",
-           "make_observe_fn", "run_evaluation", "PAPER_TABLE1", "summarize", "write_report"]
+           "make_observe_fn", "run_evaluation", "PAPER_TABLE1", "summarize", "write_report", "Interval",
+           "bootstrap_mean", "paired_difference"]

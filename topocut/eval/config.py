@@ -10,12 +10,14 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
+from topocut.policies import registry
+
 SPLITS = ("in", "out")  # in-distribution (seen objects) / out-of-distribution (unseen objects)
 TASKS = ("slice", "stick", "dice")
 OBSERVATIONS = ("particles", "depth")
 NORMALIZE_BY = ("task", "task_split")
-POLICY_NAMES = ("oracle", "heuristic", "mppi", "dp3", "3dda", "pddp_noperc", "pddp_graphconv", "pddp")
-LEARNED = ("dp3", "3dda", "pddp_noperc", "pddp_graphconv", "pddp")  # loaded from bc checkpoints
+POLICY_NAMES = registry.names()  # topocut/policies/registry.py: the one list
+LEARNED = registry.learned()  # loaded from bc checkpoints
 
 
 @dataclass
@@ -38,6 +40,17 @@ class EvalConfig:
     reference: str = "oracle"  # policy whose final reward normalises R (oracle = goal.planes executed exactly;
     #                            "teleop" = replayed human logs written as episodes/teleop/*.json)
     normalize_by: str = "task"  # "task": one reference mean per task (both splits); "task_split": per split
+    compare_to: str = ""  # policy the report's paired differences (Δ columns) compare with; "" = eval.reference
+    # training seeds pooled per learned policy: 1 = the pinned/latest checkpoint, whatever seed trained it; k > 1 =
+    # the checkpoints trained with seeds seed, seed+1, ..., seed+k-1 (`-m stage=bc seed=0,1,2`) beside that one
+    # (same training config and inputs), each evaluated on every episode and pooled into one row per cell
+    train_seeds: int = 1
+    # report statistics (topocut.eval.stats): percentile-bootstrap intervals over episode specs
+    confidence: float = 0.95
+    bootstrap_resamples: int = 10000
+    bootstrap_seed: int = 0
+    # Taichi CPU threads when the eval stage starts Taichi: 1 = reproducible CPU runs (docs/evaluation.md), 0 = all cores
+    cpu_threads: int = 0
     observation: str = "particles"  # particles (FPS of particles) | depth (topocut.topology.observation)
     num_points: int = 2048  # observation points handed to the policy (matches data.points_per_step)
     min_fragment_points: int = 4  # smaller labelled clusters are debris, not pieces
@@ -61,6 +74,11 @@ class EvalConfig:
         if self.episodes_per_cell < 1 or self.max_cuts < 1:
             raise ValueError(f"eval.episodes_per_cell={self.episodes_per_cell} and eval.max_cuts={self.max_cuts} "
                              "must be >= 1")
+        if self.train_seeds < 1 or self.bootstrap_resamples < 1 or self.cpu_threads < 0:
+            raise ValueError(f"eval.train_seeds={self.train_seeds} and eval.bootstrap_resamples="
+                             f"{self.bootstrap_resamples} must be >= 1, eval.cpu_threads={self.cpu_threads} >= 0")
+        if not 0.0 < self.confidence < 1.0:
+            raise ValueError(f"eval.confidence={self.confidence} must lie in (0, 1), e.g. 0.95")
         if self.scale_min > self.scale_max:
             raise ValueError(f"eval.scale_min={self.scale_min} exceeds eval.scale_max={self.scale_max}")
         if "teleop" in self.policies:
@@ -76,6 +94,9 @@ class EvalConfig:
         if self.reference not in self.policies and self.reference != "teleop":
             raise ValueError(f"eval.reference={self.reference!r} must be one of eval.policies "
                              f"({', '.join(self.policies)}) or 'teleop' (replayed human logs)")
+        if self.compare_to and self.compare_to not in self.policies and self.compare_to != self.reference:
+            raise ValueError(f"eval.compare_to={self.compare_to!r} must be one of eval.policies "
+                             f"({', '.join(self.policies)}), eval.reference, or empty (= eval.reference)")
         from topocut.sim.objects import OBJECTS  # pure numpy: no Taichi import here
 
         for key, names in (("eval.seen", self.seen), ("eval.unseen", self.unseen)):
@@ -99,6 +120,11 @@ class EvalConfig:
         if not self.seen and not self.unseen:
             raise ValueError("eval.seen and eval.unseen are both empty: nothing to evaluate")
         return self
+
+    @property
+    def comparison(self) -> str:
+        """The policy the paired differences compare with."""
+        return self.compare_to or self.reference
 
     @property
     def num_episodes(self) -> int:

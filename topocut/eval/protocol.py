@@ -8,6 +8,13 @@ discovery (consistent ids) and the spectral reward against the goal's pieces.
 ``run_evaluation`` writes one JSON per (policy, episode), atomically, and skips
 the ones already written, so a killed evaluation resumes where it stopped.
 
+The goal and the success condition are the task's (``topocut.tasks.get_task(task_cfg.name)``: ``make_goal``,
+``success``).  Where the task's oracle lays pieces down between two cut directions (a ``Turn`` after its
+k-th cut in ``Goal.steps``: stick, dice), the episode performs that turn after its k-th cut, whichever policy
+cut (``CuttingEnv.turn``; the policies output knife planes only, as the demonstrations they learn from were
+recorded with the same scripted turn); discovery then runs with the previous labels and no sweep, so the
+cluster ids are kept.  The oracle policy (the goal's planes) so executes the whole ``Goal.steps``.
+
 The simulator, topology, reward and goal modules are reached through their
 contract entry points (docs/contracts.md); each can be replaced by keyword
 (``goal_fn``, ``discover_fn``, ``reward_fn``) so the protocol is testable
@@ -30,7 +37,7 @@ import numpy as np
 from topocut.data.store import write_json_atomic
 from topocut.eval.config import EvalConfig
 from topocut.policies.base import reset_policy
-from topocut.sim.action import POSE_FEATURE_DIM
+from topocut.sim.action import POSE_FEATURE_DIM, executed_action
 
 HISTORY_LEN = 3
 
@@ -63,6 +70,8 @@ class EpisodeResult:
     initial_reward: float = 0.0  # reward of the uncut object against the goal
     rewards: list[float] = field(default_factory=list)  # after each executed cut
     cut_counts: list[int] = field(default_factory=list)  # RewardResult.cut_count after each cut
+    successes: list[bool] = field(default_factory=list)  # the task's success (Task.success) after each cut
+    turns: list[int] = field(default_factory=list)  # the cuts after which the goal's turn was performed
     num_pieces: list[int] = field(default_factory=list)
     actions: list[list[float]] = field(default_factory=list)  # executed [x, y, yaw, tilt]
     act_time_s: list[float] = field(default_factory=list)
@@ -81,9 +90,14 @@ class EpisodeResult:
     def final_cut_count(self) -> int:
         return int(self.cut_counts[-1]) if self.cut_counts else 0
 
+    @property
+    def success(self) -> bool:
+        return bool(self.successes and self.successes[-1])
+
     def asdict(self) -> dict:
         d = asdict(self)
-        d.update(num_cuts=self.num_cuts, final_reward=self.final_reward, final_cut_count=self.final_cut_count)
+        d.update(num_cuts=self.num_cuts, final_reward=self.final_reward, final_cut_count=self.final_cut_count,
+                 success=self.success)
         return d
 
 
@@ -151,9 +165,9 @@ def step_seed(episode_seed: int, cut: int) -> int:
 
 # -- one episode ---------------------------------------------------------------------------------------
 def _default_goal_fn(task_cfg, obj, pose, spacing, board_z=0.05):
-    from topocut.goals import make_goal
+    from topocut.tasks import get_task
 
-    return make_goal(task_cfg, obj, pose, spacing, board_z=board_z)
+    return get_task(task_cfg.name).make_goal(task_cfg, obj, pose, spacing, board_z=board_z)
 
 
 def _default_discover(x, damage, sweeps, previous, topo_cfg):
@@ -196,12 +210,16 @@ def evaluate_episode(spec: EpisodeSpec, policy, env, task_cfg, reward_cfg=None, 
                      observe_fn: Callable | None = None, policy_name: str = "policy", max_cuts: int = 5,
                      min_fragment_points: int = 4, stop_on_success: bool = False, spacing: float | None = None,
                      goal_fn: Callable | None = None, discover_fn: Callable | None = None,
-                     reward_fn: Callable | None = None) -> EpisodeResult:
+                     reward_fn: Callable | None = None, turns: bool = True) -> EpisodeResult:
     """Deterministic rollout of up to ``max_cuts`` sequential cuts of ``policy`` on ``spec``.
 
-    ``policy.act`` returning None ends the episode early.  SimulationDiverged marks it ``failed``; an
-    exception from the policy or from scoring a cut marks it ``error`` (all keep the steps completed before).
+    ``policy.act`` returning None ends the episode early.  SimulationDiverged (or a turn the simulator
+    refuses) marks it ``failed``; an exception from the policy or from scoring a cut marks it ``error`` (all
+    keep the steps completed before).  ``turns``: perform the goal's turns between cuts (module docstring).
     """
+    from topocut.tasks import get_task, turns_after
+
+    task = get_task(task_cfg.name)
     board_z = _board_z(env)
     goal_fn, discover_fn, reward_fn = (goal_fn or functools.partial(_default_goal_fn, board_z=board_z),
                                        discover_fn or _default_discover, reward_fn or _default_reward)
@@ -221,12 +239,11 @@ def evaluate_episode(spec: EpisodeSpec, policy, env, task_cfg, reward_cfg=None, 
     reset_policy(policy, goal, seed=spec.seed)
     history = deque([np.zeros(POSE_FEATURE_DIM, np.float32)] * HISTORY_LEN, maxlen=HISTORY_LEN)
     push = bool(getattr(task_cfg, "push", False))
-    threshold = getattr(task_cfg, "success_threshold", None)
     for k in range(max_cuts):
         points, obs_labels = observe_fn(x, labels, step_seed(spec.seed, k))
         obs = {"points": points, "labels": obs_labels, "history": np.stack(list(history)),  # 3,7 oldest first
                "goal": np.asarray(goal.points, np.float32), "goal_labels": np.asarray(goal.labels, np.int32),
-               "particle_labels": labels}
+               "particle_labels": labels, "cuts_done": len(result.actions)}
         if hasattr(env, "get_state"):
             obs["sim_state"] = env.get_state(0)  # lets planners (MPPI) act as policies
         ta = time.perf_counter()
@@ -240,7 +257,7 @@ def evaluate_episode(spec: EpisodeSpec, policy, env, task_cfg, reward_cfg=None, 
             env.set_state(obs["sim_state"], b=None)  # a planner's rollouts may have moved the scenes
         if action is None:
             break
-        action = action.canonical()
+        action = executed_action(action)  # the pose that runs: the demonstrations' and teleop replay's rule
         try:
             env.cut([action] * B if B > 1 else action)
             if push:
@@ -260,11 +277,31 @@ def evaluate_episode(spec: EpisodeSpec, policy, env, task_cfg, reward_cfg=None, 
             break
         result.rewards.append(float(res.total))
         result.cut_counts.append(int(res.cut_count))
+        result.successes.append(bool(task.success(res, task_cfg)))
         result.num_pieces.append(len(frags))
         result.actions.append([float(v) for v in action.to_vector()])
         history.append(action.pose_feature(board_z))
-        if stop_on_success and threshold is not None and res.total >= threshold:
+        if stop_on_success and result.successes[-1]:
             break
+        todo = turns_after(goal, len(result.actions)) if turns and k + 1 < max_cuts else []
+        if todo:  # the goal's scripted turn before the next cut
+            try:
+                for turn in todo:
+                    env.turn(turn)
+            except (Diverged, ValueError) as e:
+                if isinstance(e, ValueError) and not str(e).startswith("turn"):
+                    raise
+                result.status, result.error = "failed", f"turn after cut {len(result.actions)}: {e}"
+                break
+            result.turns.append(len(result.actions))
+            st = env.state()
+            x = np.asarray(st.x[0])
+            try:  # no new sweep (CuttingEnv.turn clears them): the previous labels carry the ids over
+                labels = discover_fn(x, np.asarray(st.damage[0], bool), st.sweeps[0], labels, topo_cfg)
+            except Exception as e:  # noqa: BLE001 - as a cut's scoring error
+                result.status, result.error = "error", f"labelling after turn {len(result.turns)}: {type(e).__name__}: {e}"
+                warnings.warn(f"{policy_name} {spec.key}: {result.error}", stacklevel=2)
+                break
     result.time_s = time.perf_counter() - t0
     return result
 

@@ -16,7 +16,7 @@ import json
 import warnings
 from dataclasses import dataclass
 
-from topocut.sim.action import KnifeAction
+from topocut.sim.action import KnifeAction, executed_action
 
 PREFIX = "teleop-"
 
@@ -39,7 +39,11 @@ def effective_cuts(log: dict, source: str = "teleop log") -> list[list[float]]:
 
 
 class TeleopReplay:
-    """A policy that plays back one human's cuts in order, then stops (act returns None)."""
+    """A policy that plays back one human's cuts in order, then stops (act returns None).
+
+    The logged vectors were executed through ``topocut.sim.action.executed_action`` (TeleopSession.cut) and
+    evaluate_episode executes every policy's action through it again (idempotent): the replay runs the human's
+    planes exactly."""
 
     def __init__(self, cuts: list[list[float]]):
         self.cuts, self._k = [list(c) for c in cuts], 0
@@ -51,7 +55,7 @@ class TeleopReplay:
         if self._k >= len(self.cuts):
             return None
         self._k += 1
-        return KnifeAction.from_vector(self.cuts[self._k - 1])
+        return executed_action(KnifeAction.from_vector(self.cuts[self._k - 1]))
 
 
 @dataclass

@@ -1,4 +1,5 @@
 """Re-export of topocut.tasks.config (task configuration)."""
-from topocut.tasks.config import CUTTING_TASKS, TASK_STAGES, TASKS, PenConfig, SpoonConfig, TaskConfig, check_stage
+from topocut.tasks import TASK_STAGES
+from topocut.tasks.config import CUTTING_TASKS, TASKS, PenConfig, SpoonConfig, TaskConfig, check_stage
 
 __all__ = ["CUTTING_TASKS", "TASK_STAGES", "TASKS", "PenConfig", "SpoonConfig", "TaskConfig", "check_stage"]

@@ -57,27 +57,46 @@ def hungarian_cluster_loss(logits: torch.Tensor, target: torch.Tensor) -> torch.
     return F.cross_entropy(logits.reshape(-1, logits.shape[-1]), t.reshape(-1), ignore_index=-1)
 
 
-def cluster_accuracy(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """Fraction of points whose predicted cluster matches the truth after Hungarian matching of hard labels.
-
-    pred (B,N) long predicted classes, target (B,N) long (negative = ignored) -> (B,) accuracy per sample.
-    Predicted and true ids are matched one-to-one to maximise the number of agreeing points, so any
-    renaming of either side leaves the accuracy unchanged.
-    """
+def matched_correct(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Per point, whether the predicted cluster agrees with the truth after the Hungarian matching of
+    ``cluster_accuracy``: pred (B,N) long, target (B,N) long (negative = ignored) -> (B,N) bool, False on ignored
+    points.  Predicted and true ids are matched one-to-one per sample to maximise the agreeing points."""
     B = pred.shape[0]
-    acc = torch.zeros(B, dtype=torch.float64)
+    out = torch.zeros(pred.shape, dtype=torch.bool)
     for b in range(B):
-        keep = target[b] >= 0
+        keep = (target[b] >= 0).cpu()
         if not keep.any():
-            acc[b] = float("nan")
             continue
         t_ids, t_inv = np.unique(target[b][keep].cpu().numpy(), return_inverse=True)
         p_ids, p_inv = np.unique(pred[b][keep].cpu().numpy(), return_inverse=True)
         conf = np.zeros((len(t_ids), len(p_ids)))
         np.add.at(conf, (t_inv, p_inv), 1.0)
         rows, cols = linear_sum_assignment(-conf)
-        acc[b] = conf[rows, cols].sum() / keep.sum().item()
-    return acc.to(pred.device)
+        match = np.full(len(p_ids), -1)  # predicted id -> its true id (-1: unmatched, always wrong)
+        match[cols] = rows
+        out[b, keep] = torch.from_numpy(match[p_inv] == t_inv)
+    return out.to(pred.device)
+
+
+def cluster_accuracy(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Fraction of points whose predicted cluster matches the truth after Hungarian matching of hard labels.
+
+    pred (B,N) long predicted classes, target (B,N) long (negative = ignored) -> (B,) accuracy per sample (NaN for
+    a sample without a labelled point).  Predicted and true ids are matched one-to-one to maximise the number of
+    agreeing points, so any renaming of either side leaves the accuracy unchanged.
+    """
+    keep = (target >= 0).to(pred.device)
+    n = keep.sum(1).to(torch.float64)
+    hits = matched_correct(pred, target).sum(1).to(torch.float64)
+    return torch.where(n > 0, hits / n.clamp(min=1), torch.full_like(n, float("nan")))
+
+
+def error_reduction(acc, rule) -> float | None:
+    """1 - (1 - acc) / (1 - rule): the fraction of the mask rule's errors a model removes (1: all, 0: none, < 0:
+    more errors than the rule); None when the rule made none (or a value is missing)."""
+    if acc is None or rule is None or not float(rule) < 1.0:
+        return None
+    return 1.0 - (1.0 - float(acc)) / (1.0 - float(rule))
 
 
 def masked_targets(target: torch.Tensor, valid: torch.Tensor | None) -> torch.Tensor:

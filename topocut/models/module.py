@@ -7,7 +7,10 @@ unpickling project classes (``torch.load(weights_only=True)``).
 Logged: train/loss, train/loss_pos, train/loss_topo (per step and as epoch means), val/loss, val/cluster_acc,
 val/chamfer and, when the epoch held them, val/cluster_acc_seen and val/cluster_acc_unseen (held-out objects).
 Beside them, val/mask_rule_acc{,_seen,_unseen}: the accuracy of a rule with no learning, "each input cluster
-splits along the cut mask" (ids f_t * 2 + mask), the floor a learned F has to beat (docs/perception.md).
+splits along the cut mask" (ids f_t * 2 + mask), the floor a learned F has to beat (docs/perception.md), and what
+F adds to it: val/cluster_acc_rule_wrong{,_seen,_unseen}, F's cluster accuracy on the points where the rule is
+wrong (the rule scores 0 there; pooled over those points), and val/cluster_err_reduction{,_seen,_unseen},
+1 - (1 - cluster_acc) / (1 - mask_rule_acc) of the epoch means: 0 = the rule's errors, 1 = none, < 0 = worse.
 Validation values are means over the epoch's samples on all DDP ranks (``EpochMeans``), and a batch's
 ``valid`` rows (TransitionDataset: padding copies excluded) are the only ones any loss or metric counts.
 """
@@ -21,12 +24,15 @@ import lightning as L
 import torch
 
 from topocut.models.config import DynamicsConfig
-from topocut.models.losses import cluster_accuracy, dynamics_loss, masked_targets, per_sample
+from topocut.models.losses import dynamics_loss, error_reduction, masked_targets, matched_correct, per_sample
 from topocut.models.pointnet import build_model
 from topocut.utils.training import EpochMeans
 
-VAL_KEYS = ("val/loss", "val/cluster_acc", "val/chamfer", "val/mask_rule_acc", "val/cluster_acc_seen",
-            "val/mask_rule_acc_seen", "val/cluster_acc_unseen", "val/mask_rule_acc_unseen")
+SPLITS = ("", "_seen", "_unseen")
+VAL_KEYS = ("val/loss", "val/chamfer",
+            *(f"val/{k}{s}" for s in SPLITS for k in ("cluster_acc", "mask_rule_acc", "cluster_acc_rule_wrong")))
+DERIVED_KEYS = tuple(f"val/cluster_err_reduction{s}" for s in SPLITS)  # from the epoch means, at epoch end
+
 
 
 def _as_config(cfg) -> DynamicsConfig:
@@ -77,8 +83,18 @@ class DynamicsModule(L.LightningModule):
         pred_x, logits, losses = self._step(batch)
         bs, valid = batch["x_t"].shape[0], batch.get("valid")
         target = masked_targets(batch["f_t1"].long(), valid)
-        acc = cluster_accuracy(logits.argmax(-1), target)  # B (NaN: no labelled point)
-        rule = cluster_accuracy(batch["f_t"].long() * 2 + batch["mask"].long(), target)  # B
+        labelled = (target >= 0).to(logits.device)
+        ok = matched_correct(logits.argmax(-1), target).to(logits.device)  # B,N
+        rule_ok = matched_correct(batch["f_t"].long() * 2 + batch["mask"].long(), target).to(logits.device)
+
+        def frac(hit, of):  # B; NaN where a sample has none of ``of``
+            k = of.sum(1)
+            return torch.where(k > 0, (hit & of).sum(1) / k.clamp(min=1), torch.full(k.shape, float("nan"),
+                                                                                    device=k.device))
+
+        acc, rule = frac(ok, labelled), frac(rule_ok, labelled)  # B (NaN: no labelled point)
+        wrong = labelled & ~rule_ok  # where the rule is wrong
+        on_wrong, n_wrong = frac(ok, wrong), wrong.sum(1).float()
         c = batch["x_t1"].mean(dim=1, keepdim=True)  # float64 around the centroid, as in position_losses
         cd = per_sample(chamfer, (pred_x - c).double(), (batch["x_t1"] - c).double(), valid)  # B, scene units
         seen = batch.get("seen", torch.ones(bs, dtype=torch.bool, device=acc.device)).bool().to(acc.device)
@@ -87,12 +103,21 @@ class DynamicsModule(L.LightningModule):
         m.update("val/cluster_acc", acc)
         m.update("val/chamfer", cd)
         m.update("val/mask_rule_acc", rule)
+        m.update("val/cluster_acc_rule_wrong", on_wrong, weight=n_wrong)  # pooled over the rule's wrong points
         for name, sel in (("seen", seen), ("unseen", ~seen)):  # every step, empty or not (DDP sync)
             m.update(f"val/cluster_acc_{name}", acc[sel])
             m.update(f"val/mask_rule_acc_{name}", rule[sel])
+            m.update(f"val/cluster_acc_rule_wrong_{name}", on_wrong[sel], weight=n_wrong[sel])
 
     def on_validation_epoch_end(self) -> None:
-        self.val_means.log(self, prog_bar=("val/cluster_acc",))
+        values = self.val_means.compute()  # the same on every rank
+        for split in SPLITS:
+            acc, rule = values.get(f"val/cluster_acc{split}"), values.get(f"val/mask_rule_acc{split}")
+            red = None if acc is None or rule is None else error_reduction(acc, rule)
+            if red is not None:
+                values[f"val/cluster_err_reduction{split}"] = torch.tensor(red)
+        for name, value in values.items():  # already global: sync_dist only keeps Lightning's DDP check quiet
+            self.log(name, value, prog_bar=name in ("val/cluster_acc", "val/cluster_err_reduction"), sync_dist=True)
 
     def configure_optimizers(self):
         opt = torch.optim.AdamW(self.parameters(), lr=self.cfg.lr, weight_decay=self.cfg.weight_decay)

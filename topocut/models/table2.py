@@ -19,8 +19,12 @@ from pathlib import Path
 
 from topocut.data.store import ArtifactStore
 
-COLUMNS = ("model", "sort", "noise", "points", "seen", "unseen", "rule_seen", "rule_unseen", "chamfer", "parameters",
+COLUMNS = ("model", "sort", "noise", "points", "seen", "unseen", "rule_seen", "rule_unseen", "on_rule_errors_seen",
+           "on_rule_errors_unseen", "err_reduction_seen", "err_reduction_unseen", "chamfer", "parameters",
            "held_out", "epochs", "other", "dataset", "version")
+# seen / unseen: F's cluster accuracy; rule_*: the no-learning floor "split each input cluster by the cut mask";
+# on_rule_errors_*: F's accuracy on the points where that rule is wrong (the rule scores 0 there);
+# err_reduction_*: 1 - (1 - acc) / (1 - rule), the fraction of the rule's errors F removes (docs/perception.md)
 # trainer settings that change what a run learns (hardware, workers and logging do not); the seed does not either:
 # reruns of one configuration with other seeds share a row, the newest version winning
 RUN_KEYS = ("max_epochs", "max_steps", "batch_size", "val_fraction", "held_out_objects")
@@ -47,6 +51,19 @@ def _run_config(manifest: dict) -> dict:
     return out
 
 
+def _reduction(metrics: dict, split: str):
+    """val/cluster_err_reduction<split>, or for checkpoints from before it was logged, the same from the
+    accuracies their metrics hold."""
+    value = metrics.get(f"val/cluster_err_reduction{split}")
+    if value is None:
+        acc, rule = metrics.get(f"val/cluster_acc{split}"), metrics.get(f"val/mask_rule_acc{split}")
+        if acc is not None and rule is not None:
+            from topocut.models.losses import error_reduction
+
+            value = error_reduction(acc, rule)
+    return value
+
+
 def collect(root: str | Path) -> list[dict]:
     """One dict per perception checkpoint version under ``root`` (newest per configuration).
 
@@ -68,6 +85,10 @@ def collect(root: str | Path) -> list[dict]:
                    "seen": metrics.get("val/cluster_acc_seen"), "unseen": metrics.get("val/cluster_acc_unseen"),
                    "rule_seen": metrics.get("val/mask_rule_acc_seen"),
                    "rule_unseen": metrics.get("val/mask_rule_acc_unseen"),  # no-learning floor (module.py)
+                   "on_rule_errors_seen": metrics.get("val/cluster_acc_rule_wrong_seen"),
+                   "on_rule_errors_unseen": metrics.get("val/cluster_acc_rule_wrong_unseen"),
+                   "err_reduction_seen": _reduction(metrics, "_seen"),
+                   "err_reduction_unseen": _reduction(metrics, "_unseen"),
                    "chamfer": metrics.get("val/chamfer"),
                    "parameters": (manifest.get("summary") or {}).get("parameters"),
                    "held_out": "?" if held is None else ",".join(held) or "none",

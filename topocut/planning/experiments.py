@@ -230,10 +230,11 @@ def draw_pyramid(path, x0, goal, ideal, start, planned, res, ideal_res, result, 
 def writing_experiment(word: str = "CORL", n_grid: int = 48, num_samples: int = 4, iterations: int = 2,
                        seed: int = 0, out: str | None = None) -> dict:
     """Cream writing: the scripted writer vs MPPI over strokes (same goals); figure + numbers."""
-    from topocut.planning.writer import StrokeMPPI, StrokeMPPIConfig, draw_writing, write_scripted, writing_scene
+    from topocut.planning.stroke_mppi import StrokeMPPI, StrokeMPPIConfig
     from topocut.sim import SimConfig, init_taichi
     from topocut.sim.pen import CreamPen
     from topocut.tasks.config import TaskConfig
+    from topocut.tasks.writing_scene import draw_writing, write_scripted, writing_scene
 
     init_taichi("cpu", cpu_threads=1)
     sim, task = SimConfig(n_grid=n_grid), TaskConfig(name="cream_writing", word=word).validate()

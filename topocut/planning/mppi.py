@@ -19,8 +19,7 @@ from collections.abc import Callable
 import numpy as np
 
 from topocut.planning.config import ACTION_DIMS, MPPIConfig
-from topocut.planning.rollout import quantize_action
-from topocut.sim.action import KnifeAction
+from topocut.sim.action import KnifeAction, executed_action
 
 Rollout = Callable[[np.ndarray], np.ndarray]  # (K,H,4) -> (K,)
 
@@ -148,4 +147,4 @@ class MPPIPolicy:
         # the rollouts evaluated float32 vectors (quantized as make_sim_rollout runs them): execute exactly
         # that plane, not the float64 sample, which can differ by ~1e-8 (a cut grazing a lattice layer
         # then makes other pieces) or, at yaw = pi/2, by the reversed normal
-        return quantize_action(KnifeAction.from_vector(np.asarray(first).astype(np.float32)))
+        return executed_action(KnifeAction.from_vector(np.asarray(first).astype(np.float32)))

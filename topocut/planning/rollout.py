@@ -3,10 +3,15 @@
 Both share ``Scorer``: topology discovery after every cut (consistent cluster
 ids carried from the previous labels) and the spectral reward of the
 resulting fragments against the goal's pieces.
+
+Turns: where the goal's oracle (``Goal.steps``) lays pieces down between two cut directions (a Turn after its
+k-th cut: stick, dice), the runner performs it after the episode's k-th cut (``CuttingEnv.turn``; discovery
+then runs with the previous labels and no sweep, so cluster ids are kept).  The planner (MPPI, the heuristic)
+plans the cuts; the turn is the scripted primitive.  A rollout performs the turns that fall between two of
+its cuts (one at the end of its horizon cannot change the pose-invariant reward of what it scored).
 """
 from __future__ import annotations
 
-import dataclasses
 import time
 from collections import deque
 from collections.abc import Mapping
@@ -14,7 +19,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from topocut.policies.base import reset_policy
-from topocut.sim.action import POSE_FEATURE_DIM, KnifeAction, cut_mask
+from topocut.sim.action import POSE_FEATURE_DIM, KnifeAction, cut_mask, executed_action
 
 HISTORY_LEN = 3
 
@@ -39,9 +44,12 @@ class Scorer:
     """Labels (topology discovery) and reward/success of a particle state against one goal."""
 
     def __init__(self, goal, reward_cfg=None, topo_cfg=None, success_threshold: float | None = None,
-                 min_fragment_points: int = 4, device: str = "cpu"):
+                 min_fragment_points: int = 4, device: str = "cpu", success_fn=None):
+        """``success_fn(RewardResult) -> bool`` (the task's ``success``, e.g. ``lambda r: task.success(r, cfg)``)
+        decides success; without it, the total at ``success_threshold`` (None: never)."""
         self.goal, self.reward_cfg, self.topo_cfg = goal, reward_cfg, topo_cfg
         self.success_threshold, self.min_fragment_points, self.device = success_threshold, min_fragment_points, device
+        self.success_fn = success_fn
 
     def labels(self, x, damage, sweeps, previous=None) -> np.ndarray:  # N,
         from topocut.topology import discover
@@ -61,6 +69,8 @@ class Scorer:
 
         res = spectral_reward(self.fragments(x, labels), list(self.goal.fragments), self.reward_cfg)
         total = float(res.total)
+        if self.success_fn is not None:
+            return total, bool(self.success_fn(res))
         ok = self.success_threshold is not None and total >= self.success_threshold
         return total, bool(ok)
 
@@ -76,34 +86,55 @@ def topology_device(env) -> str:
     return "cuda" if getattr(getattr(env, "cfg", None), "arch", "cpu") == "cuda" else "cpu"
 
 
-def quantize_action(action: KnifeAction) -> KnifeAction:
-    """The canonical action that its own float32 vector (``to_vector``: what MPPI's rollouts evaluate and a
-    record stores) maps back to exactly, so that what runs, what is stored and its pose all agree.
-
-    Rounding to float32 can move a yaw across the canonical range's end: float32(pi/2) > pi/2 wraps to
-    about -pi/2 with the normal reversed (the cut mask inverted), so the vector is re-read until it is
-    stable (at most twice).  z_start and depth, which the vector does not hold, are kept.
-    """
-    v = action.to_vector()
-    for _ in range(4):
-        quantized = KnifeAction.from_vector(v)
-        w = quantized.to_vector()
-        if np.array_equal(w, v):
-            break
-        v = w
-    return dataclasses.replace(quantized, z_start=action.z_start, depth=action.depth)
+# The one rule from a policy's action to the executed knife pose (topocut.sim.action.executed_action), under its
+# older name: demonstrations, MPPI's rollouts, evaluation and teleop replay all run ``executed_action(action)``.
+quantize_action = executed_action
 
 
 def _as_actions(vectors: np.ndarray) -> list[KnifeAction]:
-    return [quantize_action(KnifeAction.from_vector(v)) for v in vectors]
+    return [executed_action(KnifeAction.from_vector(v)) for v in vectors]
+
+
+def turns_after(goal, k: int) -> list:
+    """The goal's Turn steps between its k-th and (k+1)-th cut (topocut.tasks.turns_after; none for a goal
+    without ``steps``)."""
+    from topocut.tasks.base import turns_after as after
+
+    return after(goal, k)
+
+
+class TurnFailed(RuntimeError):
+    """CuttingEnv.turn refused a turn (e.g. the turned pieces would leave the simulation box)."""
+
+
+def execute_turns(env, turns: list, scorer: Scorer, labels: list, xs: list) -> int:
+    """Perform ``turns`` (topocut.tasks.Turn) in every scene of ``env`` (CuttingEnv.turn: per scene, the piece
+    nearest the turn's centre), then re-discover scenes 0..len(labels)-1 with their previous labels and the
+    scene's (now empty) sweeps, so cluster ids are kept.  ``labels`` and ``xs`` (per scene) are updated in place.
+    Returns the number of turns made; a refused turn raises TurnFailed."""
+    for turn in turns:
+        try:
+            env.turn(turn)
+        except ValueError as e:
+            if not str(e).startswith("turn"):
+                raise
+            raise TurnFailed(str(e)) from e
+    if turns:
+        st = env.state()
+        for b in range(len(labels)):
+            labels[b] = scorer.labels(st.x[b], st.damage[b], st.sweeps[b], labels[b])
+            xs[b] = np.asarray(st.x[b])
+    return len(turns)
 
 
 def make_sim_rollout(env, state_dict: dict, goal, reward_cfg=None, topo_cfg=None, board_z: float = 0.05,
-                     labels=None, push: bool = False, scorer: Scorer | None = None):
+                     labels=None, push: bool = False, scorer: Scorer | None = None, cuts_done: int = 0):
     """A batched MPPI cost: sequences (K,H,4) -> -(spectral reward after executing them) (K,).
 
     Every chunk of env.batch_size sequences starts from ``state_dict`` (one
-    scene, env.get_state(0)); a chunk that diverges costs +inf (weight 0).
+    scene, env.get_state(0)); a chunk that diverges, or whose turn cannot be made, costs +inf (weight 0).
+    ``cuts_done``: the episode's cuts before ``state_dict``, so that the goal's turn after its k-th cut happens
+    between the rollout's cuts where the episode's would.
     """
     scorer = scorer or Scorer(goal, reward_cfg, topo_cfg, device=topology_device(env))
     B = int(getattr(env, "batch_size", 1))
@@ -137,7 +168,9 @@ def make_sim_rollout(env, state_dict: dict, goal, reward_cfg=None, topo_cfg=None
                         if 0 < m.sum() < len(m):
                             labs[b] = scorer.labels(st.x[b], st.damage[b], st.sweeps[b], labs[b])
                         xs[b] = np.asarray(st.x[b])
-            except Diverged:
+                    if h + 1 < H:  # the goal's turn between this cut and the next
+                        execute_turns(env, turns_after(goal, cuts_done + h + 1), scorer, labs, xs)
+            except (Diverged, TurnFailed):
                 costs[c0:c0 + n] = np.inf
                 continue
             batched = getattr(scorer, "rewards", None)  # a scorer may offer only per-scene reward()
@@ -150,7 +183,8 @@ def make_sim_rollout(env, state_dict: dict, goal, reward_cfg=None, topo_cfg=None
 
 def sim_rollout_factory(env, reward_cfg=None, topo_cfg=None, board_z: float = 0.05,
                         push: bool | Mapping[str, bool] = False):
-    """``factory(obs, goal) -> rollout`` for MPPIPolicy: plans from obs['sim_state'] / obs['particle_labels'].
+    """``factory(obs, goal) -> rollout`` for MPPIPolicy: plans from obs['sim_state'] / obs['particle_labels']
+    (and obs['cuts_done'], the episode's cuts so far: where the goal's turns fall in the horizon).
 
     ``push``: whether a rollout pushes after its cuts; a mapping {task: push} follows the goal's task, so
     that the rollouts of an evaluation over several tasks do what the executed episode does.
@@ -168,7 +202,7 @@ def sim_rollout_factory(env, reward_cfg=None, topo_cfg=None, board_z: float = 0.
         else:
             do_push = bool(push)
         return make_sim_rollout(env, obs["sim_state"], goal, reward_cfg, topo_cfg, board_z,
-                                labels=obs["particle_labels"], push=do_push)
+                                labels=obs["particle_labels"], push=do_push, cuts_done=int(obs.get("cuts_done", 0)))
 
     return factory
 
@@ -181,10 +215,10 @@ def make_step(x_t, f_t, x_t1, f_t1, action: KnifeAction, history, reward: float,
               board_z: float) -> dict:
     """One dataset record (EpisodeWriter input); history = the 3 previous pose features, oldest first.
 
-    ``action`` should be the quantized one that was executed (quantize_action): the stored float32 vector and
-    the pose are both of it, so the vector read back gives the executed plane exactly.
+    ``action`` should be the one that was executed (executed_action): the stored float32 vector and the pose are
+    both of it, so the vector read back gives the executed plane exactly.
     """
-    action = quantize_action(action)
+    action = executed_action(action)
     return {"x_t": np.asarray(x_t, np.float32).copy(), "f_t": np.asarray(f_t, np.int32).copy(),
             "x_t1": np.asarray(x_t1, np.float32).copy(), "f_t1": np.asarray(f_t1, np.int32).copy(),
             "action": action.to_vector(), "pose": action.to_matrix(board_z).astype(np.float32),
@@ -198,16 +232,20 @@ def env_board_z(env, default: float = 0.05) -> float:
 
 def run_episode(env, goal, planner, reward_cfg=None, topo_cfg=None, max_cuts: int = 5, push: bool = False,
                 observe_fn=None, progress=None, success_threshold: float | None = None,
-                scorer: Scorer | None = None, seed: int | None = None) -> tuple[list[dict], dict]:
+                scorer: Scorer | None = None, seed: int | None = None, success_fn=None) -> tuple[list[dict], dict]:
     """Execute ``planner`` (Policy) in ``env`` (already reset, scene 0) until success or max_cuts cuts.
 
     ``seed`` (the episode's) re-seeds a stochastic planner at its reset (topocut.policies.base.reset_policy).
+    ``success_fn(RewardResult) -> bool``: the task's success (Scorer); default the total at success_threshold.
+    After the k-th cut the goal's turns after its k-th cut are performed (module docstring): the next record's
+    x_t is the state after them; the summary's ``turns`` lists the cuts a turn followed.
 
-    Returns the step records and a summary; a SimulationDiverged marks the
+    Returns the step records and a summary; a SimulationDiverged (or a refused turn) marks the
     episode ``failed`` and keeps the steps recorded before it.
     """
     t0 = time.perf_counter()
-    scorer = scorer or Scorer(goal, reward_cfg, topo_cfg, success_threshold, device=topology_device(env))
+    scorer = scorer or Scorer(goal, reward_cfg, topo_cfg, success_threshold, device=topology_device(env),
+                              success_fn=success_fn)
     board_z = env_board_z(env)
     B = int(getattr(env, "batch_size", 1))
     Diverged = simulation_diverged_error()
@@ -216,13 +254,13 @@ def run_episode(env, goal, planner, reward_cfg=None, topo_cfg=None, max_cuts: in
     labels = scorer.labels(x, st.damage[0], None, None)
     reset_policy(planner, goal, seed=seed)
     history = empty_history()
-    steps, status, error = [], "ok", None
+    steps, status, error, turned = [], "ok", None, []
     for t in range(max_cuts):
         points, obs_labels = observe_fn(x, labels) if observe_fn is not None else (x, labels)
         obs = {"points": points, "labels": obs_labels, "history": np.stack(list(history)),
                "goal": goal.points, "goal_labels": goal.labels,
-               "sim_state": env.get_state(0), "particle_labels": labels}
-        action = quantize_action(planner.act(obs))  # executed, stored and its pose: one float32-exact plane
+               "sim_state": env.get_state(0), "particle_labels": labels, "cuts_done": t}
+        action = executed_action(planner.act(obs))  # executed, stored and its pose: one float32-exact plane
         env.set_state(obs["sim_state"], b=None)  # MPPI's rollouts moved the scenes: execute from the real state
         try:
             env.cut([action] * B if B > 1 else action)
@@ -242,7 +280,16 @@ def run_episode(env, goal, planner, reward_cfg=None, topo_cfg=None, max_cuts: in
             progress(1, info=f"cut {t + 1}: reward {reward:.3f}")
         if success:
             break
-    summary = {"status": status, "num_cuts": len(steps),
+        if t + 1 < max_cuts and turns_after(goal, t + 1):  # the scripted turn before the next cut
+            try:
+                lab, xb = [labels], [x]
+                execute_turns(env, turns_after(goal, t + 1), scorer, lab, xb)
+                labels, x = lab[0], xb[0]
+                turned.append(t + 1)
+            except (Diverged, TurnFailed) as e:
+                status, error = "failed", f"turn after cut {t + 1}: {type(e).__name__}: {e}"
+                break
+    summary = {"status": status, "num_cuts": len(steps), "turns": turned,
                "final_reward": steps[-1]["reward"] if steps else float("nan"),
                "success": bool(steps and steps[-1]["success"]),
                "rewards": [s["reward"] for s in steps], "actions": [s["action"].tolist() for s in steps],

@@ -25,8 +25,8 @@ from pathlib import Path
 import numpy as np
 
 from topocut.data.store import write_json_atomic
-from topocut.planning.rollout import Scorer, empty_history, env_board_z, make_step, quantize_action
-from topocut.sim.action import KnifeAction
+from topocut.planning.rollout import Scorer, empty_history, env_board_z, make_step
+from topocut.sim.action import KnifeAction, executed_action
 
 LOG_VERSION = 1
 ENTRY_TYPES = ("cut", "push", "undo")
@@ -91,8 +91,9 @@ class TeleopSession:
 
     def cut(self, vector=None) -> None:
         """Cut along the knife plane; a failed cut (SimulationDiverged) raises and changes nothing (scene restored)."""
-        # quantized: the logged float32 vector replays exactly this plane (float32(pi/2) would flip the normal)
-        action = quantize_action(KnifeAction.from_vector(self.knife if vector is None else vector))
+        # the executed pose (executed_action, as demos and evaluation): the logged float32 vector replays exactly
+        # this plane (float32(pi/2) would flip the normal)
+        action = executed_action(KnifeAction.from_vector(self.knife if vector is None else vector))
         snapshot = (self.env.get_state(0), self.x, self.labels, list(self.history), len(self.steps))
         try:
             self.env.cut([action] * self.B if self.B > 1 else action)

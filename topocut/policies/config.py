@@ -10,6 +10,8 @@ from dataclasses import dataclass
 GRAPHS = ("uniform", "absorbing")
 NOISES = ("loglinear", "geometric")
 GOAL_MODES = ("pool", "cross")
+GOAL_INPUTS = ("phi", "xyz")
+MASK_LABELS = ("goal_side", "plane_side")
 SCORE_PARAMS = ("denoiser", "direct")
 ENCODERS = ("none", "pretrained", "graphconv")
 LOSSES = ("dse", "sq")
@@ -30,7 +32,7 @@ class PDDPConfig:
     noise_eps: float = 1e-3  # loglinear: e^{-sigma(1)} = eps
     sigma_min: float = 1e-4  # geometric
     sigma_max: float = 20.0  # geometric
-    num_classes: int = 2  # mask labels (0 = keep side, 1 = +n side of the cut plane)
+    num_classes: int = 2  # mask labels (1 = the reference side of the cut plane, topocut.policies.actions)
     score_param: str = "denoiser"  # "denoiser": per-point class logits -> exact log-scores; "direct": SEDD log-scores
     scale_by_sigma: bool = True  # "direct" only: offset log-scores by their sigma-dependent baseline (SEDD trick)
     # -- network ------------------------------------------------------------
@@ -44,14 +46,18 @@ class PDDPConfig:
     time_freq_dim: int = 256  # sinusoidal sigma features
     history_len: int = 3
     pose_dim: int = 7
-    goal_hidden: int = 64  # goal encoder 3 -> 64 -> hidden
+    goal_hidden: int = 64  # goal encoder obs_dim -> 64 -> hidden over z_g = Φ(X_g, F_g)
     goal_mode: str = "pool"  # "pool": max+mean pooled goal vector joins the conditioning; "cross": cross-attention
+    # "phi": the goal cloud and its piece labels through the observation's encoder Φ (z_g = Φ(X_g, F_g), the
+    # task's goal); "xyz": the goal's positions only (task-blind: checkpoints saved before goal_input existed)
+    goal_input: str = "phi"
     center_points: bool = False  # subtract the observation centroid from observation and goal points
 
     def validate(self) -> PDDPConfig:
         _check("policy.graph", self.graph, GRAPHS)
         _check("policy.noise", self.noise, NOISES)
         _check("policy.goal_mode", self.goal_mode, GOAL_MODES)
+        _check("policy.goal_input", self.goal_input, GOAL_INPUTS)
         _check("policy.score_param", self.score_param, SCORE_PARAMS)
         if self.hidden % self.n_heads:
             raise ValueError(f"policy.hidden={self.hidden} must be divisible by policy.n_heads={self.n_heads}")
@@ -66,6 +72,9 @@ class PolicyTrainConfig:
     encoder_ckpt: str | None = None  # pretrain checkpoint for encoder="pretrained"
     num_points: int = 256  # observation points per sample (FPS)
     num_goal_points: int = 256
+    # the mask the policy learns: "goal_side" the pose-consistent label (1 = the side of the goal frame's reference
+    # direction, topocut.policies.actions); "plane_side" the dataset's stored mask (1 = the canonical plane's +n side)
+    mask_label: str = "goal_side"
     loss: str = "dse"  # "dse" (denoising score entropy) | "sq" (squared-error ablation)
     lr: float = 3e-4
     weight_decay: float = 0.0
@@ -82,6 +91,7 @@ class PolicyTrainConfig:
     def validate(self) -> PolicyTrainConfig:
         _check("policy_train.encoder", self.encoder, ENCODERS)
         _check("policy_train.loss", self.loss, LOSSES)
+        _check("policy_train.mask_label", self.mask_label, MASK_LABELS)
         if self.encoder == "pretrained" and not self.encoder_ckpt:
             raise ValueError("policy_train.encoder='pretrained' needs policy_train.encoder_ckpt (a pretrain checkpoint)")
         return self

@@ -1,7 +1,9 @@
 """Training (PDDPModule, a LightningModule) and deployment (PDDPPolicy) of the PDDP policy.
 
-Batches come from dataset step dicts (docs/contracts.md: x_t, f_t, mask, history, goal, ...),
-FPS-sampled to ``num_points`` observation and ``num_goal_points`` goal points by PolicyDataset.
+Batches come from dataset step dicts (docs/contracts.md: x_t, f_t, mask, history, goal, goal_labels, ...) through
+``topocut.policies.inputs`` -- the one builder of every learned policy's inputs -- FPS-sampled to ``num_points``
+observation and ``num_goal_points`` goal points by PolicyDataset; the mask target is the pose-consistent label of
+``topocut.policies.actions``.
 """
 from __future__ import annotations
 
@@ -13,11 +15,11 @@ import torch
 import torch.nn as nn
 from torch.optim.swa_utils import AveragedModel
 
-from topocut.metrics.sampling import valid_rows
 from topocut.policies.base import check_obs
 from topocut.policies.config import PDDPConfig, PolicyTrainConfig, SamplerConfig
 from topocut.policies.diffusion import build_noise, get_loss, sample
 from topocut.policies.encoders import build_encoder
+from topocut.policies.inputs import goal_inputs, policy_inputs, sample_indices, step_obs, step_targets
 from topocut.policies.pddp import PDDPNet
 from topocut.policies.plane import action_from_mask
 from topocut.utils.training import EpochMeans
@@ -49,69 +51,101 @@ def ema_with_warmup(decay: float):
 
 
 def subsample(n_total: int, points, n: int, seed: int) -> np.ndarray:
-    """Indices of ``n`` of the points: farthest point sampling, with repeats when there are fewer (the first
-    ``n_total`` are then each point once: ``valid_rows`` marks them)."""
-    if n_total <= n:
-        rng = np.random.default_rng(seed)
-        return np.concatenate([np.arange(n_total), rng.integers(0, n_total, n - n_total)])
-    from topocut.metrics import fps  # lazy: the metrics package
-
-    return np.asarray(fps(points, n, seed=seed, start="random"))  # random start: a fresh subset per draw
+    """Indices of ``n`` of the points (``topocut.policies.inputs.sample_indices`` with a random FPS start; the
+    first ``n_total`` are each point once when there are fewer: ``valid_rows`` marks them)."""
+    return sample_indices(np.asarray(points)[:n_total], n, seed, start="random")
 
 
 class PolicyDataset(torch.utils.data.Dataset):
-    """Step dicts (an EpisodeDataset or a list) -> fixed-size tensors for PDDP.
+    """Step dicts (an EpisodeDataset or a list) -> fixed-size tensors for PDDP (``topocut.policies.inputs``).
 
-    Each access draws a fresh FPS start point (seed from ``seed`` and a counter), a mild augmentation.
+    Each access draws a fresh FPS start point for the observation (seed from ``seed`` and a counter), a mild
+    augmentation; the goal fields are the deterministic ones every policy receives (cached per step).
+    ``mask_label``: the target mask (PolicyTrainConfig.mask_label).  Fields: points, labels, valid, history, goal,
+    goal_labels, goal_valid, mask, prev_mask (the plane-from-previous-cut floor), has_prev.
     """
 
     def __init__(self, steps, num_points: int = 256, num_goal_points: int = 256, seed: int = 0,
-                 indices=None):
+                 indices=None, mask_label: str = "goal_side", board_z: float = 0.05):
         self.steps, self.num_points, self.num_goal_points = steps, num_points, num_goal_points
         self.indices = np.arange(len(steps)) if indices is None else np.asarray(indices)
-        self.seed, self._calls = seed, 0
+        self.seed, self._calls, self.mask_label, self.board_z = seed, 0, mask_label, board_z
+        self._goals: dict[int, dict] = {}
 
     def __len__(self):
         return len(self.indices)
 
     def __getitem__(self, i):
-        s = self.steps[int(self.indices[i])]
+        j = int(self.indices[i])
+        s = self.steps[j]
         self._calls += 1
-        seed = (self.seed * 1_000_003 + int(self.indices[i]) * 7919 + self._calls) % (2**31)
-        x = np.asarray(s["x_t"], np.float32)
-        idx = subsample(len(x), x, self.num_points, seed)
-        g = np.asarray(s["goal"], np.float32)
-        gidx = subsample(len(g), g, self.num_goal_points, seed + 1)
-        return {"points": torch.from_numpy(x[idx]), "labels": torch.from_numpy(np.asarray(s["f_t"])[idx]).long(),
-                "mask": torch.from_numpy(np.asarray(s["mask"])[idx]).long(),
-                "valid": torch.from_numpy(valid_rows(idx)),  # N, False on padding copies (topocut.metrics)
-                "history": torch.from_numpy(np.asarray(s["history"], np.float32).reshape(-1)),
-                "goal": torch.from_numpy(g[gidx])}
+        seed = (self.seed * 1_000_003 + j * 7919 + self._calls) % (2**31)
+        obs = step_obs(s)
+        if j not in self._goals:
+            self._goals[j] = goal_inputs(obs["goal"], obs["goal_labels"], self.num_goal_points)
+        inp = policy_inputs(obs, self.num_points, self.num_goal_points, seed, goal=self._goals[j])
+        inp.update(step_targets(s, inp["index"], self.board_z, self.mask_label))
+        return to_tensors(inp)
+
+
+def to_tensors(inp: dict) -> dict:
+    """``policy_inputs`` (+ targets) as tensors: history flat (h*7,), ids long, masks bool."""
+    out = {}
+    for k in ("points", "labels", "valid", "goal", "goal_labels", "goal_valid", "mask", "prev_mask", "has_prev"):
+        if k in inp:
+            out[k] = torch.as_tensor(np.asarray(inp[k]))
+    for k in ("labels", "goal_labels", "mask", "prev_mask"):
+        if k in out:
+            out[k] = out[k].long()
+    out["history"] = torch.as_tensor(np.asarray(inp["history"], np.float32).reshape(-1))
+    return out
 
 
 class PolicyModel(nn.Module):
-    """Encoder + score network: context(batch) once per observation, forward(x_t, sigma, ctx) per step."""
+    """Encoder + score network: context(batch) once per observation, forward(x_t, sigma, ctx) per step.
+
+    The observation and (``goal_input="phi"``) the goal go through the same encoder: z_t = Φ(X_t, F_t),
+    z_g = Φ(X_g, F_g) with F_g the goal's piece labels (topocut.policies.inputs.goal_feature)."""
 
     def __init__(self, cfg: PDDPConfig, encoder: nn.Module):
         super().__init__()
         self.cfg, self.encoder, self.net = cfg, encoder, PDDPNet(cfg)
 
-    def context(self, points, labels, goal, history) -> dict:  # B,N,3 ; B,N ; B,G,3 ; B,21 or B,3,7
+    def context(self, points, labels, goal, history, goal_labels=None, goal_valid=None) -> dict:
+        """points B,N,3 ; labels B,N ; goal B,G,3 ; history B,21 or B,3,7 ; goal_labels B,G (None: all 0) ;
+        goal_valid B,G bool (None: every row)."""
         if self.cfg.center_points:
             c = points.mean(1, keepdim=True)  # B,1,3
             points, goal = points - c, goal - c
         z = self.encoder(points, labels)  # B,N,obs_dim
-        return self.net.context(z, goal, history.reshape(history.shape[0], -1))
+        if self.cfg.goal_input == "phi":
+            if goal_labels is None:
+                goal_labels = torch.zeros(goal.shape[:2], dtype=torch.long, device=goal.device)
+            g = self.encoder(goal, goal_labels.long())  # B,G,obs_dim: z_g = Φ(X_g, F_g)
+        else:
+            g = goal
+        return self.net.context(z, g, history.reshape(history.shape[0], -1), goal_valid)
 
     def forward(self, x_t, sigma, ctx):
         return self.net(x_t, sigma, ctx)
+
+
+def _legacy_config(cfg):
+    """A checkpoint's saved PDDPConfig dict from before ``goal_input`` builds the network it was trained as:
+    the task-blind goal encoder over the goal's positions (goal_input="xyz")."""
+    if isinstance(cfg, dict) and "goal_input" not in cfg:
+        return {**cfg, "goal_input": "xyz"}
+    return cfg
+
+
+VAL_KEYS = ("val/loss", "val/mask_acc", "val/mask_acc_majority", "val/mask_acc_prev_plane")
 
 
 class PDDPModule(L.LightningModule):
     def __init__(self, cfg: PDDPConfig | dict | None = None, encoder: str = "none", encoder_ckpt: str | None = None,
                  train: PolicyTrainConfig | dict | None = None):
         super().__init__()
-        cfg, train = _as(PDDPConfig, cfg), _as(PolicyTrainConfig, train)
+        cfg, train = _as(PDDPConfig, _legacy_config(cfg)), _as(PolicyTrainConfig, train)
         enc = build_encoder(encoder, encoder_ckpt, out_dim=cfg.obs_dim)
         cfg = dataclasses.replace(cfg, obs_dim=int(enc.out_dim)).validate()
         train = dataclasses.replace(train, encoder=encoder, encoder_ckpt=encoder_ckpt).validate()
@@ -124,7 +158,7 @@ class PDDPModule(L.LightningModule):
         self.graph = self.model.net.graph
         self.noise = build_noise(cfg.noise, cfg.noise_eps, cfg.sigma_min, cfg.sigma_max)
         self.loss_fn = get_loss(train.loss)
-        self.val_means = EpochMeans(("val/loss", "val/mask_acc"))  # epoch means over all DDP ranks
+        self.val_means = EpochMeans(VAL_KEYS)  # epoch means over all DDP ranks
 
     @classmethod
     def from_config(cls, cfg: PDDPConfig | None, train: PolicyTrainConfig) -> PDDPModule:
@@ -132,7 +166,8 @@ class PDDPModule(L.LightningModule):
 
     # -- training -------------------------------------------------------------
     def _context(self, model, batch):
-        return model.context(batch["points"], batch["labels"], batch["goal"], batch["history"])
+        return model.context(batch["points"], batch["labels"], batch["goal"], batch["history"],
+                             batch.get("goal_labels"), batch.get("goal_valid"))
 
     def loss(self, batch, model=None, t=None, generator=None) -> torch.Tensor:
         """Mean per-sample loss of ``model`` (default: the trained one) on a batch."""
@@ -166,16 +201,30 @@ class PDDPModule(L.LightningModule):
         return x
 
     def validation_step(self, batch, batch_idx):
+        """val/loss, val/mask_acc (EMA weights, sampled masks) and its floors on the same points
+        (docs/policy.md#metrics-and-their-floors): val/mask_acc_majority, the best constant mask of each sample
+        (its majority class), and val/mask_acc_prev_plane, the mask of the previous cut's plane (the majority mask
+        before a first cut)."""
         B = len(batch["mask"])
         loss = self.loss(batch, model=self.ema.module)
         masks = self.sample_masks(batch, steps=self.train_cfg.val_sample_steps)
         self.val_means.update("val/loss", loss, weight=B)
+        target = batch["mask"].to(masks.device)
         valid = batch.get("valid", torch.ones_like(masks, dtype=torch.bool)).to(masks.device)  # B,N
-        hits = ((masks == batch["mask"]) & valid).sum(1)
-        self.val_means.update("val/mask_acc", hits / valid.sum(1).clamp(min=1))  # B
+        n = valid.sum(1).clamp(min=1)
+
+        def acc(pred):  # B
+            return ((pred == target) & valid).sum(1) / n
+
+        self.val_means.update("val/mask_acc", acc(masks))
+        ones = (target.bool() & valid).sum(1) / n
+        self.val_means.update("val/mask_acc_majority", torch.maximum(ones, 1 - ones))
+        prev = batch.get("prev_mask")
+        self.val_means.update("val/mask_acc_prev_plane", acc(prev.to(masks.device)) if prev is not None
+                              else torch.empty(0))
 
     def on_validation_epoch_end(self) -> None:
-        self.val_means.log(self, prog_bar=("val/loss", "val/mask_acc"))
+        self.val_means.log(self, prog_bar=("val/loss", "val/mask_acc", "val/mask_acc_majority"))
 
     def configure_optimizers(self):
         params = [p for p in self.model.parameters() if p.requires_grad]
@@ -210,48 +259,54 @@ class PDDPPolicy:
         self.module = module.to(device).eval()
         self.device, self.board_z, self.use_ema, self.seed = torch.device(device), board_z, use_ema, int(seed)
         self.generator = torch.Generator(device=self.device).manual_seed(self.seed)
-        self.goal = None
+        self.goal, self.goal_labels = None, None
         self.last_mask = None
 
     def reset(self, goal, seed: int | None = None) -> None:
         from topocut.policies.base import mix_seed
 
         self.goal = np.asarray(goal.points if hasattr(goal, "points") else goal, np.float32)
+        labels = getattr(goal, "labels", None)
+        self.goal_labels = None if labels is None else np.asarray(labels)
         if seed is not None:  # an episode's masks do not depend on the episodes sampled before it
             self.generator = torch.Generator(device=self.device).manual_seed(mix_seed(self.seed, seed))
 
     def act(self, obs: dict):
         obs = check_obs(obs)
-        mask, action = self.sample((obs["points"], obs["labels"]), obs["goal"], obs["history"])
+        mask, action = self.sample((obs["points"], obs["labels"]), obs["goal"], obs["history"], obs["goal_labels"])
         self.last_mask = mask
         return action
 
-    def _batch(self, points, labels, goal, history, seed: int) -> dict:
-        n_pts, n_goal = self.module.train_cfg.num_points, self.module.train_cfg.num_goal_points
-        idx = subsample(len(points), points, n_pts, seed)
-        gidx = subsample(len(goal), goal, n_goal, seed + 1)
-        t = {"points": points[idx], "labels": labels[idx], "goal": goal[gidx],
-             "history": np.asarray(history, np.float32).reshape(1, -1)}
-        b = {k: torch.as_tensor(np.asarray(v))[None].to(self.device) for k, v in t.items() if k != "history"}
-        b["history"] = torch.as_tensor(t["history"]).to(self.device)
-        b["labels"] = b["labels"].long()
-        return b, idx
+    def inputs(self, obs: dict, seed: int = 0) -> dict:
+        """The world-frame input fields (topocut.policies.inputs.policy_inputs) the network gets for ``obs``."""
+        tc = self.module.train_cfg
+        return policy_inputs(obs, tc.num_points, tc.num_goal_points, seed, start="random")
 
-    def sample(self, observation, goal=None, history=None):
+    def _batch(self, obs: dict, seed: int):
+        inp = self.inputs(obs, seed)
+        b = {k: v[None].to(self.device) for k, v in to_tensors(inp).items()}
+        b["history"] = b["history"].reshape(1, -1)
+        return b, inp["index"]
+
+    def sample(self, observation, goal=None, history=None, goal_labels=None):
         """observation (points (n,3), labels (n,)) -> (mask (n,) uint8 over all n points, KnifeAction | None).
 
-        The network sees an FPS subset; the mask is spread to the other points from their nearest sampled point.
+        ``goal`` / ``goal_labels`` default to the goal of ``reset`` (labels: all 0 when it had none).  The network
+        sees an FPS subset; the mask is spread to the other points from their nearest sampled point.
         """
         points, labels = observation
         points, labels = np.asarray(points, np.float32), np.asarray(labels).astype(np.int64)
-        goal = self.goal if goal is None else np.asarray(goal, np.float32)
+        if goal is None:
+            goal, goal_labels = self.goal, (self.goal_labels if goal_labels is None else goal_labels)
         if goal is None:
             raise ValueError("PDDPPolicy.sample needs a goal: pass goal= or call reset(goal) first")
+        goal = np.asarray(goal, np.float32)
         history = np.zeros((3, 7), np.float32) if history is None else history
+        obs = {"points": points, "labels": labels, "goal": goal, "goal_labels": goal_labels, "history": history}
         action, full = None, np.zeros(len(points), np.uint8)
         for _ in range(self.scfg.retries + 1):
             seed = int(torch.randint(0, 2**31 - 1, (1,), generator=self.generator, device=self.device))
-            batch, idx = self._batch(points, labels, goal, history, seed)
+            batch, idx = self._batch(obs, seed)
             mask = self.module.sample_masks(batch, steps=self.scfg.steps, predictor=self.scfg.predictor,
                                             use_ema=self.use_ema, generator=self.generator,
                                             denoise=self.scfg.denoise, eps=self.scfg.eps)[0].cpu().numpy()

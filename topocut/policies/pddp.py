@@ -3,7 +3,9 @@
 Paper appendix "Policy Model Architecture - PDDP":
   observation z_t = Phi(X_t, F_t) (B,N,96) from a perception encoder (topocut.policies.encoders)
   + token embedding of the noisy mask state          -> per-point tokens (B,N,96)
-  goal encoder 3 -> 64 -> 96 per goal point          -> pooled (max ‖ mean) into the conditioning, or cross-attended
+  goal z_g = Phi(X_g, F_g) (B,G,96): the goal cloud and its piece labels through the same encoder as the observation
+  goal encoder 96 -> 64 -> 96 per goal point          -> pooled (max ‖ mean) into the conditioning, or cross-attended
+  (goal_input="xyz", checkpoints from before the goal labels: 3 -> 64 -> 96 on the goal's positions only)
   action history (3 x 7 = 21) -> 128;  sigma: sinusoidal 256 -> 128 -> 128 (SiLU)
   conditioning layer concat(time, history[, goal]) -> 128, feeding adaLN (128 -> 6 x 96) in every block
   12 DDiT blocks (self-attention 96 -> 288 -> 96, MLP 96 -> 384 -> 96, GELU, dropout 0.4)
@@ -53,7 +55,7 @@ class Attention(nn.Module):
         self.kv = nn.Linear(dim, 2 * dim if cross else 3 * dim, bias=False)  # self: fused qkv 96 -> 288
         self.out = nn.Linear(dim, dim, bias=False)
 
-    def forward(self, x, y=None):
+    def forward(self, x, y=None, key_mask=None):  # key_mask B,M bool: the keys attended to (None: all)
         B, N, D = x.shape
         if self.q is None:
             q, k, v = self.kv(x).chunk(3, -1)
@@ -63,7 +65,8 @@ class Attention(nn.Module):
         def heads(t):  # B,M,D -> B,h,M,D/h
             return t.view(B, t.shape[1], self.n_heads, D // self.n_heads).transpose(1, 2)
 
-        o = F.scaled_dot_product_attention(heads(q), heads(k), heads(v))  # B,h,N,D/h
+        mask = None if key_mask is None else key_mask.bool()[:, None, None, :]  # B,1,1,M
+        o = F.scaled_dot_product_attention(heads(q), heads(k), heads(v), attn_mask=mask)  # B,h,N,D/h
         return self.out(o.transpose(1, 2).reshape(B, N, D))
 
 
@@ -87,11 +90,11 @@ class DDiTBlock(nn.Module):
         nn.init.zeros_(self.ada.weight)
         nn.init.zeros_(self.ada.bias)
 
-    def forward(self, x, c, goal_tokens=None):  # x B,N,D; c B,C; goal_tokens B,G,D
+    def forward(self, x, c, goal_tokens=None, goal_mask=None):  # x B,N,D; c B,C; goal_tokens B,G,D; goal_mask B,G
         sh1, sc1, g1, sh2, sc2, g2 = self.ada(c).chunk(6, -1)
         x = x + g1[:, None] * self.drop(self.attn(modulate(self.norm1(x), sh1, sc1)))
         if self.cross is not None:
-            x = x + self.drop(self.cross(self.norm_x(x), goal_tokens))
+            x = x + self.drop(self.cross(self.norm_x(x), goal_tokens, goal_mask))
         return x + g2[:, None] * self.drop(self.mlp(modulate(self.norm2(x), sh2, sc2)))
 
 
@@ -121,7 +124,8 @@ class PDDPNet(nn.Module):
         H, C = cfg.hidden, cfg.cond_dim
         self.obs_proj = nn.Linear(cfg.obs_dim, H) if cfg.obs_dim != H else nn.Identity()
         self.token_embed = nn.Embedding(self.graph.dim, H)
-        self.goal_enc = nn.Sequential(nn.Linear(3, cfg.goal_hidden), nn.ReLU(), nn.Linear(cfg.goal_hidden, H))
+        goal_in = cfg.obs_dim if cfg.goal_input == "phi" else 3  # z_g = Phi(X_g, F_g), or legacy xyz
+        self.goal_enc = nn.Sequential(nn.Linear(goal_in, cfg.goal_hidden), nn.ReLU(), nn.Linear(cfg.goal_hidden, H))
         self.hist = nn.Linear(cfg.history_len * cfg.pose_dim, C)
         self.sigma_map = SigmaEmbedder(C, cfg.time_freq_dim)
         pooled = 2 * H if cfg.goal_mode == "pool" else 0
@@ -134,14 +138,23 @@ class PDDPNet(nn.Module):
         n_out = cfg.num_classes if cfg.score_param == "denoiser" else self.graph.dim
         self.out = FinalLayer(H, n_out, C)
 
-    def context(self, z, goal, history) -> dict:
-        """z (B,N,obs_dim) point embeddings, goal (B,G,3) goal points, history (B,h,7) -> sigma-free context."""
+    def context(self, z, goal, history, goal_valid=None) -> dict:
+        """z (B,N,obs_dim) point embeddings, goal (B,G,obs_dim) goal embeddings z_g (goal_input="xyz": (B,G,3)
+        goal points), history (B,h,7), goal_valid (B,G) bool (None: every row; padding copies are left out of
+        the pooling and the cross-attention) -> sigma-free context."""
         g = self.goal_enc(goal)  # B,G,H
         ctx = {"z": self.obs_proj(z), "hist": self.hist(history.flatten(1))}  # B,N,H ; B,C
         if self.cfg.goal_mode == "pool":
-            ctx["goal_vec"] = torch.cat([g.max(1).values, g.mean(1)], -1)  # B,2H
+            if goal_valid is None:
+                ctx["goal_vec"] = torch.cat([g.max(1).values, g.mean(1)], -1)  # B,2H
+            else:
+                w = goal_valid.to(g.dtype)[..., None]  # B,G,1
+                gmax = g.masked_fill(w == 0, float("-inf")).max(1).values
+                gmean = (g * w).sum(1) / w.sum(1).clamp(min=1.0)
+                ctx["goal_vec"] = torch.cat([gmax, gmean], -1)
         else:
             ctx["goal_tokens"] = g
+            ctx["goal_mask"] = goal_valid
         return ctx
 
     def forward(self, x_t, sigma, ctx: dict):
@@ -151,9 +164,9 @@ class PDDPNet(nn.Module):
         if "goal_vec" in ctx:
             parts.append(ctx["goal_vec"])
         c = F.silu(self.cond(torch.cat(parts, -1)))  # B,C
-        goal_tokens = ctx.get("goal_tokens")
+        goal_tokens, goal_mask = ctx.get("goal_tokens"), ctx.get("goal_mask")
         for blk in self.blocks:
-            h = blk(h, c, goal_tokens)
+            h = blk(h, c, goal_tokens, goal_mask)
         out = self.out(h, c)  # B,N,K or B,N,d
         if self.cfg.score_param == "denoiser":
             log_pi = torch.log_softmax(out.float(), -1)  # B,N,K

@@ -98,7 +98,10 @@ def smallest_eigenpairs(L, m: int, method: str = "eigsh"):
     n = L.shape[0]
     if method == "eigsh" and m < n - 1:
         try:
-            w, v = sla.eigsh(L.tocsc(), k=m, sigma=-1e-3, which="LM")
+            # a fixed start vector: ARPACK's default is random per process, which moved R in its last bits
+            # between identical runs (not np.ones: that is L's null vector)
+            v0 = np.random.default_rng(0).uniform(-1, 1, n)
+            w, v = sla.eigsh(L.tocsc(), k=m, sigma=-1e-3, which="LM", v0=v0)
         except (sla.ArpackNoConvergence, RuntimeError):
             w = None  # shift-invert failed (e.g. a singular factorisation): use the dense solver below
         if w is not None:

@@ -11,10 +11,10 @@ import importlib
 _LAZY = {
     "CuttingEnv": "topocut.sim.env", "SimState": "topocut.sim.env", "CutInfo": "topocut.sim.env",
     "SimulationDiverged": "topocut.sim.env", "init_taichi": "topocut.sim.mpm", "MPMSolver": "topocut.sim.mpm",
-    "SimConfig": "topocut.sim.config", "KnifeAction": "topocut.sim.action", "KnifeSweep": "topocut.sim.action",
-    "cut_mask": "topocut.sim.action", "OBJECTS": "topocut.sim.objects", "SEEN": "topocut.sim.objects",
-    "UNSEEN": "topocut.sim.objects", "ObjectPose": "topocut.sim.objects", "random_pose": "topocut.sim.objects",
-    "object_sdf": "topocut.sim.objects", "sample_object": "topocut.sim.objects",
+    "SimConfig": "topocut.sim.config", "TuningConfig": "topocut.sim.config", "KnifeAction": "topocut.sim.action",
+    "KnifeSweep": "topocut.sim.action", "cut_mask": "topocut.sim.action", "OBJECTS": "topocut.sim.objects",
+    "SEEN": "topocut.sim.objects", "UNSEEN": "topocut.sim.objects", "ObjectPose": "topocut.sim.objects",
+    "random_pose": "topocut.sim.objects", "object_sdf": "topocut.sim.objects", "sample_object": "topocut.sim.objects",
     "render_particles": "topocut.sim.render", "write_gif": "topocut.sim.render",
 }
 __all__ = sorted(_LAZY)

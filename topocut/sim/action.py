@@ -189,3 +189,26 @@ class KnifeSweep:
     @classmethod
     def fromdict(cls, d: dict) -> KnifeSweep:
         return cls(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items()})
+
+
+def executed_action(action: KnifeAction) -> KnifeAction:
+    """The knife pose that runs for a policy's ``action``: the one rule of demonstrations, evaluation and teleop
+    replay (topocut.planning.rollout.run_episode, topocut.eval.protocol.evaluate_episode, TeleopSession.cut).
+
+    The canonical action that its own float32 vector (``to_vector``: what MPPI's rollouts evaluate, a dataset
+    record and an evaluation episode store, and a teleop log holds) maps back to exactly, so that what runs, what
+    is stored and its pose all agree.  Rounding to float32 can move a yaw across the canonical range's end:
+    float32(pi/2) > pi/2 wraps to about -pi/2 with the normal reversed (the plane-side mask inverted), so the
+    vector is re-read until it is stable (at most twice).  z_start and depth, which the vector does not hold,
+    are kept.  Idempotent: ``executed_action(executed_action(a)) == executed_action(a)``.
+    """
+    from dataclasses import replace
+
+    v = action.to_vector()
+    for _ in range(4):
+        quantized = KnifeAction.from_vector(v)
+        w = quantized.to_vector()
+        if np.array_equal(w, v):
+            break
+        v = w
+    return replace(quantized, z_start=action.z_start, depth=action.depth)

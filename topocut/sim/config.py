@@ -2,12 +2,124 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from dataclasses import fields as dataclass_fields
 
 PUSH_MODES = ("separate", "press", "settle", "none")
 KNIFE_MODES = ("wedge", "sticky")
 ARCHS = ("cpu", "cuda")
 ROTATIONS = ("auto", "polar", "svd")
+SWITCHES = ("auto", "on", "off")
+LAYOUTS = ("auto", "aos", "soa")
+
+
+@dataclass
+class TuningConfig:
+    """GPU/performance switches (Hydra group ``sim/tuning``, keys ``sim.tuning.*``; docs/sim.md, "GPU tuning
+    switches").  They choose how the substeps are launched, laid out and summed, not the physics: results
+    change by float summation order or rounding at most (the SVD against the polar iteration), as
+    tests/test_sim_{fused,grid_box,warp_scatter,resort,grid_layout,block_dim}.py check.  ``auto`` resolves
+    from the backend (``sim.arch``) and the batch, which the methods below take as arguments."""
+
+    fuse_substeps: int = 16  # substeps per Python call in simulate() (a kernel graph); 1 = a call per phase
+    check_every: int = 200  # substeps between divergence checks (a host sync)
+    core_rotation: str = "auto"  # healthy core's R: polar (Newton) | svd | auto = polar on cpu, svd on cuda
+    grid_box: str = "auto"  # clear/update only the nodes the scatter wrote: on | off | auto (off for B=1 on cuda)
+    warp_scatter: str = "auto"  # p2g sums a warp's same-cell stencils by shuffles: on (cuda only) | off | auto = on on cuda
+    resort_every: int = -1  # substeps between re-sorts of the scatter's visiting order by cell; 0 never, -1 auto
+    grid_layout: str = "auto"  # grid nodes: aos (one struct each) | soa (an array per component) | auto = soa on cuda
+    scatter_block_dim: int = 0  # CUDA threads per block of the scatter (caps its registers); 0 = auto
+    gather_block_dim: int = 0  # likewise for the gather (g2p); 0 = auto
+
+    def core_rotation_method(self, arch: str) -> str:
+        """'svd' on a GPU: skin and core particles share warps, which would otherwise run both the SVD
+        (skin, damaged) and the polar iteration (healthy core); on a CPU the cheaper polar iteration wins."""
+        if self.core_rotation != "auto":
+            return self.core_rotation
+        return "svd" if arch == "cuda" else "polar"
+
+    def grid_box_enabled(self, arch: str, batch_size: int) -> bool:
+        """The object fills a few percent of the n^3 grid: on a CPU the whole-grid clear and update cost up to a
+        third of a substep (48^3, 4 scenes), on an H100 135 of 752 us (84^3, 16 scenes).  The box's bounds are
+        read on the device before its loops (3 small serial tasks, ~20 us of one scene's 60-90 us on an
+        H100), so auto leaves it off for a single scene on a GPU (docs/benchmarks.md)."""
+        if self.grid_box != "auto":
+            return self.grid_box == "on"
+        return arch != "cuda" or batch_size > 1
+
+    def warp_scatter_enabled(self, arch: str) -> bool:
+        """The scatter is bound by its global atomics on a GPU (4 per stencil node); lanes of a warp whose
+        particles share a base cell add their stencils with shuffles first, so one lane per run issues them
+        (docs/sim.md).  Warp shuffles exist only on CUDA."""
+        if self.warp_scatter != "auto":
+            return self.warp_scatter == "on"
+        return arch == "cuda"
+
+    def grid_layout_method(self, arch: str) -> str:
+        """'soa' on a GPU, where a warp's scatter atomics land on neighbouring nodes (in one array per component
+        they share memory sectors, as we read the timings: a batched substep 10-15% faster on an H100); 'aos' on
+        a CPU, where a thread adds a node's four values one after another (arrays 13-17% slower there)."""
+        if self.grid_layout != "auto":
+            return self.grid_layout
+        return "soa" if arch == "cuda" else "aos"
+
+    def block_dims(self, arch: str, batch_size: int) -> tuple[int | None, int | None]:
+        """CUDA threads per block of the scatter and of the gather (None on the CPU: Taichi's own chunking).
+
+        Taichi marks every GPU task with launch bounds (maxntid = block_dim, minctasm = 2), so ptxas keeps a
+        task's registers at or below 65536 / (2 block_dim): 128 threads leave it uncapped (the scatter takes
+        91, the gather 155), 256 cap it at 128, 384 at 85, 512 at 64.  Fewer registers let more warps stay on
+        an SM (what a batch needs: its scatter is latency-bound at 28% occupancy), at the risk of spills.
+        auto: a batch's scatter takes 384 (H100, 16 scenes: 84^3 190-196 -> 181-187 us per substep, 128^3 518.2 ->
+        472.2, the warp scatter); a single scene, one partial wave of blocks, keeps 128, and so do the plain
+        scatter (not timed at 384) and the gather (384: slower).  Results change only by the GPU's float atomics
+        order (docs/benchmarks.md)."""
+        if arch != "cuda":
+            return None, None
+        batch_warp = batch_size > 1 and self.warp_scatter_enabled(arch)
+        return self.scatter_block_dim or (384 if batch_warp else 128), self.gather_block_dim or 128
+
+    def resort_interval(self, arch: str) -> int:
+        """Substeps between re-sorts of the scatter's particle order by base cell (0: never).  Only the warp
+        scatter gains from it (longer same-cell runs, fewer atomics), so auto sorts every 64 substeps with it
+        and never without it (a counting sort queued on the device, no host sync; docs/benchmarks.md)."""
+        if self.resort_every >= 0:
+            return self.resort_every
+        return 64 if self.warp_scatter_enabled(arch) else 0
+
+    def validate(self, arch: str, batch_size: int, n_grid: int, n_fields: int) -> TuningConfig:
+        """Checks of the switches against the sim they tune; a ValueError naming ``sim.tuning.<key>``."""
+        def bad(key, msg):
+            raise ValueError(f"sim.tuning.{key}: {msg}")
+
+        if not 1 <= self.fuse_substeps <= 256:
+            bad("fuse_substeps", f"{self.fuse_substeps} must lie in [1, 256]")
+        if self.check_every < 1:
+            bad("check_every", f"{self.check_every} must be >= 1 (substeps between divergence checks)")
+        if self.core_rotation not in ROTATIONS:
+            bad("core_rotation", f"{self.core_rotation!r}; valid: {', '.join(ROTATIONS)}")
+        if self.grid_box not in SWITCHES:
+            bad("grid_box", f"{self.grid_box!r}; valid: {', '.join(SWITCHES)}")
+        if self.warp_scatter not in SWITCHES:
+            bad("warp_scatter", f"{self.warp_scatter!r}; valid: {', '.join(SWITCHES)}")
+        if self.warp_scatter == "on" and arch != "cuda":
+            bad("warp_scatter", f"on needs sim.arch=cuda (warp shuffles), got sim.arch={arch!r}; use auto or off")
+        if self.warp_scatter_enabled(arch) and batch_size * n_fields * n_grid ** 3 >= 2 ** 31:
+            bad("warp_scatter", f"run keys (scene, cell) overflow 32 bits at batch_size={batch_size}, "
+                                f"n_grid={n_grid}; use fewer scenes or sim.tuning.warp_scatter=off")
+        if self.grid_layout not in LAYOUTS:
+            bad("grid_layout", f"{self.grid_layout!r}; valid: {', '.join(LAYOUTS)}")
+        for key in ("scatter_block_dim", "gather_block_dim"):
+            bd = getattr(self, key)
+            if bd and not (32 <= bd <= 1024 and bd % 32 == 0):
+                bad(key, f"{bd}; valid: 0 (auto) or a multiple of 32 in [32, 1024] (CUDA threads per block)")
+        if self.resort_every < -1:
+            bad("resort_every", f"{self.resort_every}; valid: -1 (auto), 0 (never) or a number of substeps")
+        if self.resort_interval(arch) and batch_size * n_grid ** 3 >= 2 ** 31:
+            bad("resort_every", f"cell indices overflow 32 bits at batch_size={batch_size}, n_grid={n_grid}; "
+                                f"use fewer scenes or sim.tuning.resort_every=0")
+        return self
 
 
 @dataclass
@@ -19,14 +131,7 @@ class SimConfig:
     particle_spacing: float | None = None  # lattice spacing; None = half a grid cell
     batch_size: int = 1  # B independent scenes simulated together
     arch: str = "cpu"
-    fuse_substeps: int = 16  # substeps per Python call in simulate() (a kernel graph); 1 = a call per phase
-    core_rotation: str = "auto"  # healthy core's R: polar (Newton) | svd | auto = polar on cpu, svd on cuda
-    grid_box: str = "auto"  # clear/update only the nodes the scatter wrote: on | off | auto (off for B=1 on cuda)
-    warp_scatter: str = "auto"  # p2g sums a warp's same-cell stencils by shuffles: on (cuda only) | off | auto = on on cuda
-    resort_every: int = -1  # substeps between re-sorts of the scatter's visiting order by cell; 0 never, -1 auto
-    grid_layout: str = "auto"  # grid nodes: aos (one struct each) | soa (an array per component) | auto = soa on cuda
-    scatter_block_dim: int = 0  # CUDA threads per block of the scatter (caps its registers); 0 = auto
-    gather_block_dim: int = 0  # likewise for the gather (g2p); 0 = auto
+    tuning: TuningConfig = field(default_factory=TuningConfig)  # GPU/performance switches (sim.tuning)
     # -- materials (0: plasto-elastic core, 1: von Mises skin) -------------------
     mu: float = 2083.33
     lam: float = 1388.89
@@ -61,7 +166,6 @@ class SimConfig:
     osc_frequency: float = 60.0  # [Hz]
     cut_substeps: int | None = None  # fixes the substeps of the travel (the speed follows); None = from speed
     dwell_time: float = 0.005  # [s] knife resting on the board before the push / withdrawal
-    check_every: int = 200  # substeps between divergence checks (host sync)
     # -- separation: one velocity field per piece colour (docs/sim.md, "Pieces and contact") ----------
     fields: int = 8  # velocity fields per grid node: touching pieces take different ones (1 = single-field MPM)
     contact_friction: float = 0.3  # Coulomb coefficient between pieces (multi-field contact)
@@ -72,6 +176,14 @@ class SimConfig:
     settle_time: float = 0.02  # [s] free settling afterwards
     press_depth: float = 0.006  # 'press': how far a flat plate goes below the object's top
     press_speed: float = 0.3
+
+    def __post_init__(self):
+        if isinstance(self.tuning, Mapping):  # SimConfig(tuning={"warp_scatter": "off"}), or a plain DictConfig
+            valid = [f.name for f in dataclass_fields(TuningConfig)]
+            for key in self.tuning:
+                if key not in valid:
+                    raise ValueError(f"sim.tuning.{key}: unknown key; valid keys of sim.tuning: {', '.join(valid)}")
+            self.tuning = TuningConfig(**self.tuning)
 
     # -- derived -------------------------------------------------------------------
     @property
@@ -97,62 +209,6 @@ class SimConfig:
         """Largest stable substep: dx / (wave speed + knife speed)."""
         return self.dx / (self.wave_speed() + self.max_knife_speed())
 
-    def core_rotation_method(self) -> str:
-        """'svd' on a GPU: skin and core particles share warps, which would otherwise run both the SVD
-        (skin, damaged) and the polar iteration (healthy core); on a CPU the cheaper polar iteration wins."""
-        if self.core_rotation != "auto":
-            return self.core_rotation
-        return "svd" if self.arch == "cuda" else "polar"
-
-    def grid_box_enabled(self) -> bool:
-        """The object fills a few percent of the n^3 grid: on a CPU the whole-grid clear and update cost up to a
-        third of a substep (48^3, 4 scenes), on an H100 135 of 752 us (84^3, 16 scenes).  The box's bounds are
-        read on the device before its loops (3 small serial tasks, ~20 us of one scene's 60-90 us on an
-        H100), so auto leaves it off for a single scene on a GPU (docs/benchmarks.md)."""
-        if self.grid_box != "auto":
-            return self.grid_box == "on"
-        return self.arch != "cuda" or self.batch_size > 1
-
-    def warp_scatter_enabled(self) -> bool:
-        """The scatter is bound by its global atomics on a GPU (4 per stencil node); lanes of a warp whose
-        particles share a base cell add their stencils with shuffles first, so one lane per run issues them
-        (docs/sim.md).  Warp shuffles exist only on CUDA."""
-        if self.warp_scatter != "auto":
-            return self.warp_scatter == "on"
-        return self.arch == "cuda"
-
-    def grid_layout_method(self) -> str:
-        """'soa' on a GPU, where a warp's scatter atomics land on neighbouring nodes (in one array per component
-        they share memory sectors, as we read the timings: a batched substep 10-15% faster on an H100); 'aos' on
-        a CPU, where a thread adds a node's four values one after another (arrays 13-17% slower there)."""
-        if self.grid_layout != "auto":
-            return self.grid_layout
-        return "soa" if self.arch == "cuda" else "aos"
-
-    def block_dims(self) -> tuple[int | None, int | None]:
-        """CUDA threads per block of the scatter and of the gather (None on the CPU: Taichi's own chunking).
-
-        Taichi marks every GPU task with launch bounds (maxntid = block_dim, minctasm = 2), so ptxas keeps a
-        task's registers at or below 65536 / (2 block_dim): 128 threads leave it uncapped (the scatter takes
-        91, the gather 155), 256 cap it at 128, 384 at 85, 512 at 64.  Fewer registers let more warps stay on
-        an SM (what a batch needs: its scatter is latency-bound at 28% occupancy), at the risk of spills.
-        auto: a batch's scatter takes 384 (H100, 16 scenes: 84^3 190-196 -> 181-187 us per substep, 128^3 518.2 ->
-        472.2, the warp scatter); a single scene, one partial wave of blocks, keeps 128, and so do the plain
-        scatter (not timed at 384) and the gather (384: slower).  Results change only by the GPU's float atomics
-        order (docs/benchmarks.md)."""
-        if self.arch != "cuda":
-            return None, None
-        batch_warp = self.batch_size > 1 and self.warp_scatter_enabled()
-        return self.scatter_block_dim or (384 if batch_warp else 128), self.gather_block_dim or 128
-
-    def resort_interval(self) -> int:
-        """Substeps between re-sorts of the scatter's particle order by base cell (0: never).  Only the warp
-        scatter gains from it (longer same-cell runs, fewer atomics), so auto sorts every 64 substeps with it
-        and never without it (a counting sort queued on the device, no host sync; docs/benchmarks.md)."""
-        if self.resort_every >= 0:
-            return self.resort_every
-        return 64 if self.warp_scatter_enabled() else 0
-
     def substeps(self, seconds: float) -> int:
         """Substeps that cover ``seconds`` of simulated time (durations are in seconds so that a push or a
         dwell lasts as long at every grid; the substep count follows dt)."""
@@ -173,30 +229,7 @@ class SimConfig:
             bad("knife_mode", f"{self.knife_mode!r}; valid: {', '.join(KNIFE_MODES)}")
         if self.push_mode not in PUSH_MODES:
             bad("push_mode", f"{self.push_mode!r}; valid: {', '.join(PUSH_MODES)}")
-        if self.core_rotation not in ROTATIONS:
-            bad("core_rotation", f"{self.core_rotation!r}; valid: {', '.join(ROTATIONS)}")
-        if self.grid_box not in ("auto", "on", "off"):
-            bad("grid_box", f"{self.grid_box!r}; valid: auto, on, off")
-        if self.warp_scatter not in ("auto", "on", "off"):
-            bad("warp_scatter", f"{self.warp_scatter!r}; valid: auto, on, off")
-        if self.warp_scatter == "on" and self.arch != "cuda":
-            bad("warp_scatter", f"on needs arch=cuda (warp shuffles), got arch={self.arch!r}; use auto or off")
-        if self.warp_scatter_enabled() and self.batch_size * self.fields * self.n_grid ** 3 >= 2 ** 31:
-            bad("warp_scatter", f"run keys (scene, cell) overflow 32 bits at batch_size={self.batch_size}, "
-                                f"n_grid={self.n_grid}; use fewer scenes or warp_scatter=off")
-        if self.grid_layout not in ("auto", "aos", "soa"):
-            bad("grid_layout", f"{self.grid_layout!r}; valid: auto, aos, soa")
-        for key in ("scatter_block_dim", "gather_block_dim"):
-            bd = getattr(self, key)
-            if bd and not (32 <= bd <= 1024 and bd % 32 == 0):
-                bad(key, f"{bd}; valid: 0 (auto) or a multiple of 32 in [32, 1024] (CUDA threads per block)")
-        if self.resort_every < -1:
-            bad("resort_every", f"{self.resort_every}; valid: -1 (auto), 0 (never) or a number of substeps")
-        if self.resort_interval() and self.batch_size * self.n_grid ** 3 >= 2 ** 31:
-            bad("resort_every", f"cell indices overflow 32 bits at batch_size={self.batch_size}, n_grid={self.n_grid}; "
-                                f"use fewer scenes or resort_every=0")
-        if not 1 <= self.fuse_substeps <= 256:
-            bad("fuse_substeps", f"{self.fuse_substeps} must lie in [1, 256]")
+        self.tuning.validate(self.arch, self.batch_size, self.n_grid, self.fields)
         if self.batch_size < 1:
             bad("batch_size", f"{self.batch_size} must be >= 1")
         if not 0 < self.cfl <= 1:
@@ -227,8 +260,6 @@ class SimConfig:
             bad("contact_friction", f"{self.contact_friction} must be >= 0 (a Coulomb coefficient)")
         if not 0 <= self.gravity <= 1000:
             bad("gravity", f"{self.gravity}; valid: 0 to 1000 (units/s^2 along -z; 9.8 is Earth's)")
-        if self.check_every < 1:
-            bad("check_every", f"{self.check_every} must be >= 1 (substeps between divergence checks)")
         if not 0 < self.j_min < 1 < self.j_max:
             bad("j_min", f"need 0 < j_min < 1 < j_max (got {self.j_min}, {self.j_max})")
         for key in ("friction", "knife_friction"):

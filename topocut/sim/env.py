@@ -14,7 +14,9 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -60,6 +62,7 @@ class CutInfo:
     substeps: int  # substeps the batch ran: the largest of substeps_per_scene
     wall_time: float
     substeps_per_scene: np.ndarray | None = None  # B, each scene's own budget (travel + dwell); frozen after it
+    split_time: float = 0.0  # [s] of wall_time on the host finding the pieces the cut makes (pieces.py)
 
 
 def cell_order(x: np.ndarray, n_grid: int) -> np.ndarray:
@@ -81,8 +84,8 @@ class CuttingEnv:
         self.cfg = dataclasses.replace(cfg, batch_size=self.B).validate()
         init_taichi(self.cfg.arch)
         self.dt = self.cfg.effective_dt()
-        self.fuse = self.cfg.fuse_substeps
-        self.resort = self.cfg.resort_interval()
+        self.fuse = self.cfg.tuning.fuse_substeps
+        self.resort = self.cfg.tuning.resort_interval(self.cfg.arch)
         self.solver: MPMSolver | None = None
         self.n = 0
         self.object = None
@@ -201,7 +204,7 @@ class CuttingEnv:
         for the divergence check, every ``check_every`` substeps and at the end.
         """
         s = self._need()
-        k, every = self.fuse, self.cfg.check_every
+        k, every = self.fuse, self.cfg.tuning.check_every
         i = 0
         while i < substeps:
             m = k if substeps - i >= k > 1 else 1
@@ -247,17 +250,26 @@ class CuttingEnv:
         body = s.body.to_numpy()
         side = np.zeros((self.B, cfg.fields), np.int32)
         reach = cfg.knife_half_thickness + cfg.margin + 2 * cfg.dx  # where the wedge acts on a node's fields
-        for b, sw in enumerate(sweeps):
-            key = next((c for c in bonds if np.array_equal(x[c], x[b])), None)
+        searched = []  # scenes whose neighbour search ran; a scene holding the same particles reuses it
+        for b in range(self.B):
+            key = next((c for c in searched if np.array_equal(x[c], x[b])), None)
             if key is None:
-                key, bonds[b] = b, P.bonds(x[b], cfg.spacing)
-            before = self.piece[b]
-            after = P.split(x[b], before, sw, cfg.spacing, bonds[key])
-            self.push_side[b] = P.cut_off_side(x[b], before, after, sw)
+                searched.append(b)
+                bonds[b] = P.bonds(x[b], cfg.spacing)
+            else:
+                bonds[b] = bonds[key]
+
+        def one(b):  # numpy / scipy release the GIL in the large array work: scenes run in threads
+            before, sw = self.piece[b], sweeps[b]
+            after = P.split(x[b], before, sw, cfg.spacing, bonds[b])
             field, conflicts = P.colour(x[b], after, cfg.n_grid, cfg.fields)
-            self.field_conflicts += conflicts
-            self.piece[b], body[b, :self.n] = after, field
-            side[b] = P.field_sides(x[b], field, cfg.fields, sw, reach)
+            return after, field, conflicts, P.cut_off_side(x[b], before, after, sw), \
+                P.field_sides(x[b], field, cfg.fields, sw, reach)
+
+        with ThreadPoolExecutor(max_workers=min(self.B, os.cpu_count() or 1)) as pool:
+            for b, (after, field, conflicts, cut_off, sides) in enumerate(pool.map(one, range(self.B))):
+                self.piece[b], body[b, :self.n], self.push_side[b], side[b] = after, field, cut_off, sides
+                self.field_conflicts += conflicts
         s.body.from_numpy(body)
         s.field_side.from_numpy(side.reshape(-1))
         s.n_fields[None] = max(int(s.n_fields[None]), int(body[:, :self.n].max()) + 1)  # only grows (see below)
@@ -309,7 +321,9 @@ class CuttingEnv:
                              n=tuple(map(float, nrm)), half_length=cfg.knife_half_length + cfg.osc_amplitude,
                              depth=float(depth[b]), half_thickness=cfg.knife_half_thickness + cfg.margin)
                   for b, (u, w, nrm) in enumerate(frames)]
+        t_split = time.perf_counter()
         self._split(x, sweeps)
+        t_split = time.perf_counter() - t_split
         # each scene's own budget (cut_substeps exactly: ceil(depth / (speed dt)) may round up by one)
         travel = [cfg.cut_substeps if cfg.cut_substeps is not None else int(math.ceil(depth[b] / (speed[b] * self.dt)))
                   for b in range(self.B)]
@@ -332,7 +346,61 @@ class CuttingEnv:
         return CutInfo(sweeps=sweeps, force=s.k_imp.to_numpy() / duration[:, None], peak_force=s.k_peak.to_numpy(),
                        work=s.k_work.to_numpy().astype(np.float64), knife_end=np.asarray(ends),
                        newly_damaged=s.damage.to_numpy()[:, :self.n].sum(1) - dmg0, substeps=total,
-                       wall_time=time.perf_counter() - t_wall, substeps_per_scene=totals)
+                       wall_time=time.perf_counter() - t_wall, substeps_per_scene=totals, split_time=t_split)
+
+    def turn(self, turn, select: np.ndarray | None = None) -> np.ndarray:
+        """Pick pieces up, turn them rigidly and lay them on the board (docs/tasks.md#turn-primitive).
+
+        ``turn`` is a topocut.tasks.Turn (rotation about a horizontal axis by an angle, a target centroid);
+        ``select`` (N,) or (B,N) bool names the particles; by default, per scene, the piece (``piece`` label)
+        whose centroid is nearest ``turn.center``.  The selected particles move as one rigid body about their
+        *current* centroid: x <- R (x - c) + target, lowered or raised so their lowest particle rests half a
+        cell above the board; v <- 0, F <- R F R^T, C <- R C R^T (a rotated elastic state).  Every scene then
+        settles sim.settle_time seconds.  Piece labels stay; velocity fields are coloured anew for the new
+        neighbours; the scene's sweeps are cleared (the knife has not cut since).  Returns the (B,N) mask."""
+        cfg, s, n = self.cfg, self._need(), self.n
+        x = s.x.to_numpy()  # B,cap,3
+        if select is None:
+            mask = np.zeros((self.B, n), bool)
+            c_goal = np.asarray(turn.center, np.float64)
+            for b in range(self.B):
+                lab = self.piece[b]
+                cnt = np.bincount(lab)
+                cen = np.stack([np.bincount(lab, x[b, :n, d], minlength=len(cnt)) for d in range(3)], -1)
+                cen = cen / np.maximum(cnt, 1)[:, None]
+                dist = np.where(cnt > 0, np.linalg.norm(cen - c_goal, axis=1), np.inf)
+                mask[b] = lab == int(np.argmin(dist))
+        else:
+            mask = np.broadcast_to(np.asarray(select, bool), (self.B, n)).copy()
+        R = turn.rotation().astype(np.float64)
+        target = np.asarray(turn.target, np.float64)
+        F, C, v = s.F.to_numpy(), s.C.to_numpy(), s.v.to_numpy()
+        body = s.body.to_numpy()
+        lo, hi = 2.5 * cfg.dx, 1.0 - 2.5 * cfg.dx  # the solver's boundary band
+        for b in range(self.B):
+            sel = np.flatnonzero(mask[b])
+            if not len(sel):
+                continue
+            p = x[b, sel].astype(np.float64)
+            q = (p - p.mean(0)) @ R.T + target
+            q[:, 2] += cfg.board_z + 0.5 * cfg.dx - q[:, 2].min()  # rest half a cell above the board
+            if q[:, :2].min() < lo or q.max() > hi:  # (z rests on the board, above the boundary band)
+                raise ValueError(f"turn: the turned pieces would leave the simulation box [{lo:.3f}, {hi:.3f}] "
+                                 f"(target {tuple(np.round(target, 3))}); move turn.target")
+            x[b, sel] = q
+            v[b, sel] = 0
+            F[b, sel] = R @ F[b, sel] @ R.T
+            C[b, sel] = R @ C[b, sel] @ R.T
+            body[b, :n] = P.colour(x[b, :n].astype(np.float64), self.piece[b], cfg.n_grid, cfg.fields)[0]
+            self.sweeps[b] = []
+        for fld, arr in ((s.x, x), (s.v, v), (s.F, F), (s.C, C), (s.body, body)):
+            fld.from_numpy(arr.astype(np.float32) if arr.dtype != np.int32 else arr)
+        s.field_side.fill(0)
+        s.n_fields[None] = max(int(s.n_fields[None]), int(body[:, :n].max()) + 1)
+        s.sort_by_cell(n, self.resort > 0)
+        self.push_side[:] = 0
+        self.simulate(cfg.substeps(cfg.settle_time))
+        return mask
 
     def push(self) -> None:
         """After a cut, per sim.push_mode (docs/sim.md); then the pieces settle for sim.settle_time seconds.

@@ -74,7 +74,8 @@ class MPMSolver(Materials, Knife):
 
     def __init__(self, cfg: SimConfig, B: int, capacity: int):
         self.cfg, self.B, self.capacity = cfg, B, capacity
-        self.rotation = cfg.core_rotation_method()
+        tune = cfg.tuning  # GPU/performance switches, resolved for this backend and batch
+        self.rotation = tune.core_rotation_method(cfg.arch)
         n = self.n_grid = cfg.n_grid
         self.dx, self.inv_dx, self.dt = 1.0 / n, float(n), cfg.effective_dt()
         self.vol = cfg.spacing ** 3
@@ -104,14 +105,14 @@ class MPMSolver(Materials, Knife):
         else:  # a CPU thread walks its particles one by one: one struct each, a cache line or two (20% faster, B=4)
             fb.dense(ti.ij, (B, capacity)).place(*particle)
         fb.dense(ti.i, capacity).place(self.material)
-        if cfg.grid_layout_method() == "soa":  # an array each for m, v_x, v_y, v_z: a warp's atomics on a z row
+        if tune.grid_layout_method(cfg.arch) == "soa":  # an array each of m, v_x, v_y, v_z: a warp's atomics on a z row
             for e in (self.grid_m, *(ScalarField(c) for c in self.grid_v._get_field_members())):  # of nodes hit
                 fb.dense(ti.axes(0, 1, 2, 3), (B * K, n, n, n)).place(e)  # fewer memory sectors (10-15% on an H100)
         else:  # one struct per node: a CPU thread adds a node's four values one after another
             fb.dense(ti.axes(0, 1, 2, 3), (B * K, n, n, n)).place(self.grid_v, self.grid_m)
         fb.dense(ti.i, B * K).place(self.field_side)
         fb.dense(ti.ij, (B, self.lanes)).place(self.order, self.cell_key)
-        self.can_sort = cfg.resort_interval() > 0  # the counters cost 4 bytes a node: only when re-sorting
+        self.can_sort = tune.resort_interval(cfg.arch) > 0  # the counters cost 4 bytes a node: only when re-sorting
         fb.dense(ti.i, B * n ** 3 if self.can_sort else 1).place(self.cell_slot)
         # knife per scene: start edge midpoint, frame (u, w, n), half extents, direction and length of travel,
         # speed, oscillation amplitude, opening speed of the wedge, smooth start/stop (the push)
@@ -121,10 +122,11 @@ class MPMSolver(Materials, Knife):
         self.k_imp, self.k_imp_step = vec.field(), vec.field()  # momentum the knife gave the grid
         self.k_work, self.k_peak = ti.field(f32), ti.field(f32)
         self.bad_step = ti.field(ti.i32)  # first substep with NaN / runaway J (2**30 = none)
-        # nodes [box[0:3], box[3:6]) of every scene hold all the scatter wrote since the last clear (sim.grid_box)
-        self.use_box = cfg.grid_box_enabled()
-        self.use_warp = cfg.warp_scatter_enabled()
-        self.scatter_block, self.gather_block = cfg.block_dims()  # None on the CPU (loop_config ignores None)
+        # nodes [box[0:3], box[3:6]) of every scene hold all the scatter wrote since the last clear
+        # (sim.tuning.grid_box)
+        self.use_box = tune.grid_box_enabled(cfg.arch, B)
+        self.use_warp = tune.warp_scatter_enabled(cfg.arch)
+        self.scatter_block, self.gather_block = tune.block_dims(cfg.arch, B)  # None on the CPU: Taichi's chunking
         self.box = ti.field(ti.i32)
         # substep number from which scene b is frozen (2**30 = never): every phase skips it from then on,
         # so a batched cut gives scene b its own substep budget.  A field, so ti.graph runs read it live.
@@ -436,7 +438,7 @@ class MPMSolver(Materials, Knife):
         The warp scatter's atomics fall with the length of its runs of same-cell lanes, and neighbouring cells
         in one warp share most stencil nodes.  Particles leave the cell order CuttingEnv.reset gave them as
         pieces slide (the mean run of a warp drops from 5.3 to 3.3 over a cut), so CuttingEnv re-sorts every
-        ``sim.resort_every`` substeps.  A counting sort on the device, queued like any phase (no host sync):
+        ``sim.tuning.resort_every`` substeps.  A counting sort on the device, queued like any phase (no host sync):
         each particle takes a rank in its cell, a prefix sum over the cells (Taichi's PrefixSumExecutor on
         CUDA) gives each cell its first slot, each particle goes to slot + rank.  Only the visiting order
         changes: particles stay where they are (every API sees the same indices) and the grid gets the same
@@ -444,7 +446,7 @@ class MPMSolver(Materials, Knife):
         """
         if by_cell:
             if not self.can_sort:
-                raise RuntimeError("sort_by_cell(by_cell=True) needs sim.resort_every != 0 (the cell counters)")
+                raise RuntimeError("sort_by_cell(by_cell=True) needs sim.tuning.resort_every != 0 (the cell counters)")
             self._count_cells(n)
             if self.cfg.arch == "cuda":
                 if self._scan is None:

@@ -186,7 +186,7 @@ class CreamPen:
         self.env.step_count += 1
         self.t += self.dt
         self.pos = self.pos + np.asarray(vel_xy, np.float64).reshape(self.B, 2) * self.dt
-        if self.env.step_count % self.cfg.check_every == 0:
+        if self.env.step_count % self.cfg.tuning.check_every == 0:
             self.check()
         return added
 

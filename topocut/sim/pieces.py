@@ -34,12 +34,16 @@ def bonds(x: np.ndarray, spacing: float) -> np.ndarray:
 def crosses(x: np.ndarray, pairs: np.ndarray, sweep) -> np.ndarray:
     """(M,) bool: the segment of each pair crosses the sweep's surface (its blade-plane rectangle)."""
     o, u, w, n = sweep.as_arrays()
-    a, b = x[pairs[:, 0]], x[pairs[:, 1]]
-    da, db = (a - o) @ n, (b - o) @ n
-    opposite = (da >= 0) != (db >= 0)
-    t = np.where(opposite, da / np.where(opposite, da - db, 1.0), 0.0)
-    q = a + t[:, None] * (b - a) - o  # where the segment meets the plane
-    return opposite & (np.abs(q @ u) <= sweep.half_length) & (q @ w <= sweep.depth)
+    d = x - o  # N,3: each particle's offset once, not once per pair
+    dn, du, dw = d @ n, d @ u, d @ w
+    da, db = dn[pairs[:, 0]], dn[pairs[:, 1]]
+    out = (da >= 0) != (db >= 0)
+    i = np.flatnonzero(out)  # the few pairs on opposite sides: where does their segment meet the plane?
+    a, b = pairs[i, 0], pairs[i, 1]
+    t = da[i] / (da[i] - db[i])
+    qu, qw = du[a] + t * (du[b] - du[a]), dw[a] + t * (dw[b] - dw[a])
+    out[i] = (np.abs(qu) <= sweep.half_length) & (qw <= sweep.depth)
+    return out
 
 
 def split(x: np.ndarray, piece: np.ndarray, sweep, spacing: float, pairs: np.ndarray | None = None) -> np.ndarray:
@@ -62,13 +66,28 @@ def split(x: np.ndarray, piece: np.ndarray, sweep, spacing: float, pairs: np.nda
 
 
 def adjacency(x: np.ndarray, piece: np.ndarray, n_grid: int, reach: int = REACH) -> set[tuple[int, int]]:
-    """Pairs of pieces whose particles' base cells lie within ``reach`` cells of each other."""
+    """Pairs of pieces whose particles' base cells lie within ``reach`` cells (Chebyshev) of each other.
+
+    Each piece's occupied cells, dilated by ``reach`` (a separable maximum filter over the objects' box), are
+    looked up at the other pieces' cells: O(pieces x cells), not a neighbour search over every cell pair."""
+    from scipy.ndimage import maximum_filter
+
     cell = np.floor(x * n_grid - 0.5).astype(np.int64)
-    cp = np.unique(np.concatenate([cell, piece[:, None].astype(np.int64)], 1), axis=0)  # (cell, piece) rows
-    pairs = cKDTree(cp[:, :3].astype(float)).query_pairs(reach + 0.5, p=np.inf, output_type="ndarray")
-    a, b = cp[pairs[:, 0], 3], cp[pairs[:, 1], 3]
-    diff = a != b
-    return {(int(min(i, j)), int(max(i, j))) for i, j in zip(a[diff], b[diff])}
+    cell -= cell.min(0) - reach  # into a box with room for the dilation
+    shape = tuple(cell.max(0) + reach + 1)
+    n_pieces = int(piece.max()) + 1
+    cells = [cell[piece == p] for p in range(n_pieces)]
+    out = set()
+    for p in range(n_pieces - 1):
+        if not len(cells[p]):
+            continue
+        occ = np.zeros(shape, np.uint8)
+        occ[tuple(cells[p].T)] = 1
+        near = maximum_filter(occ, size=2 * reach + 1, mode="constant")
+        for q in range(p + 1, n_pieces):
+            if len(cells[q]) and near[tuple(cells[q].T)].any():
+                out.add((p, q))
+    return out
 
 
 def colour(x: np.ndarray, piece: np.ndarray, n_grid: int, fields: int) -> tuple[np.ndarray, int]:

@@ -7,8 +7,16 @@ Turn steps), its success condition (``success``) and its scene set-up (``scene``
 """
 from __future__ import annotations
 
-from topocut.tasks.base import Cut, Goal, KnifeTask, Task, Turn, object_axes
-from topocut.tasks.config import CUTTING_TASKS, TASK_STAGES, TASKS, PenConfig, SpoonConfig, TaskConfig, check_stage
+from topocut.tasks.base import Cut, Goal, KnifeTask, Task, Turn, object_axes, truncate_steps, turns_after
+from topocut.tasks.config import (
+    CUTTING_TASKS,
+    TASKS,
+    PenConfig,
+    SpoonConfig,
+    TaskConfig,
+    check_max_cuts,
+    check_stage,
+)
 
 _MODULES = {"slice": "slice", "stick": "stick", "dice": "dice", "pyramid": "pyramid",
             "cream_writing": "cream_writing", "scooping": "scooping"}
@@ -27,6 +35,13 @@ def get_task(name) -> Task:
 REGISTRY = _MODULES  # name -> module under topocut.tasks
 
 
+def task_for_stage(task, stage: str) -> Task:
+    """The task object of ``task`` (a name or a TaskConfig) for stage ``stage``: a stage the task has no pipeline
+    for is refused (ValueError naming task and stage.name, and the tasks that run it)."""
+    check_stage(stage, getattr(task, "name", task))
+    return get_task(task)
+
+
 def make_goal(task, object: str, pose=None, spacing: float = 0.008, board_z: float = 0.05, seed: int = 0,
               skin_thickness: float = 0.01) -> Goal:
     """The ideal goal of a knife task (slice, stick, dice, pyramid) on ``object`` at ``pose``."""
@@ -38,5 +53,8 @@ def make_goal(task, object: str, pose=None, spacing: float = 0.008, board_z: flo
     return t.make_goal(task, object, pose, spacing, board_z, seed, skin_thickness)
 
 
-__all__ = ["TASKS", "CUTTING_TASKS", "TASK_STAGES", "TaskConfig", "PenConfig", "SpoonConfig", "check_stage", "Goal",
-           "Cut", "Turn", "Task", "KnifeTask", "get_task", "make_goal", "object_axes", "REGISTRY"]
+TASK_STAGES = {name: get_task(name).stages for name in TASKS}  # the stages each task runs with (its ``stages``)
+
+__all__ = ["TASKS", "CUTTING_TASKS", "TASK_STAGES", "TaskConfig", "PenConfig", "SpoonConfig", "check_stage",
+           "check_max_cuts", "Goal", "Cut", "Turn", "Task", "KnifeTask", "get_task", "task_for_stage", "make_goal",
+           "object_axes", "truncate_steps", "turns_after", "REGISTRY"]

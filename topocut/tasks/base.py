@@ -6,9 +6,10 @@ success condition and its scene set-up; stages, MPPI and evaluation ask the task
 
 Oracle steps (``Goal.steps``) are data: a ``Cut`` (one downward knife plane, a KnifeAction) or a ``Turn``
 (pieces picked up, rotated about a horizontal axis and laid on the board between two cut directions, as a
-cook lays a slab flat before cutting it into sticks).  The turn is a primitive the simulator has to
-provide (docs/tasks.md#turn-primitive); ``Turn.transform`` is its rigid motion, so the planes after a turn
-are given in the world frame *after* it.
+cook lays a slab flat before cutting it into sticks).  The simulator executes a turn
+(``topocut.sim.CuttingEnv.turn``, docs/tasks.md#turn-primitive); ``Turn.transform`` is its rigid motion, so the
+planes after a turn are given in the world frame *after* it.  ``turns_after(goal, k)`` is what a runner does
+between the k-th and the (k+1)-th cut (the planner plans the cuts; the turn is the scripted primitive).
 
 Frame of the knife tasks: the object's yaw gives two horizontal axes; a1 is the longer of the two (by
 particle extent, ties within 2% go to the local x axis), a2 the other, z up.  Faces are located with the
@@ -78,14 +79,50 @@ class Goal:
     def turns(self) -> list:
         return [s for s in self.steps if isinstance(s, Turn)]
 
+    def turns_after(self, k: int) -> list:
+        return turns_after(self, k)
+
+
+def turns_after(goal, k: int) -> list:
+    """The Turn steps of ``goal.steps`` between its k-th and (k+1)-th Cut (k >= 1; k = 0: before the first cut).
+
+    A goal without ``steps`` (a bare plane list, another task's goal) has none.  Runners call this after every
+    executed cut: the turn is scripted, whatever planned the cut."""
+    out, cuts = [], 0
+    for step in getattr(goal, "steps", None) or []:
+        if getattr(step, "kind", "cut") == "turn":
+            if cuts == k:
+                out.append(step)
+        else:
+            cuts += 1
+            if cuts > k:
+                break
+    return out
+
+
+def truncate_steps(steps, max_cuts: int) -> list:
+    """The first ``max_cuts`` Cut steps of ``steps`` with the Turns between them (none after the last cut)."""
+    out, cuts = [], 0
+    for step in steps:
+        if getattr(step, "kind", "cut") != "turn":
+            if cuts == max_cuts:
+                break
+            cuts += 1
+        out.append(step)
+    while out and getattr(out[-1], "kind", "cut") == "turn":
+        out.pop()
+    return out
+
 
 @runtime_checkable
 class Task(Protocol):
     """What a task provides (module docstrings: Task, Randomisations, Success)."""
 
     name: str
-    tool: str  # "knife" | "pen" | "spoon"
-    stages: tuple  # the stages with a pipeline for this task
+    tool: str  # "knife" | "pen" | "spoon": which scene the stages build (pipelines dispatch on it)
+    stages: tuple  # the stages with a pipeline for this task (stage.name values)
+    min_cuts: int  # the fewest task.max_cuts that makes a goal piece
+    min_cuts_why: str  # why, for the config error naming task.max_cuts
 
     def make_goal(self, cfg, object: str, pose=None, spacing: float = 0.008, board_z: float = 0.05, seed: int = 0,
                   skin_thickness: float = 0.01):
@@ -107,14 +144,18 @@ class KnifeTask(ABC):
     name = ""
     tool = "knife"
     turns = False  # whose oracle lays pieces down between cut directions (Turn steps)
-    stages = ("simulate", "mppi", "teleop", "merge", "pretrain", "bc", "eval")
+    stages = ("simulate", "mppi", "teleop", "merge", "pretrain", "bc", "eval", "all")
+    min_cuts = 1
+    min_cuts_why = "one cut makes the first piece"
 
     def make_goal(self, cfg, object: str, pose=None, spacing: float = 0.008, board_z: float = 0.05, seed: int = 0,
                   skin_thickness: float = 0.01) -> Goal:
         from topocut.metrics import fps
         from topocut.sim.objects import ObjectPose, object_sdf, sample_object
+        from topocut.tasks.config import check_max_cuts
 
         cfg = cfg.validate()
+        check_max_cuts(cfg.max_cuts, self)  # e.g. dice with 2 cuts cannot free a die
         pose = pose or ObjectPose()
         pts, _ = sample_object(object, pose, spacing, skin_thickness=skin_thickness, seed=seed, board_z=board_z)
         p64 = pts.astype(np.float64)
@@ -189,9 +230,12 @@ def first_slab(pts, axes, thickness, board_z, pad, key="task.thickness"):
     return steps[0], lab == 1
 
 
-def lay_flat(pts, slab, axes, board_z, gap: float = 0.02) -> Turn:
+def lay_flat(pts, slab, axes, board_z, gap: float = 0.02, beside: bool = False) -> Turn:
     """Turn the freed slab 90 deg about a2 so that its thickness is vertical (a1 -> -z, z -> a1): its outer
-    face ends on the board, its cut face up, its former height along +a1, laid ``gap`` beyond the object."""
+    face ends on the board, its cut face up, its former height along +a1, laid ``gap`` beyond the object.
+
+    ``beside``: also move it past the object's +a2 side (laid diagonally off the corner), so that cuts normal to
+    a2 through the laid slab (dice's stick cuts) miss the rest of the object; cuts normal to a1 miss it anyway."""
     p = pts[slab]
     c = p.mean(0)
     a1, a2, z = axes
@@ -199,9 +243,12 @@ def lay_flat(pts, slab, axes, board_z, gap: float = 0.02) -> Turn:
     height = np.ptp(p @ z)
     thick = np.ptp(p @ a1)
     target = c + (far + gap + height / 2 - c @ a1) * a1
+    if beside:
+        target = target + ((pts @ a2).max() + gap - (p @ a2).min()) * a2
     target = target - (target @ z) * z + (board_z + thick / 2) * z
     return Turn("slab", tuple(a2.tolist()), float(np.pi / 2), tuple(c.tolist()), tuple(target.tolist()),
-                note="lay the slab flat: a1 -> -z, z -> +a1, about a2 through its centroid")
+                note="lay the slab flat: a1 -> -z, z -> +a1, about a2 through its centroid"
+                + (", beside the object's +a2 side" if beside else ""))
 
 
 def bands(values, start, step, count, sign=-1):

@@ -1,17 +1,16 @@
 """Task configuration (paper §4 task setup and the appendix's additional tasks; docs/reward.md#goals, docs/tasks.md).
 
 The cutting tasks (slice, stick, dice, pyramid) use the knife; cream_writing uses a cream pen
-(``PenConfig``) and scooping a spoon and a cup (``SpoonConfig``).  The two additive/scooping
-tasks only have the simulate (and, for writing, mppi) stages: ``check_stage`` refuses the others.
+(``PenConfig``) and scooping a spoon and a cup (``SpoonConfig``).  What a task needs is the task's to say
+(``topocut.tasks.get_task(name)``): its stages (``check_stage`` refuses the others: cream writing has simulate
+and mppi, scooping simulate), its fewest cuts (``min_cuts``) and its tool's fields (pen, spoon).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
 CUTTING_TASKS = ("slice", "stick", "dice", "pyramid")
-TASKS = CUTTING_TASKS + ("cream_writing", "scooping")
-# stages each non-cutting task has a pipeline for (cutting tasks run every stage)
-TASK_STAGES = {"cream_writing": ("simulate", "mppi"), "scooping": ("simulate",)}
+TASKS = CUTTING_TASKS + ("cream_writing", "scooping")  # the registry's names (topocut.tasks.get_task)
 
 
 @dataclass
@@ -76,23 +75,21 @@ class TaskConfig:
     stage: str = ""
 
     def validate(self) -> TaskConfig:
-        if self.name not in TASKS:
-            raise ValueError(f"task.name={self.name!r}; valid: {', '.join(TASKS)}")
+        from topocut.tasks import get_task
+
+        task = get_task(self.name)  # unknown names fail here with the list of tasks
         for k in ("thickness", "width", "size", "letter_height"):
             if getattr(self, k) <= 0:
                 raise ValueError(f"task.{k}={getattr(self, k)} must be > 0")
-        if self.max_cuts < 1:
+        if self.max_cuts < 1:  # the task's own minimum (min_cuts): topocut.config.validate and make_goal
             raise ValueError(f"task.max_cuts={self.max_cuts} must be >= 1")
-        if self.name in ("stick", "dice") and self.max_cuts < 2:  # one cut frees the slab, the next the first piece
-            raise ValueError(f"task.max_cuts={self.max_cuts}: task {self.name!r} needs at least 2 (a slab, then its pieces)")
         if self.num_goal_points < 0:
             raise ValueError(f"task.num_goal_points={self.num_goal_points} must be >= 0")
         if self.stage:
             check_stage(self.stage, self.name)
-        if self.name == "cream_writing":
-            self._validate_writing()
-        if self.name == "scooping":
-            self._validate_scooping()
+        tool_fields = {"pen": self._validate_writing, "spoon": self._validate_scooping}.get(task.tool)
+        if tool_fields is not None:
+            tool_fields()
         return self
 
     def _validate_writing(self) -> None:
@@ -135,9 +132,19 @@ class TaskConfig:
                              f"(x gap {gap:.3f} < 0)")
 
 
+def check_max_cuts(max_cuts: int, task) -> None:
+    """Refuse a cut budget below the task's ``min_cuts`` (dice with 2 cuts cannot free a die)."""
+    if max_cuts < task.min_cuts:
+        raise ValueError(f"task.max_cuts={max_cuts} is too few for task={task.name}: it needs at least "
+                         f"{task.min_cuts} ({task.min_cuts_why}); set task.max_cuts>={task.min_cuts}")
+
+
 def check_stage(stage: str, task: str) -> None:
-    """Refuse stage x task combinations without a pipeline (e.g. stage=bc task=scooping)."""
-    allowed = TASK_STAGES.get(task)
-    if allowed is not None and stage not in allowed:
+    """Refuse stage x task combinations without a pipeline (e.g. stage=bc task=scooping): the task's ``stages``."""
+    from topocut.tasks import get_task
+
+    allowed = get_task(task).stages
+    if stage not in allowed:
+        others = [n for n in TASKS if stage in get_task(n).stages]
         raise ValueError(f"task={task} runs with stage in ({', '.join(allowed)}) only, got stage={stage} "
-                         f"(stage.name); tasks for stage={stage}: {', '.join(CUTTING_TASKS)}")
+                         f"(stage.name); tasks for stage={stage}: {', '.join(others) or 'none'}")

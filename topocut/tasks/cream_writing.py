@@ -3,10 +3,11 @@
 **Task.** A nozzle at a fixed height above the board extrudes a von Mises cream; each continuous stroke is
 one cluster.  Goal: one bead-shaped point cloud per letter of ``task.word`` (topocut.tasks.letters).
 **Oracle.** The scripted writer: each letter's stroke polyline, pen down, then lifted to the next letter
-(topocut.planning.writer).
+(topocut.tasks.writing_scene.write_scripted; MPPI over strokes: topocut.planning.stroke_mppi).
 **Randomisations.** None beyond the word, letter height and gap (task config).
 **Success.** The total at task.success_threshold (per-letter spectral reward, one stroke per letter).
-Stages: simulate and mppi only.  Scene: topocut.sim.pen (CreamPen, cream_sim_config).
+Stages: simulate and mppi only.  Scene: topocut.sim.pen (CreamPen, cream_sim_config) and
+topocut.tasks.writing_scene (goal layout, scripted primitives, stroke clusters).
 """
 from __future__ import annotations
 
@@ -15,6 +16,8 @@ class CreamWritingTask:
     name = "cream_writing"
     tool = "pen"
     stages = ("simulate", "mppi")
+    min_cuts = 1  # no knife: task.max_cuts is not used
+    min_cuts_why = "task.max_cuts is not used"
 
     def make_goal(self, cfg, object: str = "", pose=None, spacing: float = 0.008, board_z: float = 0.05,
                   seed: int = 0, skin_thickness: float = 0.01):

@@ -1,7 +1,8 @@
 """Dice: cubes of side ``size``, cut as a cook does: slab, lay it flat, sticks, chop across.
 
 **Task.** Cut a slab of thickness ``task.size`` off the +a1 end; lay it flat (``Turn``: 90 deg about a2, its
-outer face on the board, cut face up, so its thickness, ``size``, is now vertical); cut it into sticks with
+outer face on the board, cut face up, off the object's +a1/+a2 corner so that no cut reaches the rest; its
+thickness, ``size``, is now vertical); cut it into sticks with
 planes normal to a2 every ``size``; turn the knife 90 deg and chop the sticks with planes normal to a1
 (the slab's former height) every ``size``.  Each die is size x size x size: its three principal extents
 are all ~``size`` (unlike the old dice, size x size columns of the object's height).  Goal pieces: the grid
@@ -24,11 +25,10 @@ from topocut.tasks.grid import best_grid
 class DiceTask(KnifeTask):
     name = "dice"
     turns = True
+    min_cuts = 3
+    min_cuts_why = "a slab cut, a stick cut and a chop to free a die"
 
     def pieces(self, cfg, pts, axes, pad, spacing, board_z):
-        if cfg.max_cuts < 3:
-            raise ValueError(f"task.max_cuts={cfg.max_cuts}: task 'dice' needs at least 3 (a slab, a stick cut, "
-                             f"a chop) to free a die")
         a1, a2, z = axes
         cut0, slab = first_slab(pts, axes, cfg.size, board_z, pad, key="task.size")
         p, d = pts[slab], pad[slab]
@@ -38,9 +38,9 @@ class DiceTask(KnifeTask):
                                   min_fill=0.75)
         labels = np.zeros(len(pts), np.int32)
         labels[slab] = lab
-        turn = lay_flat(pts, slab, axes, board_z)
+        turn = lay_flat(pts, slab, axes, board_z, beside=True)  # stick cuts miss the rest
         t, c0 = np.asarray(turn.target), np.asarray(turn.center)
-        sticks = [plane(a2, t + (c - t @ a2) * a2, board_z) for c in cuts[0]]
+        sticks = [plane(a2, t + (c - c0 @ a2) * a2, board_z) for c in cuts[0]]  # a2 kept by the turn, shifted
         chops = [plane(a1, t + (c - c0 @ z) * a1, board_z) for c in cuts[1]]
         return [cut0, turn] + sticks + chops, labels
 

@@ -2,11 +2,11 @@
 
 **Task.** A spherical-shell spoon scoops chunks of an elastoplastic block and pours them into a cup; each
 chunk in the cup is its own cluster.  Goal: one target chunk per scoop (the spherical cap of height
-``spoon.depth`` swept by the advance; topocut.planning.scoop.target_chunk).
+``spoon.depth`` swept by the advance; topocut.tasks.scooping_scene.target_chunk).
 **Oracle.** The spoon primitive at each ``spoon.scoops`` placement (topocut.sim.spoon.scoop_keyframes).
 **Randomisations.** None beyond the placements and the block / cup layout (task.spoon).
 **Success.** Every chunk in the cup as its own cluster and the total at task.success_threshold.
-Stages: simulate only.  Scene: topocut.planning.scoop.ScoopScene (spoon, cup, block).
+Stages: simulate only.  Scene: topocut.tasks.scooping_scene.ScoopScene (spoon, cup, block).
 """
 from __future__ import annotations
 
@@ -15,11 +15,13 @@ class ScoopingTask:
     name = "scooping"
     tool = "spoon"
     stages = ("simulate",)
+    min_cuts = 1  # no knife: task.max_cuts is not used
+    min_cuts_why = "task.max_cuts is not used"
 
     def make_goal(self, cfg, object: str = "", pose=None, spacing: float = 0.008, board_z: float = 0.05,
                   seed: int = 0, skin_thickness: float = 0.01):
         """One target chunk per scoop: [target_chunk] * len(spoon.scoops)."""
-        from topocut.planning.scoop import target_chunk
+        from topocut.tasks.scooping_scene import target_chunk
 
         cfg.validate()
         return [target_chunk(cfg.spoon, spacing)] * len(cfg.spoon.scoops)
@@ -31,8 +33,8 @@ class ScoopingTask:
         return bool(result.total >= cfg.success_threshold)
 
     def scene(self, cfg, sim):
-        """The scooping scene class (topocut.planning.scoop.ScoopScene); the pipeline builds it."""
-        from topocut.planning.scoop import ScoopScene
+        """The scooping scene class (topocut.tasks.scooping_scene.ScoopScene); the pipeline builds it."""
+        from topocut.tasks.scooping_scene import ScoopScene
 
         return ScoopScene
 

@@ -22,6 +22,8 @@ from topocut.tasks.grid import best_grid
 class StickTask(KnifeTask):
     name = "stick"
     turns = True
+    min_cuts = 2
+    min_cuts_why = "a slab cut, then a cut across the slab"
 
     def pieces(self, cfg, pts, axes, pad, spacing, board_z):
         a1, a2, z = axes

@@ -6,7 +6,9 @@
   observation centroid and s = ``pos_scale`` (a typical object size), so poses are object-relative.
 * Gaussian diffusion: DDPM training (epsilon prediction, cosine schedule) and DDIM sampling
   (eta = 0 deterministic; eta = 1 with all T steps is DDPM ancestral sampling).
-* ``PoseStepDataset``: dataset step dicts (docs/contracts.md) -> FPS'd, centred tensors.
+* ``PoseStepDataset``: dataset step dicts (docs/contracts.md) -> FPS'd, centred tensors, built by
+  ``topocut.policies.inputs`` (the one builder of every learned policy's inputs: the same goal fields -- the goal
+  cloud and its piece labels -- as PDDP), then put in the object-centred frame (``object_frame``).
 * ``PoseDiffusionModule`` (LightningModule) and ``PosePolicy`` (the Policy protocol).
 """
 from __future__ import annotations
@@ -19,11 +21,12 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from topocut.metrics.sampling import valid_rows
+from topocut.policies.inputs import goal_inputs, object_frame, policy_inputs, sample_indices, step_obs
+from topocut.policies.registry import pose_kinds
 from topocut.sim.action import KnifeAction
 from topocut.utils.training import EpochMeans
 
-KINDS = ("dp3", "3dda")
+KINDS = pose_kinds()  # ("dp3", "3dda"): the registry's pose-diffusion baselines
 REPR_DIM = 6
 
 
@@ -96,35 +99,32 @@ class GaussianDiffusion(nn.Module):
 
 # -- data ---------------------------------------------------------------------------------------------
 def _fps_idx(points, n: int, seed: int) -> np.ndarray:
-    if len(points) <= n:  # too few points: repeat some so that every sample has n
-        return np.resize(np.arange(len(points)), n)
-    from topocut.metrics import fps
-
-    return np.asarray(fps(points, n, seed=seed), np.int64)
+    """The baselines' observation rows: FPS from the point farthest from the centroid (deterministic)."""
+    return sample_indices(points, n, seed, start="farthest")
 
 
 def prepare_inputs(points, labels, goal, goal_labels, history, num_points: int = 256, num_goal_points: int = 256,
                    pos_scale: float = 0.15, board_z: float = 0.05, num_labels: int = 32, seed: int = 0,
                    idx=None, goal_idx=None) -> dict:
-    """Observation -> network inputs in the object-centred frame (float32 / int64 numpy)."""
-    points, goal = np.asarray(points, np.float32), np.asarray(goal, np.float32)
-    center = points.mean(axis=0).astype(np.float64)  # 3,
-    idx = _fps_idx(points, num_points, seed) if idx is None else idx
-    goal_idx = _fps_idx(goal, num_goal_points, seed) if goal_idx is None else goal_idx
-    hist = np.array(history, np.float32).reshape(-1, 7)
-    valid = np.abs(hist[:, 3:]).sum(axis=1) > 0  # zero-padded rows (no cut yet) have no quaternion
-    hist[valid, :3] = (hist[valid, :3] - center) / pos_scale
-    lab = lambda a: np.clip(np.asarray(a, np.int64) + 1, 0, num_labels - 1)  # noqa: E731  (-1 unassigned -> 0)
-    return {"points": ((points[idx] - center) / pos_scale).astype(np.float32), "labels": lab(labels)[idx],
-            "valid": valid_rows(idx), "goal_valid": valid_rows(goal_idx),  # N ; G  False on padding copies
-            "goal": ((goal[goal_idx] - center) / pos_scale).astype(np.float32), "goal_labels": lab(goal_labels)[goal_idx],
-            "history": hist, "board": np.float32((board_z - center[2]) / pos_scale), "center": center.astype(np.float32)}
+    """Observation -> network inputs in the object-centred frame (float32 / int64 numpy): the shared input fields
+    (``topocut.policies.inputs.policy_inputs``) through ``object_frame``.  ``goal_idx`` (rows of the goal cloud)
+    overrides the shared deterministic goal sampling; left None, the goal fields are those every policy gets."""
+    obs = {"points": points, "labels": labels, "goal": goal, "goal_labels": goal_labels, "history": history}
+    idx = _fps_idx(np.asarray(points), num_points, seed) if idx is None else idx
+    goal_fields = None
+    if goal_idx is not None:
+        from topocut.metrics.sampling import valid_rows
+
+        g, gl = np.asarray(goal, np.float32), np.asarray(goal_labels).astype(np.int64)
+        goal_fields = {"goal": g[goal_idx], "goal_labels": gl[goal_idx], "goal_valid": valid_rows(goal_idx)}
+    inp = policy_inputs(obs, num_points, num_goal_points, seed, index=idx, goal=goal_fields)
+    return object_frame(inp, pos_scale, board_z, num_labels)
 
 
 class PoseStepDataset(torch.utils.data.Dataset):
     """Step dicts (x_t, f_t, history, goal, goal_labels, action) -> prepared inputs + action representation.
 
-    FPS indices are cached per step, so only the first epoch pays for them.
+    FPS indices and goal fields are cached per step, so only the first epoch pays for them.
     """
 
     def __init__(self, steps, num_points: int = 256, num_goal_points: int = 256, pos_scale: float = 0.15,
@@ -137,14 +137,15 @@ class PoseStepDataset(torch.utils.data.Dataset):
         return len(self.steps)
 
     def __getitem__(self, i: int) -> dict:
-        s = self.steps[i]
-        cached = self._idx.get(i, (None, None))
-        out = prepare_inputs(s["x_t"], s["f_t"], s["goal"], s["goal_labels"], s["history"], idx=cached[0],
-                             goal_idx=cached[1], **self.kw)
+        s, kw = self.steps[i], self.kw
+        obs = step_obs(s)
         if i not in self._idx:
-            self._idx[i] = (_fps_idx(np.asarray(s["x_t"]), self.kw["num_points"], self.kw["seed"]),
-                            _fps_idx(np.asarray(s["goal"]), self.kw["num_goal_points"], self.kw["seed"]))
-        out["action"] = encode_action(s["action"], out["center"], self.kw["pos_scale"])
+            self._idx[i] = (_fps_idx(np.asarray(s["x_t"]), kw["num_points"], kw["seed"]),
+                            goal_inputs(obs["goal"], obs["goal_labels"], kw["num_goal_points"]))
+        idx, goal = self._idx[i]
+        inp = policy_inputs(obs, kw["num_points"], kw["num_goal_points"], kw["seed"], index=idx, goal=goal)
+        out = object_frame(inp, kw["pos_scale"], kw["board_z"], kw["num_labels"])
+        out["action"] = encode_action(s["action"], out["center"], kw["pos_scale"])
         return out
 
 
@@ -256,16 +257,24 @@ class PosePolicy:
         self.goal = goal
         self.generator = torch.Generator(self.device).manual_seed(mix_seed(self.seed, seed))
 
-    def act(self, obs: dict) -> KnifeAction:
-        if self.generator is None:
-            raise RuntimeError("PosePolicy.act called before reset(goal)")
+    def inputs(self, obs: dict, seed: int | None = None) -> dict:
+        """The world-frame input fields (topocut.policies.inputs.policy_inputs) the network gets for ``obs``; the
+        goal from the obs (or the reset's goal)."""
         hp = self.module.hparams
         goal = obs.get("goal", getattr(self.goal, "points", None))
         goal_labels = obs.get("goal_labels", getattr(self.goal, "labels", None))
         if goal is None or goal_labels is None:
             raise KeyError(f"PosePolicy needs obs['goal'] and obs['goal_labels'] (or a goal); obs has {', '.join(obs)}")
-        inp = prepare_inputs(obs["points"], obs["labels"], goal, goal_labels, obs["history"], hp.num_points,
-                             hp.num_goal_points, hp.pos_scale, hp.board_z, hp.num_labels, seed=self.seed)
+        obs = {**obs, "goal": goal, "goal_labels": goal_labels}
+        seed = self.seed if seed is None else seed
+        idx = _fps_idx(np.asarray(obs["points"]), hp.num_points, seed)
+        return policy_inputs(obs, hp.num_points, hp.num_goal_points, seed, index=idx)
+
+    def act(self, obs: dict) -> KnifeAction:
+        if self.generator is None:
+            raise RuntimeError("PosePolicy.act called before reset(goal)")
+        hp = self.module.hparams
+        inp = object_frame(self.inputs(obs), hp.pos_scale, hp.board_z, hp.num_labels)
         batch = {k: torch.as_tensor(np.asarray(v))[None].to(self.device) for k, v in inp.items()}
         r = self.module.predict(batch, self.generator, self.steps)[0].cpu().numpy()
         return decode_action(r, inp["center"], hp.pos_scale)

@@ -1,4 +1,5 @@
-"""Ice-cream scooping episodes: block, spoon primitive per 2-D placement, chunks in the cup, rewards.
+"""Ice-cream scooping's scene and scripted episodes: block, spoon primitive per 2-D placement, chunks in the cup,
+rewards (the spoon and cup colliders are physics: topocut.sim.spoon).
 
 The block is a jittered lattice of the von Mises material (material 1, per-particle yield stress
 ``spoon.yield_stress``; damage and softening as for the food's skin; the chunk comes free because the
@@ -125,7 +126,7 @@ class ScoopScene:
                 s.g2p(env.n, k, self.t)
             env.step_count += 1
             self.t += env.dt
-            if env.step_count % env.cfg.check_every == 0:
+            if env.step_count % env.cfg.tuning.check_every == 0:
                 env._check()
         env._check()
 
@@ -145,7 +146,6 @@ class ScoopScene:
 
 def scoop_episode(sim, task, topology=None, frames_dir=None, seed: int = 0, reward_cfg=None, on_scoop=None) -> dict:
     """All scoops of task.spoon.scoops, then settle; clusters, chunks in the cup, rewards, frames."""
-    from topocut.planning.rollout import topology_device
     from topocut.reward import spectral_reward
     from topocut.sim.render import render_particles
     from topocut.topology import discover
@@ -188,7 +188,7 @@ def scoop_episode(sim, task, topology=None, frames_dir=None, seed: int = 0, rewa
     scene.run(None, scene.t + scene.env.cfg.settle_time)
     x = scene.x
     st = scene.env.state()
-    topo = discover(x, st.damage[0], None, cfg=topology, device=topology_device(scene.env))
+    topo = discover(x, st.damage[0], None, cfg=topology, device="cuda" if scene.env.cfg.arch == "cuda" else "cpu")
     lab = np.asarray(topo.labels)
     ids = [c for c in np.unique(lab) if c >= 0]
     cup_ids = [c for c in ids if in_cup(x[lab == c].mean(0, keepdims=True), spoon, bz)[0]]
@@ -226,7 +226,7 @@ def figure(frames_dir, out, names=("00_", "scoop1_tilt", "scoop2_advance", "fina
     imageio.imwrite(out, row[keep])
 
 
-if __name__ == "__main__":  # python -m topocut.planning.scoop <run>/frames docs/img/scooping.png
+if __name__ == "__main__":  # python -m topocut.tasks.scooping_scene <run>/frames docs/img/scooping.png
     import sys
 
     figure(sys.argv[1], sys.argv[2])
