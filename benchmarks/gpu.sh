@@ -106,5 +106,11 @@ PY
        eval.tasks=[slice,stick,dice] eval.max_cuts=2 eval.num_points=2048"
     timeout 420 python3 -m topocut.run stage=eval $G 2>&1 | tail -30 | tee "$OUT/eval.txt"
     cp /tmp/o/eval/table1/v*/results.md /tmp/o/eval/table1/v*/results.csv /tmp/o/eval/table1/v*/results.png "$OUT/" ;;
+  spread)  # run-to-run spread of a smoke eval on the GPU, three fresh processes (docs/evaluation.md)
+    timeout 560 python3 benchmarks/eval_spread.py --runs 3 --timeout 250 --json "$OUT/spread.json" device=cuda \
+      sim.n_grid=64 2>&1 | grep -v -i warn | tee "$OUT/spread.txt" ;;
+  oracle)  # the oracle's pieces at 128^3 (docs/sim.md): states only (discover them here with --load on the CPU)
+    timeout 400 python3 experiments/oracle_pieces.py --device cuda --n-grid 128 --save "$OUT/oracle" 2>&1 \
+      | grep -v -i warn | tee "$OUT/oracle.txt" ;;
   *) echo "unknown phase $phase"; exit 2 ;;
 esac
