@@ -4,7 +4,8 @@ Policies: ``oracle`` (the goal's ideal planes for the true pose: the R̂ referen
 (the same planes for the nominal pose, open loop), ``mppi`` (the expert), ``pddp``, ``pddp_noperc``,
 ``pddp_graphconv``, ``dp3``, ``3dda`` (checkpoints from the bc stage: the versions in
 ``eval.checkpoints``, latest for the others; with ``eval.train_seeds=k > 1`` the k checkpoints of that training
-run trained with seeds ``seed .. seed+k-1``, each evaluated as ``<policy>@s<seed>`` and pooled by the report).
+run trained with seeds ``seed .. seed+k-1``, each evaluated as ``<policy>@s<seed>`` and pooled by the report),
+and ``module.path:ClassName`` entries: your own Policy class, imported (topocut.policies.registry.load_external).
 Episodes are committed one by one; an interrupted evaluation resumes.
 """
 from __future__ import annotations
@@ -50,9 +51,12 @@ def artifact_config(eval, sim, topology, reward, planner, observation, sampler, 
     # eval.checkpoints only says which versions to load; their fingerprints key the artifact as inputs, so a
     # pinned run (stage=all) and a plain one that loads the same versions share one evaluation
     eval = dataclasses.replace(eval, checkpoints={})
-    return as_dict(("eval", eval), ("sim", sim), ("topology", topology), ("reward", reward), ("planner", planner),
-                   ("observation", observation), ("sampler", sampler),
-                   ("tasks", {n: dataclasses.asdict(t) for n, t in task_cfgs.items()}), ("seed", seed))
+    out = as_dict(("eval", eval), ("sim", sim), ("topology", topology), ("reward", reward), ("planner", planner),
+                  ("observation", observation), ("sampler", sampler),
+                  ("tasks", {n: dataclasses.asdict(t) for n, t in task_cfgs.items()}), ("seed", seed))
+    if not eval.policy_kwargs:  # evaluations from before the key keep their artifact key
+        out["eval"].pop("policy_kwargs", None)
+    return out
 
 
 def _train_seed(manifest: dict):
@@ -100,7 +104,7 @@ def seed_checkpoints(store, name: str, version: str = "latest", seeds=None) -> l
 
 
 def build_policies(ctx: RunContext, names, env, sim, planner, reward, topology, task_cfgs, sampler=None,
-                   versions=None, train_seeds: int = 1, runs: dict | None = None):
+                   versions=None, train_seeds: int = 1, runs: dict | None = None, policy_kwargs=None):
     """{run name: policy}, {run name: checkpoint ref}.  A learned policy is one run (its name) with
     ``train_seeds=1``, else one run ``<name>@s<seed>`` per training seed ctx.seed .. ctx.seed+k-1; ``runs``, when
     given, receives {run name: {"policy", "train_seed", "checkpoint"}} (the report's policies.json)."""
@@ -108,10 +112,16 @@ def build_policies(ctx: RunContext, names, env, sim, planner, reward, topology, 
     from topocut.planning import HeuristicPolicy, MPPIPolicy, sim_rollout_factory
     from topocut.planning.heuristic import FixedTrajectoryPolicy
 
-    registry.check(names, "eval.policies")
+    registry.check(names, "eval.policies", external=True, kwargs=policy_kwargs)
     seeds = None if train_seeds == 1 else [ctx.seed + i for i in range(train_seeds)]
     policies, inputs, runs = {}, {}, runs if runs is not None else {}
     for name in names:
+        if registry.is_import_path(name):  # your own policy class (docs/evaluation.md): episodes/<safe name>/
+            ext = registry.load_external(name)
+            runs[ext.run] = {"policy": name, "train_seed": None, "checkpoint": None, "display": ext.display}
+            inputs[ext.run] = ext.fingerprint()  # its source keys the artifact
+            policies[ext.run] = ext.build(policy_kwargs)
+            continue
         if name in SCRIPTED:
             runs[name] = {"policy": name, "train_seed": None, "checkpoint": None}
         if name == "oracle":
@@ -159,7 +169,8 @@ def run(ctx: RunContext, eval, sim, topology, reward, planner, observation, data
     env = CuttingEnv(sim, batch_size=max(1, sim.batch_size) if "mppi" in eval.policies else 1)
     runs: dict = {}
     policies, inputs = build_policies(ctx, eval.policies, env, sim, planner, reward, topology, task_cfgs, sampler,
-                                      versions=eval.checkpoints, train_seeds=eval.train_seeds, runs=runs)
+                                      versions=eval.checkpoints, train_seeds=eval.train_seeds, runs=runs,
+                                      policy_kwargs=eval.policy_kwargs)
     inputs.update({f"teleop/{t.spec.key}": t.ref for t in teleop})
     config = artifact_config(eval, sim, topology, reward, planner, observation, sampler, task_cfgs, ctx.seed)
     writer, existing = ctx.store.begin("eval", eval.name, config, inputs, extra={"seed": ctx.seed,

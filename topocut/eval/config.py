@@ -62,6 +62,9 @@ class EvalConfig:
     # task parameters over conf/task/<task>.yaml, per task (`eval.task_overrides={slice:{thickness:0.05}}`): the
     # smoke scale's 48³ grid cannot resolve 3 cm slabs (docs/evaluation.md), so it evaluates 5 cm ones
     task_overrides: dict[str, dict[str, Any]] = field(default_factory=dict)
+    # constructor arguments of your own policy classes (`module.path:ClassName` entries of eval.policies), keyed by
+    # class name: `+eval.policy_kwargs.MyPolicy={ckpt:/path,steps:10}` (docs/evaluation.md)
+    policy_kwargs: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     def validate(self) -> EvalConfig:
         for key, value, valid in (("eval.observation", self.observation, OBSERVATIONS),
@@ -84,9 +87,8 @@ class EvalConfig:
         if "teleop" in self.policies:
             raise ValueError("eval.policies: 'teleop' is not a policy the eval stage can run (a human drives it); "
                              "replay the logs into episodes/teleop/*.json and set eval.reference=teleop")
-        bad = [p for p in self.policies if p not in POLICY_NAMES]
-        if bad:
-            raise ValueError(f"eval.policies: unknown policy {bad[0]!r}; valid: {', '.join(POLICY_NAMES)}")
+        # registered names, or 'module.path:ClassName' of your own policy class (imported and checked here)
+        registry.check(self.policies, "eval.policies", POLICY_NAMES, external=True, kwargs=self.policy_kwargs)
         bad = [p for p in self.checkpoints if p not in self.policies or p not in LEARNED]
         if bad:
             raise ValueError(f"eval.checkpoints.{bad[0]}: only learned policies in eval.policies load checkpoints "

@@ -27,7 +27,16 @@ from topocut.policies import registry
 
 SPLIT_TITLES = {"in": "In-distribution", "out": "Out-of-distribution"}
 SPLIT_SHORT = {"in": "ID", "out": "OOD"}
-DISPLAY = registry.display_names()  # Table 1 row labels, in row order (topocut/policies/registry.py)
+
+
+class _Display(dict):
+    """Row labels; a name the registry lacks (a ``module.path:ClassName`` entry) gets its own display name."""
+
+    def get(self, key, default=None):
+        return super().get(key) or (registry.display_name(key) if registry.is_import_path(key) else default)
+
+
+DISPLAY = _Display(registry.display_names())  # Table 1 row labels, in row order (topocut/policies/registry.py)
 ALL = "all"  # the task / split / object of an aggregate row
 METRICS = ("R_hat", "N_C", "R")
 DIFF_METRICS = ("R_hat", "N_C")

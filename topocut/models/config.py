@@ -40,6 +40,8 @@ class DynamicsConfig:
     w_emd: float = 1.0
     w_hausdorff: float = 1.0
     pos_scale: float = 0.1  # point-set distances are measured in units of this length (O(1) losses)
+    emd_method: str = "auto"  # exact (scipy, host) | auction (device, <= (1 + emd_tol) x exact) | auto (auction on cuda)
+    emd_tol: float = 0.01  # relative error bound of the auction EMD (models/point_losses.py)
     # -- optimisation ---------------------------------------------------------
     lr: float = 1e-3
     weight_decay: float = 1e-4
@@ -62,6 +64,10 @@ class DynamicsConfig:
         bad = [d for d in self.pointnet_dims if d % self.num_heads]
         if bad:
             raise ValueError(f"model.pointnet_dims: width {bad[0]} is not divisible by model.num_heads={self.num_heads}")
+        if self.emd_method not in ("auto", "exact", "auction"):
+            raise ValueError(f"model.emd_method={self.emd_method!r} is not valid; choose one of auto, exact, auction")
+        if not self.emd_tol > 0:
+            raise ValueError(f"model.emd_tol={self.emd_tol} must be > 0 (a relative error bound)")
         for name in ("coord_scale", "pos_scale"):  # lengths that divide positions / point-set distances
             if not getattr(self, name) > 0:
                 raise ValueError(f"model.{name}={getattr(self, name)} must be > 0 (a length in scene units)")

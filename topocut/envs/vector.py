@@ -1,0 +1,317 @@
+"""Gymnasium environments over the batched cutting simulator (docs/gym.md).
+
+``CuttingVectorEnv`` is a ``gymnasium.vector.VectorEnv`` whose ``num_envs`` sub-environments are the B scenes
+of ONE ``topocut.sim.CuttingEnv`` batch: one ``step`` is one batched ``CuttingEnv.cut`` (a knife action per
+scene), the push where the task pushes, the goal's scripted turn where the goal has one after that cut, and
+topology discovery + the spectral reward per scene.  ``CuttingEnvGym`` is the single-scene ``gymnasium.Env``
+(num_envs = 1) on top of it, for ``gymnasium.utils.env_checker.check_env`` and single-env code.
+
+Episode rule = the evaluation protocol's (topocut.eval.protocol.evaluate_episode): ``reset(seed=s)`` loads
+``object`` at ``episode_pose(eval_cfg, s)`` with sampling seed ``s`` (the pose an evaluation episode of seed s
+gets), builds the goal with the task's ``make_goal``, labels the uncut object; a step executes
+``executed_action(KnifeAction.from_vector(a))`` per scene, then as evaluate_episode: push (task.push), discovery
+with the previous labels, reward, ``task.success``, and after cut k < max_cuts the goal's turns
+(``topocut.planning.rollout.execute_turns``).
+
+Restrictions of the batched simulator (CuttingEnv holds one particle set, one material array and performs one
+Turn for all scenes): every scene of one reset holds the SAME object at the SAME pose (so the same goal); the
+scenes differ by the actions they receive.  Scenes therefore reset together: autoreset is DISABLED
+(``metadata["autoreset_mode"] = AutoresetMode.DISABLED``); call ``reset()`` when you want new episodes
+(``options={"reset_mask": m}`` is accepted only with every scene set).  A scene that has terminated or been
+truncated is frozen: later steps restore its state after the batched cut, its reward is 0 and its flags stay.
+
+Reward (``reward_mode``): "total" (default; the paper's per-step reward: R, the task's total spectral reward
+``RewardResult.total`` after the cut) or "gain" (R after the cut minus R before it).  ``info`` always holds
+both as ``reward_total`` and ``reward_gain``, with ``cut_count``, ``num_pieces``, ``success``, ``failed``.
+terminated = ``task.success(result, task_cfg)``; truncated = cuts == max_cuts, or the batch diverged / a turn
+was refused (``info["failed"]``).
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+from gymnasium.vector import AutoresetMode, VectorEnv
+from gymnasium.vector.utils import batch_space
+
+from topocut.policies.base import HISTORY_LEN
+from topocut.sim.action import ACTION_DIM, POSE_FEATURE_DIM, KnifeAction, executed_action
+
+ID_MAX = 2**31 - 1  # cluster ids / goal piece labels are int32 in the pipeline
+REWARD_MODES = ("total", "gain")
+OBS_FIELDS = ("points", "labels", "history", "goal", "goal_labels", "cuts_done")
+
+
+def default_tilt_max(task_cfg) -> float:
+    """The knife tilt range |tilt| <= tilt_max: MPPI's ``planner.tilt_max`` (MPPIConfig) where the task samples tilt
+    (``task.sample_tilt``: pyramid), else 0 (vertical cuts, as the other tasks' planners and oracles)."""
+    from topocut.planning.config import MPPIConfig
+
+    return float(MPPIConfig.tilt_max) if getattr(task_cfg, "sample_tilt", False) else 0.0
+
+
+def single_spaces(num_points: int, num_goal_points: int, max_cuts: int, tilt_max: float):
+    """(single_action_space, single_observation_space).
+
+    action: Box [x, y, yaw, tilt] float32 -- x, y the board point in the unit-square domain, yaw in
+    [-pi/2, pi/2] (the canonical range (-pi/2, pi/2]; -pi/2 runs as pi/2 with the normal reversed, the same
+    plane), tilt in [-tilt_max, tilt_max].
+    observation (Dict): points (P,3) f32 in the unit cube and labels (P,) i64 (cluster ids, -1 unassigned):
+    a deterministic FPS of the particles (``topocut.policies.inputs.sample_indices``, start "farthest");
+    history (3,7) f32 pose features of the last cuts (board point in the unit square, unit quaternion wxyz),
+    oldest first, zeros before; goal (M,3) f32 and
+    goal_labels (M,) i64 (0 = not a goal piece, i = goal piece i): the goal cloud, FPS'd the same way;
+    cuts_done () i64 in [0, max_cuts].
+    """
+    half = np.float32(np.pi / 2)
+    action = spaces.Box(low=np.array([0.0, 0.0, -half, -tilt_max], np.float32),
+                        high=np.array([1.0, 1.0, half, tilt_max], np.float32), shape=(ACTION_DIM,), dtype=np.float32)
+    obs = spaces.Dict({
+        "points": spaces.Box(0.0, 1.0, (num_points, 3), np.float32),
+        "labels": spaces.Box(-1, ID_MAX, (num_points,), np.int64),
+        "history": spaces.Box(-1.0, 1.0, (HISTORY_LEN, POSE_FEATURE_DIM), np.float32),
+        "goal": spaces.Box(0.0, 1.0, (num_goal_points, 3), np.float32),
+        "goal_labels": spaces.Box(0, ID_MAX, (num_goal_points,), np.int64),
+        "cuts_done": spaces.Box(0, max_cuts, (), np.int64),
+    })
+    return action, obs
+
+
+class CuttingVectorEnv(VectorEnv):
+    """``num_envs`` cutting scenes in one CuttingEnv batch (module docstring for the episode rule)."""
+
+    metadata = {"autoreset_mode": AutoresetMode.DISABLED, "render_modes": []}
+
+    def __init__(self, task: str = "slice", objects: str | list[str] = "cube", num_envs: int = 2, sim_cfg=None,
+                 topo_cfg=None, reward_cfg=None, task_cfg=None, eval_cfg=None, num_points: int = 1024,
+                 num_goal_points: int = 1024, max_cuts: int | None = None, push: bool | None = None,
+                 reward_mode: str = "total", tilt_max: float | None = None, device: str = "cpu",
+                 min_fragment_points: int | None = None, turns: bool = True):
+        """task: a task name (knife tasks: slice, stick, dice, pyramid); task_cfg: its TaskConfig (default
+        TaskConfig(name=task)).  objects: one object name, or a list that each reset draws one from (every
+        scene gets the same).  sim_cfg: SimConfig (its batch_size is replaced by num_envs).  topo_cfg /
+        reward_cfg: TopologyConfig / RewardConfig (None: defaults).  eval_cfg: EvalConfig whose pose
+        randomisation (randomize_pose, translation, yaw_deg, scale_min/max) and min_fragment_points are used.
+        num_points / num_goal_points: P and M of the observation.  max_cuts (None: task_cfg.max_cuts), push
+        (None: task_cfg.push).  device: where topology discovery runs ("cpu" / "cuda")."""
+        from topocut.eval.config import EvalConfig
+        from topocut.sim.config import SimConfig
+        from topocut.sim.env import CuttingEnv
+        from topocut.tasks import TaskConfig, get_task
+
+        if reward_mode not in REWARD_MODES:
+            raise ValueError(f"reward_mode={reward_mode!r}; choose one of {', '.join(REWARD_MODES)}")
+        self.task_cfg = (task_cfg if task_cfg is not None else TaskConfig(name=task)).validate()
+        self.task = get_task(self.task_cfg.name)
+        if getattr(self.task, "tool", "knife") != "knife":
+            raise ValueError(f"CuttingVectorEnv runs the knife tasks; task {self.task_cfg.name!r} uses a "
+                             f"{self.task.tool}")
+        self.objects = [objects] if isinstance(objects, str) else list(objects)
+        if not self.objects:
+            raise ValueError("CuttingVectorEnv: objects is empty")
+        self.eval_cfg = eval_cfg or EvalConfig()
+        self.num_envs = int(num_envs)
+        if self.num_envs < 1:
+            raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+        self.max_cuts = int(self.task_cfg.max_cuts if max_cuts is None else max_cuts)
+        if self.max_cuts < 1:
+            raise ValueError(f"max_cuts must be >= 1, got {self.max_cuts}")
+        self.push = bool(self.task_cfg.push if push is None else push)
+        self.turns = bool(turns)
+        self.reward_mode = reward_mode
+        self.topo_cfg, self.reward_cfg, self.device = topo_cfg, reward_cfg, device
+        self.min_fragment_points = int(self.eval_cfg.min_fragment_points if min_fragment_points is None
+                                       else min_fragment_points)
+        self.num_points, self.num_goal_points = int(num_points), int(num_goal_points)
+        self.tilt_max = float(default_tilt_max(self.task_cfg) if tilt_max is None else tilt_max)
+        sim_cfg = dataclasses.replace(sim_cfg or SimConfig(), batch_size=self.num_envs)
+        self.sim = CuttingEnv(sim_cfg, batch_size=self.num_envs)
+        self.board_z = float(self.sim.cfg.board_z)
+        self.single_action_space, self.single_observation_space = single_spaces(
+            self.num_points, self.num_goal_points, self.max_cuts, self.tilt_max)
+        self.action_space = batch_space(self.single_action_space, self.num_envs)
+        self.observation_space = batch_space(self.single_observation_space, self.num_envs)
+        self.render_mode = None
+        self.goal = None
+        self.scorer = None
+        self.episode_seed = None
+
+    # -- helpers ---------------------------------------------------------------------------------------
+    def _sample(self, pts, n: int, labels) -> tuple[np.ndarray, np.ndarray]:
+        from topocut.policies.inputs import sample_indices
+
+        idx = sample_indices(np.asarray(pts, np.float64), n, seed=0, start="farthest")
+        return np.asarray(pts, np.float32)[idx], np.asarray(labels, np.int64)[idx]
+
+    def _reward(self, x, labels):
+        from topocut.reward import spectral_reward
+
+        frags = self.scorer.fragments(x, labels)
+        return spectral_reward(frags, list(self.goal.fragments), self.reward_cfg), len(frags)
+
+    def _obs(self) -> dict:
+        B = self.num_envs
+        pts = np.zeros((B, self.num_points, 3), np.float32)
+        lab = np.zeros((B, self.num_points), np.int64)
+        for b in range(B):
+            pts[b], lab[b] = self._sample(self.x[b], self.num_points, self.labels[b])
+        pts = np.clip(pts, 0.0, 1.0)  # particles stay in the domain (walls); float noise at its faces
+        return {"points": pts, "labels": lab, "history": self.history.copy(),
+                "goal": np.repeat(self.goal_points[None], B, 0), "goal_labels": np.repeat(self.goal_labels[None], B, 0),
+                "cuts_done": self.cuts.astype(np.int64).copy()}
+
+    # -- gymnasium API ---------------------------------------------------------------------------------
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        """New episodes in every scene.  ``seed`` (int) is the episode seed: pose ``episode_pose(eval_cfg,
+        seed)``, particle sampling seed ``seed`` (evaluate_episode's episode of that seed); None draws one
+        from ``np_random``.  ``options``: {"object": name} picks the object; {"reset_mask": (B,) bool} must
+        hold every scene (the scenes of one batch reset together)."""
+        from gymnasium.utils import seeding
+
+        from topocut.eval.protocol import episode_pose
+        from topocut.planning.rollout import Scorer
+
+        options = dict(options or {})
+        mask = options.get("reset_mask")
+        if mask is not None and not np.all(mask):
+            raise ValueError("CuttingVectorEnv resets every scene together (one particle set per batch): "
+                             "options['reset_mask'] must be all True")
+        if seed is not None:
+            self._np_random, self._np_random_seed = seeding.np_random(seed)
+            ep_seed = int(seed)
+        else:
+            if self._np_random is None:
+                self._np_random, self._np_random_seed = seeding.np_random()
+            ep_seed = int(self._np_random.integers(ID_MAX))
+        obj = options.get("object")
+        if obj is None:
+            obj = self.objects[0] if len(self.objects) == 1 else self.objects[int(self._np_random.integers(len(self.objects)))]
+        self.object, self.episode_seed = obj, ep_seed
+        self.pose = episode_pose(self.eval_cfg, ep_seed)
+        self.sim.reset(obj, self.pose, seed=ep_seed)
+        self.goal = self.task.make_goal(self.task_cfg, obj, self.pose, self.sim.cfg.spacing, board_z=self.board_z)
+        self.goal_points, self.goal_labels = self._sample(self.goal.points, self.num_goal_points, self.goal.labels)
+        self.scorer = Scorer(self.goal, self.reward_cfg, self.topo_cfg, min_fragment_points=self.min_fragment_points,
+                             device=self.device)
+        st = self.sim.state()
+        x0 = np.asarray(st.x[0])
+        lab0 = self.scorer.labels(x0, st.damage[0], None, None)  # every scene holds the same particles
+        res, npieces = self._reward(x0, lab0)
+        B = self.num_envs
+        self.x = [np.asarray(st.x[b]) for b in range(B)]
+        self.labels = [lab0.copy() for _ in range(B)]
+        self.total = np.full(B, float(res.total), np.float64)
+        self.cuts = np.zeros(B, np.int64)
+        self.done = np.zeros(B, bool)
+        self.history = np.zeros((B, HISTORY_LEN, POSE_FEATURE_DIM), np.float32)
+        info = {"reward_total": self.total.copy(), "num_pieces": np.full(B, npieces, np.int64),
+                "episode_seed": np.full(B, ep_seed, np.int64)}
+        return self._obs(), self._with_masks(info, np.ones(B, bool))
+
+    def step(self, actions):
+        from topocut.planning.rollout import TurnFailed, execute_turns, simulation_diverged_error
+        from topocut.tasks import turns_after
+
+        if self.goal is None:
+            raise RuntimeError("CuttingVectorEnv.step before reset()")
+        B = self.num_envs
+        acts = np.asarray(actions, np.float32).reshape(B, ACTION_DIM)
+        knives = [executed_action(KnifeAction.from_vector(a)) for a in acts]
+        active = ~self.done
+        frozen = {b: (self.sim.get_state(b), self.labels[b]) for b in range(B) if not active[b]}
+        Diverged = simulation_diverged_error()
+        B_rng = range(B)
+        reward = np.zeros(B, np.float64)
+        terminated = np.zeros(B, bool)
+        truncated = np.zeros(B, bool)
+        failed = np.zeros(B, bool)
+        success = np.zeros(B, bool)
+        gain = np.zeros(B, np.float64)
+        cut_count = np.zeros(B, np.int64)
+        num_pieces = np.zeros(B, np.int64)
+        try:
+            self.sim.cut(knives)
+            if self.push:
+                self.sim.push()
+        except Diverged:
+            failed[:] = active
+        if not failed.any():
+            st = self.sim.state()
+            self.cuts[active] += 1
+            for b in B_rng:
+                if not active[b]:
+                    continue
+                self.x[b] = np.asarray(st.x[b])
+                self.labels[b] = self.scorer.labels(st.x[b], st.damage[b], st.sweeps[b], self.labels[b])
+                res, num_pieces[b] = self._reward(self.x[b], self.labels[b])
+                gain[b] = float(res.total) - self.total[b]
+                self.total[b] = float(res.total)
+                cut_count[b] = int(res.cut_count)
+                success[b] = bool(self.task.success(res, self.task_cfg))
+                self.history[b] = np.roll(self.history[b], -1, axis=0)
+                self.history[b, -1] = knives[b].pose_feature(self.board_z)
+            k = int(self.cuts[active].max()) if active.any() else 0  # active scenes cut in lockstep
+            todo = turns_after(self.goal, k) if self.turns and k < self.max_cuts else []
+            if todo and active.any():
+                try:
+                    execute_turns(self.sim, todo, self.scorer, self.labels, self.x)
+                except (TurnFailed, Diverged):
+                    failed[:] = active
+            reward = np.where(active, gain if self.reward_mode == "gain" else self.total, 0.0)
+        for b, (state, labels) in frozen.items():  # a finished scene keeps its state (and its labels, which
+            self.sim.set_state(state, b=b)  # execute_turns re-discovered with every scene)
+            self.labels[b], self.x[b] = labels, np.asarray(state["x"])
+        terminated = active & success & ~failed
+        truncated = active & ~terminated & ((self.cuts >= self.max_cuts) | failed)
+        self.done |= terminated | truncated
+        info = {"reward_total": self.total.copy(), "reward_gain": gain, "cut_count": cut_count,
+                "num_pieces": num_pieces, "success": success, "failed": failed,
+                "actions": np.stack([a.to_vector() for a in knives])}
+        return (self._obs(), reward.astype(np.float64), terminated, truncated, self._with_masks(info, active))
+
+    @staticmethod
+    def _with_masks(info: dict, mask: np.ndarray) -> dict:
+        """gymnasium's vector info convention: every key k has a boolean "_k" naming the scenes it holds."""
+        out = dict(info)
+        for k in info:
+            out[f"_{k}"] = mask.copy()
+        return out
+
+    def close_extras(self, **kwargs):
+        solver = getattr(self.sim, "solver", None)
+        if solver is not None and hasattr(solver, "destroy"):
+            solver.destroy()
+            self.sim.solver = None
+
+
+class CuttingEnvGym(gym.Env):
+    """One scene (``CuttingVectorEnv`` with num_envs = 1) as a ``gymnasium.Env``; same arguments, unbatched
+    spaces, observations and scalar reward / flags."""
+
+    metadata = {"render_modes": []}
+
+    def __init__(self, **kwargs):
+        kwargs["num_envs"] = 1
+        self.vec = CuttingVectorEnv(**kwargs)
+        self.action_space = self.vec.single_action_space
+        self.observation_space = self.vec.single_observation_space
+        self.render_mode = None
+
+    @staticmethod
+    def _one(d: dict) -> dict:
+        return {k: (np.asarray(v[0]) if isinstance(v, np.ndarray) and v.ndim >= 1 else v) for k, v in d.items()
+                if not k.startswith("_")}
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        obs, info = self.vec.reset(seed=seed, options=options)
+        self._np_random = self.vec._np_random  # one generator: the vector env draws the episodes from it
+        return self._one(obs), self._one(info)
+
+    def step(self, action):
+        obs, r, term, trunc, info = self.vec.step(np.asarray(action, np.float32)[None])
+        return self._one(obs), float(r[0]), bool(term[0]), bool(trunc[0]), self._one(info)
+
+    def close(self):
+        self.vec.close()
