@@ -38,6 +38,7 @@ from topocut.data.store import write_json_atomic
 from topocut.eval.config import EvalConfig
 from topocut.policies.base import reset_policy
 from topocut.sim.action import POSE_FEATURE_DIM, executed_action
+from topocut.sim.primitives import TurnRefused
 
 HISTORY_LEN = 3
 
@@ -288,9 +289,7 @@ def evaluate_episode(spec: EpisodeSpec, policy, env, task_cfg, reward_cfg=None, 
             try:
                 for turn in todo:
                     env.turn(turn)
-            except (Diverged, ValueError) as e:
-                if isinstance(e, ValueError) and not str(e).startswith("turn"):
-                    raise
+            except (Diverged, TurnRefused) as e:
                 result.status, result.error = "failed", f"turn after cut {len(result.actions)}: {e}"
                 break
             result.turns.append(len(result.actions))

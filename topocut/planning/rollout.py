@@ -20,6 +20,7 @@ import numpy as np
 
 from topocut.policies.base import reset_policy
 from topocut.sim.action import POSE_FEATURE_DIM, KnifeAction, cut_mask, executed_action
+from topocut.sim.primitives import TurnRefused
 
 HISTORY_LEN = 3
 
@@ -115,9 +116,7 @@ def execute_turns(env, turns: list, scorer: Scorer, labels: list, xs: list) -> i
     for turn in turns:
         try:
             env.turn(turn)
-        except ValueError as e:
-            if not str(e).startswith("turn"):
-                raise
+        except TurnRefused as e:
             raise TurnFailed(str(e)) from e
     if turns:
         st = env.state()

@@ -16,6 +16,7 @@ _LAZY = {
     "SEEN": "topocut.sim.objects", "UNSEEN": "topocut.sim.objects", "ObjectPose": "topocut.sim.objects",
     "random_pose": "topocut.sim.objects", "object_sdf": "topocut.sim.objects", "sample_object": "topocut.sim.objects",
     "render_particles": "topocut.sim.render", "write_gif": "topocut.sim.render",
+    "TurnRefused": "topocut.sim.primitives",
 }
 __all__ = sorted(_LAZY)
 

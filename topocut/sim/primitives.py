@@ -10,6 +10,10 @@ import numpy as np
 from topocut.sim import pieces as P
 
 
+class TurnRefused(ValueError):
+    """``turn`` cannot lay the pieces where asked (they would leave the simulation box)."""
+
+
 class Primitives:
     def turn(self, turn, select: np.ndarray | None = None) -> np.ndarray:
         """Pick pieces up, turn them rigidly and lay them on the board (docs/tasks.md#turn-primitive).
@@ -48,7 +52,7 @@ class Primitives:
             q = (p - p.mean(0)) @ R.T + target
             q[:, 2] += cfg.board_z + 0.5 * cfg.dx - q[:, 2].min()  # rest half a cell above the board
             if q[:, :2].min() < lo or q.max() > hi:  # (z rests on the board, above the boundary band)
-                raise ValueError(f"turn: the turned pieces would leave the simulation box [{lo:.3f}, {hi:.3f}] "
+                raise TurnRefused(f"turn: the turned pieces would leave the simulation box [{lo:.3f}, {hi:.3f}] "
                                  f"(target {tuple(np.round(target, 3))}); move turn.target")
             x[b, sel] = q
             v[b, sel] = 0
