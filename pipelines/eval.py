@@ -205,59 +205,26 @@ def run(ctx: RunContext, eval, sim, topology, reward, planner, observation, data
             "table": str(path / "results.md")}
 
 
-class _Recorder:
-    """Wraps the env and keeps (x, damage, sweeps) of scene 0 after reset and after every cut/push."""
-
-    def __init__(self, env):
-        self._env, self.frames = env, []
-
-    def __getattr__(self, name):
-        return getattr(self._env, name)
-
-    def _snap(self):
-        st = self._env.state()
-        self.frames.append((st.x[0].copy(), st.damage[0].copy(), st.sweeps[0] if st.sweeps else None))
-
-    def reset(self, *args, **kwargs):
-        self.frames = []
-        out = self._env.reset(*args, **kwargs)
-        self._snap()
-        return out
-
-    def cut(self, action):
-        out = self._env.cut(action)
-        self._snap()
-        return out
-
-    def push(self):  # the pushed state replaces the cut frame; the cut sweep stays with it
-        self._env.push()
-        sweeps = self.frames[-1][2]
-        self._snap()
-        self.frames[-2:] = [self.frames[-1][:2] + (sweeps,)]
-
-
 def render_episodes(specs, policies, env, task_cfgs, out_dir, eval, reward, topology, observe_fn, spacing):
     """A GIF of the first ``eval.gifs`` episodes per task, for PDDP (or the first policy): particles
-    coloured by cluster id after every cut."""
-    from topocut.eval.protocol import evaluate_episode
+    coloured by cluster id after every cut (the episode engine's own frames and labels)."""
+    from topocut.episode import run_episodes
+    from topocut.eval.protocol import _episode, scoring_for
     from topocut.sim.render import render_particles, write_gif
-    from topocut.topology import discover
 
     name = next((n for n in policies if n.split("@")[0] == "pddp"), next(iter(policies)))
-    rec = _Recorder(env)
+    sc = scoring_for(env, reward, topology, eval.min_fragment_points)
     for task in eval.tasks:
-        for spec in [s for s in specs if s.task == task][: eval.gifs]:
-            res = evaluate_episode(spec, policies[name], rec, task_cfgs[task], reward, topology, observe_fn,
-                                   policy_name=name, max_cuts=eval.max_cuts, spacing=spacing,
-                                   min_fragment_points=eval.min_fragment_points,
-                                   stop_on_success=eval.stop_on_success)
-            frames, labels = [], None
-            x0 = rec.frames[0][0]
+        chosen = [s for s in specs if s.task == task][: eval.gifs]
+        logs = run_episodes(env, [_episode(s, task_cfgs[task]) for s in chosen], policies[name], sc,
+                            max_cuts=eval.max_cuts, observe_fn=observe_fn, stop_on_success=eval.stop_on_success,
+                            spacing=spacing, frames=True)
+        for spec, log in zip(chosen, logs):
+            frames = []
+            x0 = log.frames[0][0]
             limits = (x0.min(0) - 0.03, x0.max(0) + 0.03)
-            for i, (x, damage, sweeps) in enumerate(rec.frames):
-                labels = discover(x, damage, sweeps if i else None, previous_labels=labels, cfg=topology).labels
-                r = res.rewards[i - 1] if 0 < i <= len(res.rewards) else None
-                title = f"{name} {spec.key} cut {i}" + (f": R={r:.2f}" if r is not None else "")
+            for i, (x, labels, what) in enumerate(log.frames):
+                title = f"{name} {spec.key} {what}"
                 frames.append(render_particles(x, labels, out_dir / f"{spec.key}_{name}_{i}.png", title=title,
                                                limits=limits, size=6))
             write_gif(frames, out_dir / f"{spec.key}_{name}.gif", fps=1.5)

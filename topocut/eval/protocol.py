@@ -22,12 +22,8 @@ without the simulator.
 """
 from __future__ import annotations
 
-import functools
 import json
-import time
-import warnings
 import zlib
-from collections import deque
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -35,12 +31,8 @@ from pathlib import Path
 import numpy as np
 
 from topocut.data.store import write_json_atomic
+from topocut.episode import step_seed  # noqa: F401 - the observation seeds, re-exported
 from topocut.eval.config import EvalConfig
-from topocut.policies.base import reset_policy
-from topocut.sim.action import POSE_FEATURE_DIM, executed_action
-from topocut.sim.primitives import TurnRefused
-
-HISTORY_LEN = 3
 
 
 @dataclass(frozen=True)
@@ -159,28 +151,9 @@ def make_observe_fn(mode: str = "particles", num_points: int = 2048, obs_cfg=Non
     return observe
 
 
-def step_seed(episode_seed: int, cut: int) -> int:
-    """Seed of the observation before cut ``cut`` (0-based) of an episode."""
-    return (int(episode_seed) * 7919 + int(cut) + 1) % (2**31 - 1)
-
-
 # -- one episode ---------------------------------------------------------------------------------------
-def _default_goal_fn(task_cfg, obj, pose, spacing, board_z=0.05):
-    from topocut.tasks import get_task
-
-    return get_task(task_cfg.name).make_goal(task_cfg, obj, pose, spacing, board_z=board_z)
-
-
-def _default_discover(x, damage, sweeps, previous, topo_cfg):
-    from topocut.topology import discover
-
-    return np.asarray(discover(x, damage, sweeps, previous_labels=previous, cfg=topo_cfg).labels, np.int32)
-
-
-def _default_reward(fragments, goal_fragments, reward_cfg):
-    from topocut.reward import spectral_reward
-
-    return spectral_reward(fragments, goal_fragments, reward_cfg)
+def _board_z(env) -> float:
+    return float(getattr(getattr(env, "cfg", None), "board_z", 0.05))
 
 
 def _diverged_type() -> type:
@@ -189,22 +162,44 @@ def _diverged_type() -> type:
     return simulation_diverged_error()
 
 
-def _fragments(x, labels, min_points: int) -> list[np.ndarray]:
-    ids = [c for c in np.unique(labels) if c >= 0]  # -1: unassigned particles belong to no piece
-    frags = [x[labels == c] for c in ids]
-    return [f for f in frags if len(f) >= min_points]
+def scoring_for(env, reward_cfg=None, topo_cfg=None, min_fragment_points: int = 4, goal_fn: Callable | None = None,
+                discover_fn: Callable | None = None, reward_fn: Callable | None = None):
+    """The episode engine's Scoring (topocut.episode) for the protocol: the task's goal and success, discovery
+    where the simulator runs, the spectral reward; ``goal_fn(task_cfg, obj, pose, spacing)``,
+    ``discover_fn(x, damage, sweeps, previous, topo_cfg)`` and ``reward_fn(fragments, goal_fragments,
+    reward_cfg)`` replace their parts (tests run the protocol without the simulator that way)."""
+    from topocut.episode import default_scoring, fragment_scoring
+    from topocut.planning.rollout import topology_device
+    from topocut.tasks import get_task
+
+    base = default_scoring(reward_cfg, topo_cfg, device=topology_device(env), board_z=_board_z(env),
+                           min_fragment_points=min_fragment_points)
+    if goal_fn is None and discover_fn is None and reward_fn is None:
+        return base
+    if reward_fn is None:
+        from topocut.reward import spectral_rewards
+
+        rewards = lambda sets, goal_sets: spectral_rewards(sets, goal_sets, reward_cfg)  # noqa: E731
+    else:
+        rewards = lambda sets, goal_sets: [reward_fn(f, g, reward_cfg) for f, g in zip(sets, goal_sets)]  # noqa: E731
+    discover = base.discover_fn if discover_fn is None else (
+        lambda x, damage, sweeps, previous: discover_fn(x, np.asarray(damage, bool), sweeps, previous, topo_cfg))
+    return fragment_scoring(goal_fn or base.goal_fn, discover, rewards,
+                            lambda res, task_cfg: bool(get_task(task_cfg.name).success(res, task_cfg)),
+                            min_fragment_points)
 
 
-def _board_z(env) -> float:
-    return float(getattr(getattr(env, "cfg", None), "board_z", 0.05))
+def _result(spec: EpisodeSpec, name: str, log) -> EpisodeResult:
+    return EpisodeResult(spec=spec.asdict(), policy=name, status=log.status, error=log.error,
+                         initial_reward=log.initial_reward, rewards=log.rewards, cut_counts=log.cut_counts,
+                         successes=log.successes, turns=log.turns, num_pieces=log.num_pieces, actions=log.actions,
+                         act_time_s=log.act_time_s, time_s=log.time_s)
 
 
-def _spacing(env) -> float:
-    cfg = getattr(env, "cfg", None)
-    for name in ("spacing", "particle_spacing", "dx_particle"):
-        if hasattr(cfg, name):
-            return float(getattr(cfg, name))
-    raise ValueError("evaluate_episode: env.cfg has no particle spacing (spacing/particle_spacing); pass spacing=")
+def _episode(spec: EpisodeSpec, task_cfg):
+    from topocut.episode import Episode
+
+    return Episode(spec.object, spec.pose, spec.seed, task_cfg, key=spec.key)
 
 
 def evaluate_episode(spec: EpisodeSpec, policy, env, task_cfg, reward_cfg=None, topo_cfg=None,
@@ -212,97 +207,19 @@ def evaluate_episode(spec: EpisodeSpec, policy, env, task_cfg, reward_cfg=None, 
                      min_fragment_points: int = 4, stop_on_success: bool = False, spacing: float | None = None,
                      goal_fn: Callable | None = None, discover_fn: Callable | None = None,
                      reward_fn: Callable | None = None, turns: bool = True) -> EpisodeResult:
-    """Deterministic rollout of up to ``max_cuts`` sequential cuts of ``policy`` on ``spec``.
+    """Deterministic rollout of up to ``max_cuts`` sequential cuts of ``policy`` on ``spec`` (one episode of the
+    engine, topocut.episode.run_episodes: its rules for stopping, failures, turns and observations).
 
     ``policy.act`` returning None ends the episode early.  SimulationDiverged (or a turn the simulator
     refuses) marks it ``failed``; an exception from the policy or from scoring a cut marks it ``error`` (all
     keep the steps completed before).  ``turns``: perform the goal's turns between cuts (module docstring).
     """
-    from topocut.tasks import get_task, turns_after
+    from topocut.episode import run_episodes
 
-    task = get_task(task_cfg.name)
-    board_z = _board_z(env)
-    goal_fn, discover_fn, reward_fn = (goal_fn or functools.partial(_default_goal_fn, board_z=board_z),
-                                       discover_fn or _default_discover, reward_fn or _default_reward)
-    observe_fn = observe_fn or (lambda x, labels, seed: (np.asarray(x, np.float32), np.asarray(labels, np.int32)))
-    Diverged = _diverged_type()
-    t0 = time.perf_counter()
-    result = EpisodeResult(spec=spec.asdict(), policy=policy_name)
-    B = int(getattr(env, "batch_size", 1) or 1)
-
-    env.reset(spec.object, spec.pose, seed=spec.seed)
-    goal = goal_fn(task_cfg, spec.object, spec.pose, spacing if spacing is not None else _spacing(env))
-    goal_frags = [np.asarray(f) for f in goal.fragments]
-    st = env.state()
-    x = np.asarray(st.x[0])  # N,3
-    labels = discover_fn(x, np.asarray(st.damage[0], bool), None, None, topo_cfg)
-    result.initial_reward = float(reward_fn(_fragments(x, labels, min_fragment_points), goal_frags, reward_cfg).total)
-    reset_policy(policy, goal, seed=spec.seed)
-    history = deque([np.zeros(POSE_FEATURE_DIM, np.float32)] * HISTORY_LEN, maxlen=HISTORY_LEN)
-    push = bool(getattr(task_cfg, "push", False))
-    for k in range(max_cuts):
-        points, obs_labels = observe_fn(x, labels, step_seed(spec.seed, k))
-        obs = {"points": points, "labels": obs_labels, "history": np.stack(list(history)),  # 3,7 oldest first
-               "goal": np.asarray(goal.points, np.float32), "goal_labels": np.asarray(goal.labels, np.int32),
-               "particle_labels": labels, "cuts_done": len(result.actions)}
-        if hasattr(env, "get_state"):
-            obs["sim_state"] = env.get_state(0)  # lets planners (MPPI) act as policies
-        ta = time.perf_counter()
-        try:
-            action = policy.act(obs)
-        except Exception as e:  # noqa: BLE001 - a broken policy fails its episode, not the evaluation
-            result.status, result.error = "error", f"{type(e).__name__}: {e}"
-            break
-        result.act_time_s.append(time.perf_counter() - ta)
-        if "sim_state" in obs and hasattr(env, "set_state"):
-            env.set_state(obs["sim_state"], b=None)  # a planner's rollouts may have moved the scenes
-        if action is None:
-            break
-        action = executed_action(action)  # the pose that runs: the demonstrations' and teleop replay's rule
-        try:
-            env.cut([action] * B if B > 1 else action)
-            if push:
-                env.push()
-        except Diverged as e:
-            result.status, result.error = "failed", str(e)
-            break
-        st = env.state()
-        x = np.asarray(st.x[0])
-        try:
-            labels = discover_fn(x, np.asarray(st.damage[0], bool), st.sweeps[0], labels, topo_cfg)
-            frags = _fragments(x, labels, min_fragment_points)
-            res = reward_fn(frags, goal_frags, reward_cfg)
-        except Exception as e:  # noqa: BLE001 - recorded in the episode JSON and counted by the report
-            result.status, result.error = "error", f"scoring cut {len(result.actions) + 1}: {type(e).__name__}: {e}"
-            warnings.warn(f"{policy_name} {spec.key}: {result.error}", stacklevel=2)
-            break
-        result.rewards.append(float(res.total))
-        result.cut_counts.append(int(res.cut_count))
-        result.successes.append(bool(task.success(res, task_cfg)))
-        result.num_pieces.append(len(frags))
-        result.actions.append([float(v) for v in action.to_vector()])
-        history.append(action.pose_feature(board_z))
-        if stop_on_success and result.successes[-1]:
-            break
-        todo = turns_after(goal, len(result.actions)) if turns and k + 1 < max_cuts else []
-        if todo:  # the goal's scripted turn before the next cut
-            try:
-                for turn in todo:
-                    env.turn(turn)
-            except (Diverged, TurnRefused) as e:
-                result.status, result.error = "failed", f"turn after cut {len(result.actions)}: {e}"
-                break
-            result.turns.append(len(result.actions))
-            st = env.state()
-            x = np.asarray(st.x[0])
-            try:  # no new sweep (CuttingEnv.turn clears them): the previous labels carry the ids over
-                labels = discover_fn(x, np.asarray(st.damage[0], bool), st.sweeps[0], labels, topo_cfg)
-            except Exception as e:  # noqa: BLE001 - as a cut's scoring error
-                result.status, result.error = "error", f"labelling after turn {len(result.turns)}: {type(e).__name__}: {e}"
-                warnings.warn(f"{policy_name} {spec.key}: {result.error}", stacklevel=2)
-                break
-    result.time_s = time.perf_counter() - t0
-    return result
+    sc = scoring_for(env, reward_cfg, topo_cfg, min_fragment_points, goal_fn, discover_fn, reward_fn)
+    [log] = run_episodes(env, [_episode(spec, task_cfg)], policy, sc, max_cuts=max_cuts, observe_fn=observe_fn,
+                         stop_on_success=stop_on_success, turns=turns, spacing=spacing)
+    return _result(spec, policy_name, log)
 
 
 # -- the whole evaluation ---------------------------------------------------------------------------
@@ -319,6 +236,7 @@ def run_evaluation(specs: list[EpisodeSpec], policies: dict, env, task_cfgs: dic
     Specs run in the outer loop so that an interrupted evaluation holds comparable episodes for all policies.
     ``episode_kw`` goes to ``evaluate_episode`` (spacing, goal_fn, discover_fn, reward_fn, ...).
     """
+    from topocut.episode import run_episodes
     from topocut.utils.progress import progress_bar
 
     cfg = cfg or EvalConfig()
@@ -332,17 +250,32 @@ def run_evaluation(specs: list[EpisodeSpec], policies: dict, env, task_cfgs: dic
             if p.exists():
                 done[n, s.key] = json.loads(p.read_text())
     todo = [(s, n) for s in specs for n in policies if (n, s.key) not in done]
+    episode_kw = dict(episode_kw)
+    sc = scoring_for(env, reward_cfg, topo_cfg, cfg.min_fragment_points, episode_kw.pop("goal_fn", None),
+                     episode_kw.pop("discover_fn", None), episode_kw.pop("reward_fn", None))
+    B = int(getattr(env, "batch_size", 1) or 1)
     with progress_bar("eval", total=len(todo), enabled=progress) as advance:
-        for spec, name in todo:
-            res = evaluate_episode(spec, policies[name], env, task_cfgs[spec.task], reward_cfg, topo_cfg,
-                                   observe_fn, policy_name=name, max_cuts=cfg.max_cuts,
-                                   min_fragment_points=cfg.min_fragment_points,
-                                   stop_on_success=cfg.stop_on_success, **episode_kw)
-            d = res.asdict()
-            write_json_atomic(episode_path(out_dir, name, spec), d)
-            done[name, spec.key] = d
-            if logger is not None:
-                logger.log({f"eval/{name}/{spec.task}/final_reward": d["final_reward"],
-                            f"eval/{name}/{spec.task}/cut_count": d["final_cut_count"]})
-            advance(1, info=f"{name} {spec.key}: R={d['final_reward']:.3f} N_C={d['final_cut_count']} {d['status']}")
+        # B specs at a time, every policy on them before the next B: an interrupted evaluation holds
+        # comparable episodes for all policies; each policy's B episodes run as one batch (topocut.episode)
+        for g0 in range(0, len(specs), B):
+            group = specs[g0:g0 + B]
+            for name, policy in policies.items():
+                mine = [s for s in group if (name, s.key) not in done]
+                if not mine:
+                    continue
+
+                def finished(i, log, mine=mine, name=name):
+                    spec = mine[i]
+                    d = _result(spec, name, log).asdict()
+                    write_json_atomic(episode_path(out_dir, name, spec), d)
+                    done[name, spec.key] = d
+                    if logger is not None:
+                        logger.log({f"eval/{name}/{spec.task}/final_reward": d["final_reward"],
+                                    f"eval/{name}/{spec.task}/cut_count": d["final_cut_count"]})
+                    advance(1, info=f"{name} {spec.key}: R={d['final_reward']:.3f} N_C={d['final_cut_count']} "
+                                    f"{d['status']}")
+
+                run_episodes(env, [_episode(s, task_cfgs[s.task]) for s in mine], policy, sc,
+                             max_cuts=cfg.max_cuts, observe_fn=observe_fn, stop_on_success=cfg.stop_on_success,
+                             on_done=finished, **episode_kw)
     return {n: [done[n, s.key] for s in specs] for n in policies}

@@ -52,25 +52,79 @@ def fps(points, n: int, seed: int = 0, start: str = "farthest") -> np.ndarray:
     return idx
 
 
-def fps_torch(points, n: int):
-    """Batched FPS: points (B,N,3) torch tensor -> indices (B,n) long, same start rule as ``fps``."""
+def fps_torch(points, n: int, mask=None):
+    """Batched FPS: points (B,N,3) tensor -> indices (B,n) long into N, same start rule as ``fps``.
+
+    mask (B,N) bool marks each cloud's valid points (None: all valid), so clouds of different sizes can be
+    padded into one batch; invalid points are never selected and their coordinates are ignored.  The start
+    is the valid point farthest from the valid points' centroid, and the distances use ``fps``'s float
+    operations in its order, so in float64 row b equals ``fps(points[b][mask[b]], n)`` mapped back to
+    padded indices (an exact tie in the start's centroid distance may break the other way: the centroid is
+    summed in another order).  A cloud with m < n valid points gets its m FPS picks (all of its points when
+    they are distinct) followed by n - m copies of its last pick; ``valid_rows`` flags the copies.
+    """
     import torch
 
     if points.dim() != 3:
         raise ValueError(f"fps_torch expects (B,N,3) points, got shape {tuple(points.shape)}")
     B, N, _ = points.shape
-    _check(int(n), N)
+    n = int(n)
+    if mask is None:
+        _check(n, N)
+    elif n < 1:
+        raise ValueError(f"fps: n={n} must be >= 1")
     with torch.no_grad():
         p = points.detach()
+        if mask is None:
+            count = None
+        else:
+            mask = torch.as_tensor(mask, dtype=torch.bool, device=p.device)
+            if mask.shape != (B, N):
+                raise ValueError(f"fps_torch: mask shape {tuple(mask.shape)} must be (B,N) = {(B, N)}")
+            count = mask.sum(1)  # B,
+            if B and int(count.min()) == 0:  # one sync per call: a cloud without points has no start
+                raise ValueError("fps_torch: a cloud has no valid point (mask row all False)")
+            p = torch.where(mask[..., None], p, torch.zeros((), dtype=p.dtype, device=p.device))  # NaN-proof padding
         ar = torch.arange(B, device=p.device)
-        idx = torch.empty(B, int(n), dtype=torch.long, device=p.device)
-        cur = ((p - p.mean(1, keepdim=True)) ** 2).sum(-1).argmax(1)  # B,
-        dist = torch.full((B, N), float("inf"), dtype=p.dtype, device=p.device)
-        for i in range(int(n)):
-            idx[:, i] = cur
-            d = ((p - p[ar, cur][:, None, :]) ** 2).sum(-1)  # B,N
-            dist = torch.minimum(dist, d)
+        # both layouts give (dx^2 + dy^2) + dz^2, bit for bit as fps accumulates it (B,3 -> B,N)
+        if p.is_cuda:  # launch-bound: 4 kernels per pick on the interleaved B,N,3 layout
+            def sqdist(c):
+                diff = p - c[:, None, :]  # B,N,3
+                diff.mul_(diff)
+                d = diff[..., 0] + diff[..., 1]
+                d += diff[..., 2]
+                return d
+        else:  # on the CPU contiguous columns vectorise: about 2x faster than strided slices
+            x, y, z = (p[..., d].contiguous() for d in range(3))  # 3 x (B,N)
+
+            def sqdist(c):
+                dx, dy, dz = x - c[:, :1], y - c[:, 1:2], z - c[:, 2:]
+                d = dx * dx
+                d += dy * dy
+                d += dz * dz
+                return d
+
+        if mask is None:
+            centroid = p.mean(1)  # B,3
+            d0 = sqdist(centroid)
+            dist = torch.full((B, N), float("inf"), dtype=p.dtype, device=p.device)
+        else:
+            centroid = p.sum(1) / count[:, None].to(p.dtype)  # padding is zero
+            neg = torch.tensor(float("-inf"), dtype=p.dtype, device=p.device)
+            d0 = torch.where(mask, sqdist(centroid), neg)
+            # -inf on padding: torch.minimum keeps it, so argmax never returns an invalid point
+            dist = torch.where(mask, torch.tensor(float("inf"), dtype=p.dtype, device=p.device), neg)
+        cur = d0.argmax(1)  # B, first maximum, as np.argmax
+        picks = []
+        for _ in range(n):
+            picks.append(cur)
+            torch.minimum(dist, sqdist(p[ar, cur]), out=dist)
             cur = dist.argmax(1)
+        idx = torch.stack(picks, 1) if picks else torch.empty(B, 0, dtype=torch.long, device=p.device)  # B,n
+        if count is not None and n > 1:
+            # past its m valid points a cloud would go on picking (zero-distance) points again: repeat pick m-1
+            last = idx.gather(1, (count.clamp_max(n) - 1)[:, None])  # B,1
+            idx = torch.where(torch.arange(n, device=p.device)[None] < count[:, None], idx, last)
     return idx
 
 

@@ -111,6 +111,8 @@ class MPPIPolicy:
     guess and the horizon fill come from the heuristic's goal planes.
     """
 
+    uses_simulator = True  # its rollouts are the env's scenes: the episode engine runs its episodes one at a time
+
     def __init__(self, cfg: MPPIConfig | None = None, rollout_factory=None, seed: int = 0, goal=None):
         self.cfg = cfg or MPPIConfig()
         self.cfg.validate()

@@ -12,13 +12,12 @@ its cuts (one at the end of its horizon cannot change the pose-invariant reward 
 """
 from __future__ import annotations
 
-import time
 from collections import deque
 from collections.abc import Mapping
 
 import numpy as np
 
-from topocut.policies.base import reset_policy
+from topocut.episode import make_record
 from topocut.sim.action import POSE_FEATURE_DIM, KnifeAction, cut_mask, executed_action
 from topocut.sim.primitives import TurnRefused
 
@@ -210,90 +209,57 @@ def empty_history() -> deque:
     return deque([np.zeros(POSE_FEATURE_DIM, np.float32)] * HISTORY_LEN, maxlen=HISTORY_LEN)
 
 
-def make_step(x_t, f_t, x_t1, f_t1, action: KnifeAction, history, reward: float, success: bool,
-              board_z: float) -> dict:
-    """One dataset record (EpisodeWriter input); history = the 3 previous pose features, oldest first.
-
-    ``action`` should be the one that was executed (executed_action): the stored float32 vector and the pose are
-    both of it, so the vector read back gives the executed plane exactly.
-    """
-    action = executed_action(action)
-    return {"x_t": np.asarray(x_t, np.float32).copy(), "f_t": np.asarray(f_t, np.int32).copy(),
-            "x_t1": np.asarray(x_t1, np.float32).copy(), "f_t1": np.asarray(f_t1, np.int32).copy(),
-            "action": action.to_vector(), "pose": action.to_matrix(board_z).astype(np.float32),
-            "history": np.stack(list(history)).astype(np.float32), "reward": float(reward),
-            "success": bool(success)}
+# one dataset record: the engine's (topocut.episode.make_record), under the name teleop sessions use
+make_step = make_record
 
 
 def env_board_z(env, default: float = 0.05) -> float:
     return float(getattr(getattr(env, "cfg", None), "board_z", default))
 
 
+def scorer_scoring(scorer: Scorer):
+    """The episode engine's Scoring (topocut.episode) from a Scorer: its labels and its reward/success."""
+    from topocut.episode import Score, Scoring
+
+    def score_fn(xs, labels, goals, task_cfgs):
+        out = []
+        for x, lab in zip(xs, labels):
+            total, ok = scorer.reward(x, lab)
+            out.append(Score(float(total), 0, bool(ok), int(len([c for c in np.unique(lab) if c >= 0]))))
+        return out
+
+    return Scoring(goal_fn=None, discover_fn=scorer.labels, score_fn=score_fn)
+
+
 def run_episode(env, goal, planner, reward_cfg=None, topo_cfg=None, max_cuts: int = 5, push: bool = False,
                 observe_fn=None, progress=None, success_threshold: float | None = None,
                 scorer: Scorer | None = None, seed: int | None = None, success_fn=None) -> tuple[list[dict], dict]:
-    """Execute ``planner`` (Policy) in ``env`` (already reset, scene 0) until success or max_cuts cuts.
+    """Execute ``planner`` (Policy) in ``env`` (already reset) until success or max_cuts cuts: one demonstration
+    through the episode engine (topocut.episode.run_episodes, its rules for turns, failures and the executed
+    action), keeping the dataset records.
 
     ``seed`` (the episode's) re-seeds a stochastic planner at its reset (topocut.policies.base.reset_policy).
     ``success_fn(RewardResult) -> bool``: the task's success (Scorer); default the total at success_threshold.
-    After the k-th cut the goal's turns after its k-th cut are performed (module docstring): the next record's
-    x_t is the state after them; the summary's ``turns`` lists the cuts a turn followed.
-
+    ``observe_fn(x, labels) -> (points, labels)``: what the planner sees (default the particles).
     Returns the step records and a summary; a SimulationDiverged (or a refused turn) marks the
     episode ``failed`` and keeps the steps recorded before it.
     """
-    t0 = time.perf_counter()
+    from types import SimpleNamespace
+
+    from topocut.episode import Episode, run_episodes
+
     scorer = scorer or Scorer(goal, reward_cfg, topo_cfg, success_threshold, device=topology_device(env),
                               success_fn=success_fn)
-    board_z = env_board_z(env)
-    B = int(getattr(env, "batch_size", 1))
-    Diverged = simulation_diverged_error()
-    st = env.state()
-    x = np.asarray(st.x[0])  # N,3
-    labels = scorer.labels(x, st.damage[0], None, None)
-    reset_policy(planner, goal, seed=seed)
-    history = empty_history()
-    steps, status, error, turned = [], "ok", None, []
-    for t in range(max_cuts):
-        points, obs_labels = observe_fn(x, labels) if observe_fn is not None else (x, labels)
-        obs = {"points": points, "labels": obs_labels, "history": np.stack(list(history)),
-               "goal": goal.points, "goal_labels": goal.labels,
-               "sim_state": env.get_state(0), "particle_labels": labels, "cuts_done": t}
-        action = executed_action(planner.act(obs))  # executed, stored and its pose: one float32-exact plane
-        env.set_state(obs["sim_state"], b=None)  # MPPI's rollouts moved the scenes: execute from the real state
-        try:
-            env.cut([action] * B if B > 1 else action)
-            if push:
-                env.push()
-        except Diverged as e:  # the reason goes with the episode (its log and dataset entry), not only a NaN reward
-            status, error = "failed", f"cut {t + 1}: {type(e).__name__}: {e}"
-            break
-        st = env.state()
-        x1 = np.asarray(st.x[0])
-        labels1 = scorer.labels(x1, st.damage[0], st.sweeps[0], labels)
-        reward, success = scorer.reward(x1, labels1)
-        steps.append(make_step(x, labels, x1, labels1, action, history, reward, success, board_z))
-        history.append(action.pose_feature(board_z))
-        x, labels = x1, labels1
-        if progress is not None:
-            progress(1, info=f"cut {t + 1}: reward {reward:.3f}")
-        if success:
-            break
-        if t + 1 < max_cuts and turns_after(goal, t + 1):  # the scripted turn before the next cut
-            try:
-                lab, xb = [labels], [x]
-                execute_turns(env, turns_after(goal, t + 1), scorer, lab, xb)
-                labels, x = lab[0], xb[0]
-                turned.append(t + 1)
-            except (Diverged, TurnFailed) as e:
-                status, error = "failed", f"turn after cut {t + 1}: {type(e).__name__}: {e}"
-                break
-    summary = {"status": status, "num_cuts": len(steps), "turns": turned,
+    observe = None if observe_fn is None else (lambda x, labels, seed: observe_fn(x, labels))
+    episode = Episode(None, None, seed, SimpleNamespace(push=bool(push)), goal=goal)
+    [log] = run_episodes(env, [episode], planner, scorer_scoring(scorer), max_cuts=max_cuts, observe_fn=observe,
+                         stop_on_success=True, record=True, progress=progress, initial_reward=False, batch=False)
+    steps = log.steps
+    summary = {"status": log.status, "num_cuts": len(steps), "turns": log.turns,
                "final_reward": steps[-1]["reward"] if steps else float("nan"),
                "success": bool(steps and steps[-1]["success"]),
-               "rewards": [s["reward"] for s in steps], "actions": [s["action"].tolist() for s in steps],
-               "num_clusters": int(len([c for c in np.unique(labels) if c >= 0])),
-               "time_s": time.perf_counter() - t0}
-    if error:
-        summary["error"] = error
+               "rewards": [st["reward"] for st in steps], "actions": [st["action"].tolist() for st in steps],
+               "num_clusters": int(len([c for c in np.unique(log.labels) if c >= 0])), "time_s": log.time_s}
+    if log.error:
+        summary["error"] = log.error
     return steps, summary

@@ -35,7 +35,7 @@ from scipy.optimize import linear_sum_assignment
 
 from topocut.reward.config import RewardConfig
 from topocut.reward.size import size_descriptor, size_distance
-from topocut.reward.spectral import _points, descriptor, descriptor_distance, resample
+from topocut.reward.spectral import _points, descriptor, descriptor_distance, resample, resample_groups
 
 
 def piecewise_reward(d, cfg: RewardConfig | None = None):
@@ -151,17 +151,38 @@ def _descriptors(clouds: list[np.ndarray], sigma, cfg: RewardConfig) -> list:
     if cfg.backend == "torch" and todo:
         import torch
 
-        from topocut.reward.spectral import spectral_descriptors
-
+        groups = []
         for size in sorted({len(clouds[i]) for i in todo}):  # equal-size batches
             idx = [i for i in todo if len(clouds[i]) == size]
-            batch = torch.as_tensor(np.stack([clouds[i] for i in idx]), device=cfg.device)
-            w, s = spectral_descriptors(batch, cfg, sigma=sigma)
-            for j, i in enumerate(idx):
-                out[i] = (w[j].cpu().numpy(), s[j].cpu().numpy())
+            groups.append((idx, torch.as_tensor(np.stack([clouds[i] for i in idx]), device=cfg.device)))
+        _describe_groups(groups, sigma, cfg, out)
     else:
         for i in todo:
             out[i] = descriptor(clouds[i], sigma, cfg)
+    return out
+
+
+def _describe_groups(groups, sigma, cfg: RewardConfig, out: list) -> None:
+    """Fill out[i] with (eigvals, signature) numpy arrays from [(indices, (b,n,3) tensor)] (torch backend)."""
+    from topocut.reward.spectral import spectral_descriptors
+
+    for idx, batch in groups:
+        w, s = spectral_descriptors(batch, cfg, sigma=sigma)
+        w, s = w.cpu().numpy(), s.cpu().numpy()  # one copy per group, not one sync per fragment
+        for j, i in enumerate(idx):
+            out[i] = (w[j], s[j])
+
+
+def _raw_descriptors(clouds: list[np.ndarray], sigma, cfg: RewardConfig) -> list:
+    """Descriptor per raw (not yet resampled) cloud, None below min_points.  The torch backend resamples
+    every cloud in one batched FPS on cfg.device (``resample_groups``) and never brings points back."""
+    if cfg.backend != "torch":
+        return _descriptors([resample(c, cfg) for c in clouds], sigma, cfg)
+    out: list = [None] * len(clouds)
+    todo = [i for i, c in enumerate(clouds) if min(len(c), cfg.num_point) >= cfg.min_points]
+    if todo:
+        groups = resample_groups([clouds[i] for i in todo], cfg)
+        _describe_groups([([todo[j] for j in ids], batch) for ids, batch in groups], sigma, cfg, out)
     return out
 
 
@@ -191,40 +212,65 @@ def distances_and_volumes(fragment_sets, goal_fragments, cfg: RewardConfig | Non
     return _score_sets(fragment_sets, goal_fragments, cfg, names)
 
 
-def _score_sets(fragment_sets, goal_fragments, cfg: RewardConfig | None = None, names=None):
+def _score_sets(fragment_sets, goal_fragments, cfg: RewardConfig | None = None, names=None, per_set=False):
     """(distance matrices, fragment volumes per set, goal volumes).
 
-    All sets' fragments go through one descriptor call, so the torch backend
-    decomposes every scene's fragments in one batch instead of one scene at a time.
+    goal_fragments: one list of goal clouds for every set, or (per_set=True) one list per set; the goal
+    volumes are then one array per set.  All sets' fragments go through one descriptor call, so the torch
+    backend resamples and decomposes every scene's fragments in one batch instead of one scene at a time.
+    Goals are hashed once per distinct cloud; their resamplings and descriptors are cached across calls.
     """
     cfg = (cfg or RewardConfig()).validate()
     names = names or [f"fragment_sets[{s}]" for s in range(len(fragment_sets))]
     raw = [[_points(f, f"{name}[{i}]") for i, f in enumerate(fs)] for name, fs in zip(names, fragment_sets)]
     sizes = [[size_descriptor(f) for f in fs] for fs in raw]
-    sets = [[resample(f, cfg) for f in fs] for fs in raw]
-    goals = [_points(g, f"goal_fragments[{i}]") for i, g in enumerate(goal_fragments)]
+    goal_sets = goal_fragments if per_set else [goal_fragments]
+    if per_set and len(goal_sets) != len(raw):
+        raise ValueError(f"per-set goals: got {len(goal_sets)} goal lists for {len(raw)} fragment sets")
     ckey = repr(cfg)
-    gkeys = [_hash(g) for g in goals]
-    gsizes = [_cached(("size", k), lambda g=g: size_descriptor(g)) for k, g in zip(gkeys, goals)]
-    goals = [_cached(("resample", k, ckey), lambda g=g: resample(g, cfg)) for k, g in zip(gkeys, goals)]
-    Ds = [np.full((len(fs), len(goals)), np.inf) for fs in sets]
+    keys, ugoals, gidx = {}, [], []  # content hash -> distinct goal index; distinct (hash, cloud); per goal list
+    for s, gs in enumerate(goal_sets):
+        row = []
+        for i, g in enumerate(gs):
+            g = _points(g, f"goal_fragments[{s}][{i}]" if per_set else f"goal_fragments[{i}]")
+            k = _hash(g)
+            if k not in keys:
+                keys[k] = len(ugoals)
+                ugoals.append((k, g))
+            row.append(keys[k])
+        gidx.append(row)
+    gsizes = [_cached(("size", k), lambda g=g: size_descriptor(g)) for k, g in ugoals]
+    gres = [_cached(("resample", k, ckey), lambda g=g: resample(g, cfg)) for k, g in ugoals]
+    uvols = np.array([sz[3] for sz in gsizes])
+    set_goals = gidx if per_set else gidx * len(raw)  # each set's goal indices into ugoals
+    Ds = [np.full((len(fs), len(row)), np.inf) for fs, row in zip(raw, set_goals)]
     vols = [np.array([sz[3] for sz in fs]) for fs in sizes]
-    gvols = np.array([sz[3] for sz in gsizes])
-    flat = [f for fs in sets for f in fs]
-    if not flat or not any(len(g) >= cfg.min_points for g in goals):
+    gvols = [uvols[row] for row in gidx] if per_set else uvols[gidx[0]]
+    flat = [f for fs in raw for f in fs]
+    if not flat or not any(len(g) >= cfg.min_points for g in gres):
         return Ds, vols, gvols
     sigma = cfg.sigma  # None: each cloud its own graph width (scale-free spectra)
-    fd = iter(_descriptors(flat, sigma, cfg))
-    gd = [_cached(("desc", k, ckey), lambda g=g: _descriptors([g], sigma, cfg)[0]) for k, g in zip(gkeys, goals)]
-    for D, fs in zip(Ds, sizes):
+    fd = iter(_raw_descriptors(flat, sigma, cfg))
+    gd = _goal_descriptors([k for k, _ in ugoals], gres, sigma, cfg)
+    for D, fs, row in zip(Ds, sizes, set_goals):
         for i in range(D.shape[0]):
             a = next(fd)
-            for j, b in enumerate(gd):
-                if a is not None and b is not None:
-                    D[i, j] = (descriptor_distance(*a, *b, cfg)
-                               + size_distance(fs[i], gsizes[j], cfg.size_weight, cfg.fill_weight,
+            for j, u in enumerate(row):
+                if a is not None and gd[u] is not None:
+                    D[i, j] = (descriptor_distance(*a, *gd[u], cfg)
+                               + size_distance(fs[i], gsizes[u], cfg.size_weight, cfg.fill_weight,
                                                  cfg.profile_weight))
     return Ds, vols, gvols
+
+
+def _goal_descriptors(keys: list, clouds: list, sigma, cfg: RewardConfig) -> list:
+    """Cached descriptor per distinct goal (resampled) cloud; the misses go through one batched call."""
+    ckey = repr(cfg)
+    missing = [j for j, k in enumerate(keys) if ("desc", k, ckey) not in _CACHE]
+    fresh = dict(zip(missing, _descriptors([clouds[j] for j in missing], sigma, cfg)))
+    # fresh.get: an entry evicted since the check above (more distinct goals than _CACHE_SIZE) is recomputed
+    return [_cached(("desc", k, ckey), lambda j=j: fresh[j] if j in fresh else _descriptors([clouds[j]], sigma, cfg)[0])
+            for j, k in enumerate(keys)]
 
 
 def reward_from_distances(D: np.ndarray, G: int, cfg: RewardConfig, volumes=None,
@@ -249,13 +295,45 @@ def reward_from_distances(D: np.ndarray, G: int, cfg: RewardConfig, volumes=None
     return RewardResult(total, per_goal, pairs, cut_count, D, unclipped, stock, waste, values, w)
 
 
+def _is_per_set(goal_fragments) -> bool:
+    """True when goal_fragments is one list of goal clouds per set (its first entry holds 2-D clouds),
+    False for one shared list of clouds (its first entry is itself a cloud: rows of 3 coordinates)."""
+    if len(goal_fragments) == 0:
+        return False
+    first = goal_fragments[0]
+    return len(first) > 0 and np.ndim(first[0]) == 2
+
+
 def spectral_rewards(fragment_sets, goal_fragments, cfg: RewardConfig | None = None) -> list[RewardResult]:
-    """spectral_reward of each set of fragments against the same goal, descriptors batched across sets."""
+    """spectral_reward of each set of fragments, descriptors batched across sets.
+
+    goal_fragments is either one list of goal clouds (m,3) that every set is scored against, or one such
+    list per set (``spectral_rewards_per_goal``), told apart by ``_is_per_set``: per set when its first
+    entry is a list of clouds rather than a cloud.  Result s equals spectral_reward(fragment_sets[s], its goals).
+    """
+    if _is_per_set(goal_fragments):
+        return spectral_rewards_per_goal(fragment_sets, goal_fragments, cfg)
     cfg = (cfg or RewardConfig()).validate()
-    if not goal_fragments:
+    if not len(goal_fragments):
         raise ValueError("spectral_rewards needs at least one goal fragment")
     Ds, vols, gvols = _score_sets(fragment_sets, goal_fragments, cfg)
     return [reward_from_distances(D, len(goal_fragments), cfg, v, gvols) for D, v in zip(Ds, vols)]
+
+
+def spectral_rewards_per_goal(fragment_sets, goal_sets, cfg: RewardConfig | None = None) -> list[RewardResult]:
+    """spectral_reward(fragment_sets[s], goal_sets[s], cfg) for every s in one batched call: scenes that each
+    have their own goal (goal_sets: one list of (m,3) goal clouds per set, same length as fragment_sets).
+    All fragments share one resampling / descriptor batch; each distinct goal cloud is described once and
+    cached by content, so repeated goals (and repeated calls, as in MPPI) cost nothing more."""
+    cfg = (cfg or RewardConfig()).validate()
+    if len(goal_sets) != len(fragment_sets):
+        raise ValueError(f"spectral_rewards_per_goal: {len(goal_sets)} goal lists for {len(fragment_sets)} "
+                         "fragment sets (one list per set)")
+    for s, gs in enumerate(goal_sets):
+        if not len(gs):
+            raise ValueError(f"spectral_rewards_per_goal: goal_sets[{s}] has no goal fragment")
+    Ds, vols, gvols = _score_sets(fragment_sets, goal_sets, cfg, per_set=True)
+    return [reward_from_distances(D, len(gs), cfg, v, gv) for D, v, gv, gs in zip(Ds, vols, gvols, goal_sets)]
 
 
 def spectral_reward(fragments, goal_fragments, cfg: RewardConfig | None = None) -> RewardResult:

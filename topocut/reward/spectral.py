@@ -48,6 +48,47 @@ def resample(points, cfg: RewardConfig | None = None) -> np.ndarray:
     return p if len(p) <= cfg.num_point else p[fps(p, cfg.num_point)]
 
 
+def resample_groups(clouds, cfg: RewardConfig | None = None):
+    """``resample`` of many clouds on cfg.device, grouped by resampled size: [(indices, (b,n,3) float64 tensor)].
+
+    clouds: list of (N_i,3) float64 arrays (already checked by ``_points``).  Every cloud with more than
+    num_point points goes through one padded, masked ``fps_torch`` call, so its FPS runs for all clouds at
+    once on the device instead of one numpy loop per cloud; clouds with at most num_point points are used
+    whole, as ``resample`` does.  In float64 the picks equal ``resample``'s (same start rule and arithmetic).
+    Groups come out sorted by n; the indices say which clouds (in input order) each group's rows are.
+    """
+    import torch
+
+    from topocut.metrics.sampling import fps_torch
+
+    cfg = cfg or RewardConfig()
+    dev, m = torch.device(cfg.device), int(cfg.num_point)
+    sizes = [len(c) for c in clouds]
+    groups: dict[int, tuple[list, list]] = {}
+    for s in sorted(set(sizes)):
+        if s <= m:  # used whole: one host stack and one transfer per size
+            ids = [i for i, t in enumerate(sizes) if t == s]
+            groups[s] = (ids, [torch.from_numpy(np.stack([clouds[i] for i in ids])).to(dev)])
+    big = [i for i, t in enumerate(sizes) if t > m]
+    if big:
+        # ship only the real points (one concatenated transfer) and pad on the device: fragment sizes
+        # vary a lot (the uncut stock vs small pieces), and B x N_max of padding would be mostly zeros
+        count = torch.tensor([sizes[i] for i in big], device=dev)  # B,
+        flat = torch.from_numpy(np.concatenate([clouds[i] for i in big])).to(dev)  # sum N_i,3
+        B, N = len(big), max(sizes[i] for i in big)
+        row = torch.repeat_interleave(torch.arange(B, device=dev), count)  # sum N_i,
+        col = torch.arange(len(flat), device=dev) - torch.repeat_interleave(count.cumsum(0) - count, count)
+        pts = flat.new_zeros(B, N, 3)
+        pts[row, col] = flat
+        mask = torch.zeros(B, N, dtype=torch.bool, device=dev)
+        mask[row, col] = True
+        idx = fps_torch(pts, m, mask)  # B,m
+        ids, parts = groups.setdefault(m, ([], []))
+        ids.extend(big)
+        parts.append(pts[torch.arange(B, device=dev)[:, None], idx])  # B,m,3
+    return [(ids, parts[0] if len(parts) == 1 else torch.cat(parts)) for _, (ids, parts) in sorted(groups.items())]
+
+
 def mean_knn_distance(points, k: int) -> float:
     """Mean distance from each point to its k nearest neighbours (points already resampled)."""
     p = _points(points)

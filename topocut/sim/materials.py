@@ -59,7 +59,7 @@ class Materials:
         fx = self.x[b, p] * self.inv_dx - base.cast(ti.f32)
         F = (ti.Matrix.identity(ti.f32, 3) + self.dt * self.C[b, p]) @ self.F[b, p]
         J = F.determinant()
-        mat = self.material[p]
+        mat = self.material[b, p]
         if mat == 0 and (J <= self.jc or J >= self.js):  # the core's det F damage (the skin softens instead)
             self.damage[b, p] = 1
         if not (self.cfg.j_min < J < self.cfg.j_max):  # also catches NaN

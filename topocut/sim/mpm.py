@@ -86,7 +86,7 @@ class MPMSolver(Materials, Knife):
         self.C, self.F = mat.field(), mat.field()  # B,N,3,3
         self.Jp, self.sigma_y = ti.field(f32), ti.field(f32)  # B,N
         self.damage = ti.field(ti.i32)  # B,N
-        self.material = ti.field(ti.i32)  # N
+        self.material = ti.field(ti.i32)  # B,N: 0 core, 1 skin, -1 padding (a scene with fewer particles than n)
         self.body = ti.field(ti.i32)  # B,N: the velocity field of the particle's piece (pieces.colour)
         self.K = K = cfg.fields  # velocity fields per node and scene: grid slot b * K + f
         self.grid_v, self.grid_m = vec.field(), ti.field(f32)  # B*K,n,n,n
@@ -104,7 +104,7 @@ class MPMSolver(Materials, Knife):
                     fb.dense(ti.ij, (B, capacity)).place(ScalarField(e))
         else:  # a CPU thread walks its particles one by one: one struct each, a cache line or two (20% faster, B=4)
             fb.dense(ti.ij, (B, capacity)).place(*particle)
-        fb.dense(ti.i, capacity).place(self.material)
+        fb.dense(ti.ij, (B, capacity)).place(self.material)
         if tune.grid_layout_method(cfg.arch) == "soa":  # an array each of m, v_x, v_y, v_z: a warp's atomics on a z row
             for e in (self.grid_m, *(ScalarField(c) for c in self.grid_v._get_field_members())):  # of nodes hit
                 fb.dense(ti.axes(0, 1, 2, 3), (B * K, n, n, n)).place(e)  # fewer memory sectors (10-15% on an H100)
@@ -139,6 +139,7 @@ class MPMSolver(Materials, Knife):
         self.tree = fb.finalize()
         self.bad_step.fill(2 ** 30)
         self.frozen_at.fill(2 ** 30)
+        self.material.fill(-1)  # every slot is padding until particles are loaded into it
         self.n_fields[None] = 1
         self.box.from_numpy(np.array([0, 0, 0, n, n, n], np.int32))  # a fresh grid: clear it all once
         self.order.from_numpy(np.broadcast_to(np.arange(self.lanes, dtype=np.int32), (B, self.lanes)).copy())
@@ -160,6 +161,12 @@ class MPMSolver(Materials, Knife):
     def active(self, b, step):
         """Scene b moves in substep ``step`` (it is frozen from substep frozen_at[b] on)."""
         return step < self.frozen_at[b]
+
+    @ti.func
+    def live(self, b, p):
+        """Particle p of scene b exists: scenes of one batch may hold different objects, so a scene with
+        fewer particles than the batch's n pads its tail with material -1, which no phase visits."""
+        return self.material[b, p] >= 0
 
     @ti.func
     def clear_grid(self):
@@ -196,12 +203,15 @@ class MPMSolver(Materials, Knife):
                 p = 0
                 if live:
                     p = self.order[b, i]
+                    live = self.live(b, p)
                 self.scatter_warp(b, p, live, step)
         else:
             ti.loop_config(block_dim=self.scatter_block)
             for b, i in ti.ndrange(self.B, self.capacity):
                 if i < n and self.active(b, step):  # a frozen scene scatters nothing: its grid stays empty
-                    self.scatter_particle(b, self.order[b, i], step)
+                    p = self.order[b, i]
+                    if self.live(b, p):
+                        self.scatter_particle(b, p, step)
 
     @ti.func
     def scatter_particle(self, b, p, step):
@@ -338,7 +348,7 @@ class MPMSolver(Materials, Knife):
             if self.active(b, step):  # a frozen scene keeps x, v, C and its knife totals
                 if p == 0 and self.k_on[b] == 1:  # one thread per scene books the knife's impulse of this substep
                     self.record_knife(b, t)
-                if p < n:
+                if p < n and self.live(b, p):
                     self.gather_particle(b, p, step)
                     self.blade_damage(b, p, t)
 

@@ -123,8 +123,7 @@ class CreamPen:
             s.Jp[b, p] = 1.0
             s.sigma_y[b, p] = sigma_y
             s.damage[b, p] = 0
-            if b == 0:
-                s.material[p] = 1
+            s.material[b, p] = 1
 
     def emit(self, vel_xy: np.ndarray) -> int:
         """Append one layer at every scene's nozzle moving with vel_xy (B,2) + the extrusion speed; returns m."""

@@ -18,59 +18,90 @@ class Primitives:
     def turn(self, turn, select: np.ndarray | None = None) -> np.ndarray:
         """Pick pieces up, turn them rigidly and lay them on the board (docs/tasks.md#turn-primitive).
 
-        ``turn`` is a topocut.tasks.Turn (rotation about a horizontal axis by an angle, a target centroid);
-        ``select`` (N,) or (B,N) bool names the particles; by default, per scene, the piece (``piece`` label)
-        whose centroid is nearest ``turn.center``.  The selected particles move as one rigid body about their
-        *current* centroid: x <- R (x - c) + target, lowered or raised so their lowest particle rests half a
-        cell above the board; v <- 0, F <- R F R^T, C <- R C R^T (a rotated elastic state).  Every scene then
-        settles sim.settle_time seconds.  Piece labels stay; velocity fields are coloured anew for the new
-        neighbours; the scene's sweeps are cleared (the knife has not cut since).  Returns the (B,N) mask."""
+        ``turn`` is a topocut.tasks.Turn (rotation about a horizontal axis by an angle, a target centroid) for
+        every scene, or a list of B (a Turn or None) for scenes of different episodes: a None scene is left
+        alone and sits the settling out frozen, as it would alone.  ``select`` (N,) or (B,N) bool names the
+        particles; by default, per scene, the piece (``piece`` label) whose centroid is nearest the turn's
+        ``center``.  The selected particles move as one rigid body about their *current* centroid:
+        x <- R (x - c) + target, lowered or raised so their lowest particle rests half a cell above the board;
+        v <- 0, F <- R F R^T, C <- R C R^T (a rotated elastic state).  The turned scenes then settle
+        sim.settle_time seconds.  Piece labels stay; velocity fields are coloured anew for the new neighbours;
+        the scene's sweeps are cleared (the knife has not cut since).  A turn the box cannot hold raises
+        TurnRefused; with a list of turns that scene is left as it was and named in ``turn_refused`` instead,
+        the others go on.  Returns the (B,N) mask of the particles turned."""
         cfg, s, n = self.cfg, self._need(), self.n
+        per_scene = isinstance(turn, (list, tuple))
+        turns = list(turn) if per_scene else [turn] * self.B
+        if len(turns) != self.B:
+            raise ValueError(f"turn got {len(turns)} turns for batch_size={self.B}")
+        self.turn_refused = [None] * self.B
+        counts = self.counts  # B: scene b's particles are rows :counts[b] (the rest pad)
         x = s.x.to_numpy()  # B,cap,3
-        if select is None:
-            mask = np.zeros((self.B, n), bool)
-            c_goal = np.asarray(turn.center, np.float64)
-            for b in range(self.B):
-                lab = self.piece[b]
+        mask = np.zeros((self.B, n), bool)
+        if select is not None:
+            mask[:] = np.broadcast_to(np.asarray(select, bool), (self.B, n))
+        for b in range(self.B):
+            if turns[b] is None or self.dead[b]:
+                mask[b] = False
+            elif select is None:
+                lab = self.piece[b, :counts[b]]
                 cnt = np.bincount(lab)
-                cen = np.stack([np.bincount(lab, x[b, :n, d], minlength=len(cnt)) for d in range(3)], -1)
+                cen = np.stack([np.bincount(lab, x[b, :counts[b], d], minlength=len(cnt)) for d in range(3)], -1)
                 cen = cen / np.maximum(cnt, 1)[:, None]
-                dist = np.where(cnt > 0, np.linalg.norm(cen - c_goal, axis=1), np.inf)
-                mask[b] = lab == int(np.argmin(dist))
-        else:
-            mask = np.broadcast_to(np.asarray(select, bool), (self.B, n)).copy()
-        R = turn.rotation().astype(np.float64)
-        target = np.asarray(turn.target, np.float64)
+                dist = np.where(cnt > 0, np.linalg.norm(cen - np.asarray(turns[b].center, np.float64), axis=1), np.inf)
+                mask[b, :counts[b]] = lab == int(np.argmin(dist))
+        mask &= np.arange(n)[None] < counts[:, None]  # never the padding
         F, C, v = s.F.to_numpy(), s.C.to_numpy(), s.v.to_numpy()
         body = s.body.to_numpy()
         lo, hi = 2.5 * cfg.dx, 1.0 - 2.5 * cfg.dx  # the solver's boundary band
+        turned = np.zeros(self.B, bool)
         for b in range(self.B):
             sel = np.flatnonzero(mask[b])
             if not len(sel):
                 continue
+            R, target = turns[b].rotation().astype(np.float64), np.asarray(turns[b].target, np.float64)
             p = x[b, sel].astype(np.float64)
             q = (p - p.mean(0)) @ R.T + target
             q[:, 2] += cfg.board_z + 0.5 * cfg.dx - q[:, 2].min()  # rest half a cell above the board
             if q[:, :2].min() < lo or q.max() > hi:  # (z rests on the board, above the boundary band)
-                raise TurnRefused(f"turn: the turned pieces would leave the simulation box [{lo:.3f}, {hi:.3f}] "
-                                 f"(target {tuple(np.round(target, 3))}); move turn.target")
+                msg = (f"turn: the turned pieces would leave the simulation box [{lo:.3f}, {hi:.3f}] "
+                       f"(target {tuple(np.round(target, 3))}); move turn.target")
+                if not per_scene:
+                    raise TurnRefused(msg)
+                self.turn_refused[b] = msg
+                mask[b] = False
+                continue
             x[b, sel] = q
             v[b, sel] = 0
             F[b, sel] = R @ F[b, sel] @ R.T
             C[b, sel] = R @ C[b, sel] @ R.T
-            body[b, :n] = P.colour(x[b, :n].astype(np.float64), self.piece[b], cfg.n_grid, cfg.fields)[0]
+            c = counts[b]
+            body[b, :c] = P.colour(x[b, :c].astype(np.float64), self.piece[b, :c], cfg.n_grid, cfg.fields)[0]
             self.sweeps[b] = []
+            turned[b] = True
         for fld, arr in ((s.x, x), (s.v, v), (s.F, F), (s.C, C), (s.body, body)):
             fld.from_numpy(arr.astype(np.float32) if arr.dtype != np.int32 else arr)
-        s.field_side.fill(0)
+        field_side = s.field_side.to_numpy().reshape(self.B, -1)
+        field_side[turned] = 0  # the turned scenes' fields were coloured anew: no blade side
+        s.field_side.from_numpy(field_side.reshape(-1))
         s.n_fields[None] = max(int(s.n_fields[None]), int(body[:, :n].max()) + 1)
         s.sort_by_cell(n, self.resort > 0)
-        self.push_side[:] = 0
-        self.simulate(cfg.substeps(cfg.settle_time))
+        self.push_side[turned] = 0
+        if not per_scene:
+            self.simulate(cfg.substeps(cfg.settle_time))
+        elif turned.any():
+            self._set_frozen(np.where(turned, 2 ** 30, self.step_count))  # the others sit it out
+            try:
+                self.simulate(cfg.substeps(cfg.settle_time))
+            finally:
+                self._set_frozen()
         return mask
 
-    def push(self) -> None:
+    def push(self, scenes=None) -> None:
         """After a cut, per sim.push_mode (docs/sim.md); then the pieces settle for sim.settle_time seconds.
+
+        ``scenes`` (B,) bool: push only these (None: all); the others sit the push and its settling out frozen,
+        as scenes of episodes whose task does not push would alone.
 
         'separate': the blade, still standing where it cut, slides sideways along its normal (horizontally)
         by sim.push_distance over sim.push_time seconds, starting and stopping smoothly, towards the material
@@ -80,6 +111,12 @@ class Primitives:
         cfg, s = self.cfg, self._need()
         if cfg.push_mode == "none":
             return
+        sel = np.ones(self.B, bool) if scenes is None else np.asarray(scenes, bool).reshape(self.B).copy()
+        sel &= ~self.dead
+        if not sel.any():
+            return
+        self.push_side[~sel] = 0  # an unselected scene is not pushed
+        hold = np.where(sel, 2 ** 30, self.step_count)  # frozen_at: the unselected scenes from now on
         if cfg.push_mode == "separate" and self.push_side.any():
             o, u, w, nrm, d = (np.zeros((self.B, 3)) for _ in range(5))
             for b, sw in enumerate(self.sweeps):
@@ -91,22 +128,30 @@ class Primitives:
             half = [cfg.knife_half_length, cfg.knife_height / 2, cfg.knife_half_thickness]
             self._arm_knife(o, u, w, nrm, [half] * self.B, cfg.push_distance, cfg.push_distance / max(cfg.push_time, 1e-9),
                             0.0, direction=d, target=0.0, smooth=1, on=self.push_side != 0, hold=self.push_side)
+            # a scene with nothing to push sits the push out frozen, as it would alone (no push phase at all)
+            self._set_frozen(np.where(self.push_side != 0, 2 ** 30, self.step_count))
             try:
                 self.simulate(cfg.substeps(cfg.push_time))
             finally:
                 s.k_on.fill(0)
+                self._set_frozen()
         elif cfg.push_mode == "press":  # a flat plate (the knife box laid horizontally) pressing down lightly
-            x = s.x.to_numpy()[:, :self.n]
-            top = x[:, :, 2].max(1)
-            o = np.stack([x[:, :, 0].mean(1), x[:, :, 1].mean(1), top + cfg.knife_clearance], -1)
+            xs = [xb[:c] for xb, c in zip(s.x.to_numpy(), self.counts)]  # B x (n_b,3)
+            o = np.array([[xb[:, 0].mean(), xb[:, 1].mean(), xb[:, 2].max() + cfg.knife_clearance] for xb in xs])
             depth = np.full(self.B, cfg.knife_clearance + cfg.press_depth)
             tile = lambda v: np.tile(np.asarray(v, np.float32), (self.B, 1))  # noqa: E731
             self._arm_knife(o, tile([1, 0, 0]), tile([0, 0, -1]), tile([0, 1, 0]), tile([0.4, 0.02, 0.4]),
-                            depth, cfg.press_speed, 0.0)
+                            depth, cfg.press_speed, 0.0, on=sel.astype(np.int32))
+            self._set_frozen(hold)
             try:
                 self.simulate(int(math.ceil(depth.max() / (cfg.press_speed * self.dt))) + cfg.substeps(cfg.push_time),
                               contact=1)
             finally:
                 s.k_on.fill(0)
+                self._set_frozen()
         self.push_side[:] = 0
-        self.simulate(cfg.substeps(cfg.settle_time))
+        self._set_frozen(hold)
+        try:
+            self.simulate(cfg.substeps(cfg.settle_time))
+        finally:
+            self._set_frozen()

@@ -178,7 +178,7 @@ class ToolColliders:
         s = self.s
         s.clear_grid()  # the solver's clear (its grid box, sim.tuning.grid_box, when on)
         for b, p in ti.ndrange(s.B, s.capacity):
-            if p < n and s.active(b, step):
+            if p < n and s.active(b, step) and s.live(b, p):
                 xp = s.x[b, p]
                 base, fx, mass, mom, affine = s.particle_update(b, p, step)  # the solver's material model
                 s.grow_box(base)  # writes a subset of base .. base + 2, as the solver's scatter
@@ -204,7 +204,7 @@ class ToolColliders:
         r_mid = ti.static(self.spoon.radius + self.spoon.thickness / 2)
         half_t = ti.static(self.spoon.thickness / 2)
         for b, p in ti.ndrange(s.B, s.capacity):
-            if p < n and s.active(b, step):  # frozen scenes stay put, as in MPMSolver.gather
+            if p < n and s.active(b, step) and s.live(b, p):  # frozen scenes stay put, as in MPMSolver.gather
                 xp = s.x[b, p]
                 base = s.base_node(xp)
                 fx = xp * s.inv_dx - base.cast(ti.f32)
