@@ -34,13 +34,12 @@ def bench_core(cfg: MPPIConfig, repeats: int) -> float:
 
 
 def bench_sim(args, cfg: MPPIConfig) -> dict:
-    from topocut.goals import make_goal
-    from topocut.goals.config import TaskConfig
     from topocut.planning.rollout import make_sim_rollout
     from topocut.reward.config import RewardConfig
     from topocut.sim.config import SimConfig
     from topocut.sim.env import CuttingEnv
     from topocut.sim.objects import ObjectPose
+    from topocut.tasks import TaskConfig, make_goal
 
     pose, out = ObjectPose(), {}
     for label, batch in (("sequential B=1", 1), (f"batched B={args.K}", args.K)):

@@ -166,7 +166,8 @@ def run(ctx: RunContext, eval, sim, topology, reward, planner, observation, data
     # the process started Taichi)
     init_taichi(arch=ctx.device, seed=ctx.seed,
                 cpu_threads=(eval.cpu_threads or None) if ctx.device == "cpu" else None)
-    env = CuttingEnv(sim, batch_size=max(1, sim.batch_size) if "mppi" in eval.policies else 1)
+    # sim.batch_size scenes: B episodes of a policy at once (MPPI: one episode, its rollouts the scenes)
+    env = CuttingEnv(sim, batch_size=max(1, sim.batch_size))
     runs: dict = {}
     policies, inputs = build_policies(ctx, eval.policies, env, sim, planner, reward, topology, task_cfgs, sampler,
                                       versions=eval.checkpoints, train_seeds=eval.train_seeds, runs=runs,

@@ -11,7 +11,9 @@ into fixed-size tensors:
      ``num_labels`` merged into the last, -1 = unassigned kept);
   4. optional Gaussian jitter of the *input* positions while training (targets stay clean).
 ``EpisodeDataModule`` splits an episode dataset by episode into train / val and puts every step of
-held-out objects (unseen) into validation too, tagged ``seen=False``.
+held-out objects (unseen) into validation too, tagged ``seen=False``.  Its loaders keep their workers between
+epochs (``num_workers`` > 0) and pin batches in page-locked memory when CUDA is present (``pin_memory``), so
+the per-sample work (sampling, relabelling, collate) stays in the workers and the copy to the GPU is async.
 """
 from __future__ import annotations
 
@@ -86,8 +88,11 @@ class EpisodeDataModule(L.LightningDataModule):
 
     def __init__(self, path: str, num_points: int = 256, sort: bool = True, noise_std: float = 0.002,
                  num_labels: int = 32, batch_size: int = 16, num_workers: int = 0, val_fraction: float = 0.2,
-                 held_out_objects: Sequence[str] = (), seed: int = 0, in_memory: bool = True):
+                 held_out_objects: Sequence[str] = (), seed: int = 0, in_memory: bool = True,
+                 pin_memory: bool | None = None):
         super().__init__()
+        # page-locked batches (default: when CUDA is present): Lightning then copies them to the GPU asynchronously
+        self.pin_memory = torch.cuda.is_available() if pin_memory is None else bool(pin_memory)
         if not 0.0 <= val_fraction < 1.0:
             raise ValueError(f"val_fraction={val_fraction} must lie in [0, 1)")
         self.path, self.batch_size, self.num_workers = str(path), batch_size, num_workers
@@ -137,7 +142,7 @@ class EpisodeDataModule(L.LightningDataModule):
 
         return DataLoader(self.train_set, batch_size=self.batch_size, shuffle=True, num_workers=self.num_workers,
                           drop_last=len(self.train_set) > self.batch_size, persistent_workers=self.num_workers > 0,
-                          multiprocessing_context=worker_context(self.num_workers))
+                          pin_memory=self.pin_memory, multiprocessing_context=worker_context(self.num_workers))
 
     def val_dataloader(self):
         if self.val_set is None:
@@ -145,6 +150,7 @@ class EpisodeDataModule(L.LightningDataModule):
         from topocut.utils.training import worker_context
 
         return DataLoader(self.val_set, batch_size=self.batch_size, shuffle=False, num_workers=self.num_workers,
+                          persistent_workers=self.num_workers > 0, pin_memory=self.pin_memory,
                           multiprocessing_context=worker_context(self.num_workers))
 
 

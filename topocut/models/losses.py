@@ -27,32 +27,77 @@ def _match(cost: np.ndarray) -> np.ndarray:
     return out
 
 
+def _cluster_ranks(target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per sample, the rank of each point's cluster id among the sample's distinct non-negative ids (ascending,
+    as ``torch.unique``), -1 on ignored points, and the number K of distinct ids: (B,N) long, (B,) long.
+    Sort-based, so the whole batch takes fixed-shape kernels and no host round trip."""
+    keep = target >= 0
+    s, order = torch.sort(target, dim=1, stable=True)  # ignored (negative) ids first
+    new = s >= 0
+    new[:, 1:] &= s[:, 1:] != s[:, :-1]  # first occurrence of each non-negative id
+    rank_sorted = new.long().cumsum(1) - 1
+    rank = torch.empty_like(rank_sorted).scatter_(1, order, rank_sorted)
+    return torch.where(keep, rank, torch.full_like(rank, -1)), new.sum(1)
+
+
+def _match_all(packed: np.ndarray, C: int) -> tuple[np.ndarray, bool]:
+    """Hungarian matching of every sample on the host: packed (B, C*C + 1) = flattened (C,C) cost rows and the
+    cluster count K in the last column -> (B,C) mapping rank -> class (unused ranks 0) and whether any K > 0."""
+    B = packed.shape[0]
+    perm = np.zeros((B, C), dtype=np.int64)
+    counts = packed[:, -1].astype(np.int64)
+    cost = packed[:, :-1].reshape(B, C, C)
+    for b in range(B):
+        K = int(counts[b])
+        if K == 0:
+            continue
+        if K > C:
+            raise ValueError(f"{K} true clusters exceed the {C} predicted classes (model.num_labels)")
+        perm[b, :K] = _match(cost[b, :K])
+    return perm, bool((counts > 0).any())
+
+
+def _matched(logits: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, bool]:
+    """``matched_targets`` and whether any point is labelled, with one device -> host transfer (the (B,C,C) costs
+    and cluster counts) and one host -> device transfer (the (B,C) mappings) for the whole batch."""
+    B, N, C = logits.shape
+    if B == 0 or N == 0:
+        return torch.full_like(target, -1), False
+    dev = logits.device
+    with torch.no_grad():
+        logp = F.log_softmax(logits.detach().float(), dim=-1)  # B,N,C
+        rank, counts = _cluster_ranks(target.to(dev))
+        # row b*C + rank of the flat cost; ignored points and ranks >= C (an error below) go to a spare row
+        ok = (rank >= 0) & (rank < C)
+        row = torch.where(ok, torch.arange(B, device=dev)[:, None] * C + rank, torch.full_like(rank, B * C))
+        cost = torch.zeros(B * C + 1, C, dtype=logp.dtype, device=dev).index_add_(0, row.reshape(-1),
+                                                                                 -logp.reshape(B * N, C))
+        packed = torch.cat([cost[:-1].reshape(B, C * C), counts[:, None].to(cost.dtype)], 1)
+        perm, any_kept = _match_all(packed.cpu().numpy(), C)  # the one host round trip of the loss
+        perm_t = torch.from_numpy(perm)
+        if dev.type == "cuda":
+            perm_t = perm_t.pin_memory().to(dev, non_blocking=True)
+        else:
+            perm_t = perm_t.to(dev)
+        out = torch.where(rank >= 0, perm_t.gather(1, rank.clamp(min=0, max=C - 1)), torch.full_like(rank, -1))
+    return out.to(target.device), any_kept
+
+
 def matched_targets(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """Rename each sample's target cluster ids to the predicted classes they are best matched to.
 
     logits (B,N,C), target (B,N) long (negative = ignore) -> (B,N) long in [0, C) or -1.
+    All samples at once: the (B,C,C) cluster-to-class costs are summed on the device in one ``index_add_``
+    (clusters ranked per sample by a sort; rows past a sample's K clusters stay unused), copied to the host in
+    one transfer, matched there per sample by scipy (tiny problems) and the (B,C) mappings sent back in one.
     """
-    B, N, C = logits.shape
-    out = torch.full_like(target, -1)
-    with torch.no_grad():
-        logp = F.log_softmax(logits.detach().float(), dim=-1)  # B,N,C
-        for b in range(B):
-            keep = target[b] >= 0
-            if not keep.any():
-                continue
-            ids, inv = torch.unique(target[b][keep], return_inverse=True)  # K true clusters
-            if len(ids) > C:
-                raise ValueError(f"{len(ids)} true clusters exceed the {C} predicted classes (model.num_labels)")
-            cost = torch.zeros(len(ids), C, device=logits.device).index_add_(0, inv, -logp[b][keep])  # K,C
-            perm = torch.as_tensor(_match(cost.cpu().numpy()), device=target.device)
-            out[b][keep] = perm[inv]
-    return out
+    return _matched(logits, target)[0]
 
 
 def hungarian_cluster_loss(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """Cross-entropy after Hungarian renaming of the true clusters; logits (B,N,C), target (B,N) -> scalar."""
-    t = matched_targets(logits, target)
-    if (t < 0).all():
+    t, any_kept = _matched(logits, target)
+    if not any_kept:  # known on the host from the matching's transfer: no extra sync
         return logits.sum() * 0.0
     return F.cross_entropy(logits.reshape(-1, logits.shape[-1]), t.reshape(-1), ignore_index=-1)
 

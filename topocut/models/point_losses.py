@@ -49,10 +49,10 @@ def _nn(a: torch.Tensor, b: torch.Tensor, valid: torch.Tensor | None):
     if valid is None:
         return d, d.min(2).values, d.min(1).values
     v = valid.bool()
-    inf = torch.tensor(float("inf"), dtype=d.dtype, device=d.device)
-    ab = torch.where(v[:, None, :], d, inf).min(2).values
-    ba = torch.where(v[:, :, None], d, inf).min(1).values
-    return d, torch.where(v, ab, inf), torch.where(v, ba, inf)
+    inf = float("inf")  # a Python scalar: torch.tensor(inf, device=cuda) would be a blocking host -> device copy
+    ab = d.masked_fill(~v[:, None, :], inf).min(2).values
+    ba = d.masked_fill(~v[:, :, None], inf).min(1).values
+    return d, ab.masked_fill(~v, inf), ba.masked_fill(~v, inf)
 
 
 def _mean(x: torch.Tensor, valid: torch.Tensor | None) -> torch.Tensor:
@@ -126,6 +126,14 @@ def _auction_round(s: dict):
     price.copy_(torch.where(got, best, price))
 
 
+def auction_phases(ratio: float, factor: float = 8.0) -> int:
+    """ε-scaling phases from eps0 down to eps = eps0 / ratio, dividing by ``factor`` per phase."""
+    return 1 + max(0, math.ceil(math.log(max(ratio, 1.0)) / math.log(factor)))
+
+
+WARM_EPS0 = 3.0  # after the Sinkhorn warm start the auction's ε-scaling starts at this multiple of the final ε
+
+
 @torch.no_grad()
 def auction_assignment(cost: torch.Tensor, eps: torch.Tensor, valid: torch.Tensor | None = None,
                        phases: int | None = None, factor: float = 8.0, check_every: int = 4,
@@ -147,8 +155,8 @@ def auction_assignment(cost: torch.Tensor, eps: torch.Tensor, valid: torch.Tenso
     eps = eps.to(dt)
     eps0 = torch.maximum(big / 4 if eps0 is None else eps0.to(dt), eps)
     if phases is None:
-        ratio = float((eps0 / eps).max())
-        phases = 1 + max(0, math.ceil(math.log(max(ratio, 1.0)) / math.log(factor)))
+        ratio = float((eps0 / eps).max())  # a host sync: callers that know the ratio pass ``phases``
+        phases = auction_phases(ratio, factor)
     price = torch.zeros(B, N, dtype=dt, device=dev) if price0 is None else price0.to(dt).clone()
     state = {"benefit": benefit, "price": price, "assign": torch.full((B, N), -1, dtype=torch.long, device=dev),
              "valid": v, "e": eps[:, None].clone(), "rows": torch.arange(N, device=dev).expand(B, N).contiguous()}
@@ -227,7 +235,9 @@ def emd_auction(a: torch.Tensor, b: torch.Tensor, valid: torch.Tensor | None = N
         eps = torch.maximum(tol * lb, floor)
         if warm_iters > 0:
             g = sinkhorn_potentials(d, 30 * eps, warm_iters, valid)
-            cols = auction_assignment(d, eps, valid, price0=-g, eps0=3 * eps)
+            # eps0 / eps is WARM_EPS0 for every item (eps > 0): the phase count is known without a host sync
+            cols = auction_assignment(d, eps, valid, price0=-g, eps0=WARM_EPS0 * eps,
+                                      phases=auction_phases(WARM_EPS0))
         else:
             cols = auction_assignment(d, eps, valid)
     ar = torch.arange(a.shape[0], device=a.device)[:, None]

@@ -1,0 +1,240 @@
+"""Episode throughput of the engine (topocut.episode): a demonstration cut against the simulation inside it, and
+the evaluation protocol's episodes batched against one at a time.
+
+    python benchmarks/episodes.py --device cpu --n-grid 32 --K 4 --eval-episodes 4
+    python benchmarks/episodes.py --device cuda --n-grid 64 --K 16 --eval-episodes 32
+
+1. Demonstration (MPPI, K samples x `--iters` iterations, horizon 1, the rollouts are the K scenes of one
+   batch): the wall time of each executed cut printed beside the time its rollouts spent in the simulator
+   (CuttingEnv.cut/push/turn; of it the host split), topology discovery and the reward, and the rest.  The
+   per-cut wall time projects 1,000 episodes of 5 cuts.
+2. Evaluation: the first `--eval-episodes` episodes of the 405-episode protocol (a stride through it, so
+   tasks, objects and poses mix) for the oracle and the heuristic, batched (B = `--batch` scenes) and, as the
+   reference in the same process, one at a time (B = 1, the first `--ref-episodes` of them); the batched
+   per-episode time projects the 405 episodes of a policy.
+3. A learned policy's action (PDDP, untrained weights at the paper's sizes): one episode's ``act`` against
+   ``act_batch`` of `--batch` episodes when the class has it (the evaluation's batched call).
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import time
+from collections import defaultdict
+
+import numpy as np
+
+TIMES: dict[str, float] = defaultdict(float)
+
+
+@contextlib.contextmanager
+def timed(key: str):
+    t0 = time.perf_counter()
+    try:
+        yield
+    finally:
+        TIMES[key] += time.perf_counter() - t0
+
+
+def instrument(env) -> None:
+    """Book the simulator's, discovery's and the reward's time in TIMES (wrapping the entry points)."""
+    import topocut.reward as reward
+    import topocut.topology as topology
+
+    for name in ("cut", "push", "turn"):
+        fn = getattr(env, name)
+
+        def wrapped(*a, _fn=fn, **k):
+            with timed("sim"):
+                out = _fn(*a, **k)
+            if getattr(out, "split_time", None) is not None:
+                TIMES["sim_split"] += out.split_time
+            return out
+
+        setattr(env, name, wrapped)
+    disc = topology.discover
+
+    def discover(*a, **k):
+        with timed("discovery"):
+            return disc(*a, **k)
+
+    topology.discover = discover
+    for name in ("spectral_rewards", "spectral_reward"):
+        fn = getattr(reward, name)
+
+        def rew(*a, _fn=fn, **k):
+            with timed("reward"):
+                return _fn(*a, **k)
+
+        setattr(reward, name, rew)
+
+
+def sim_config(args, batch: int):
+    from topocut.sim.config import SimConfig
+
+    return SimConfig(n_grid=args.n_grid, batch_size=batch, arch=args.device)
+
+
+def bench_demo(args) -> dict:
+    from topocut.planning import MPPIConfig, MPPIPolicy, run_episode, sim_rollout_factory
+    from topocut.reward.config import RewardConfig
+    from topocut.sim.env import CuttingEnv
+    from topocut.sim.objects import ObjectPose
+    from topocut.tasks import TaskConfig, get_task
+    from topocut.topology.config import TopologyConfig
+
+    env = CuttingEnv(sim_config(args, args.K), batch_size=args.K)
+    instrument(env)
+    task = TaskConfig(name=args.task, max_cuts=args.cuts).validate()
+    rcfg = RewardConfig(backend=args.reward_backend, device=args.device if args.reward_backend == "torch" else "cpu")
+    topo = TopologyConfig(resolution=args.topo_resolution)
+    pose = ObjectPose()
+    goal = get_task(task.name).make_goal(task, args.object, pose, env.cfg.spacing, board_z=env.cfg.board_z)
+    planner = MPPIConfig(num_samples=args.K, iterations=args.iters, horizon=1)
+    factory = sim_rollout_factory(env, rcfg, topo, board_z=env.cfg.board_z, push=task.push)
+    rows = []
+    for rep in range(2):  # the first episode compiles kernels and fills caches: the second is measured
+        env.reset(args.object, pose, seed=0)
+        TIMES.clear()
+        cuts = []
+
+        def progress(n, info="", cuts=cuts):
+            cuts.append((time.perf_counter(), dict(TIMES)))
+
+        t0 = time.perf_counter()
+        run_episode(env, goal, MPPIPolicy(planner, factory, seed=0), rcfg, topo, task.max_cuts, task.push,
+                    progress=progress, seed=0, success_fn=lambda r: False)
+        if rep == 0:
+            continue
+        prev_t, prev = t0, {}
+        for t, snap in cuts:
+            d = {k: snap.get(k, 0.0) - prev.get(k, 0.0) for k in ("sim", "sim_split", "discovery", "reward")}
+            rows.append({"wall": t - prev_t, **d})
+            prev_t, prev = t, snap
+    print(f"demonstration cut ({args.device}, {args.n_grid}^3, {args.object}/{args.task}, K={args.K}, "
+          f"{args.iters} iterations, reward {args.reward_backend}, discovery {args.topo_resolution}^3):")
+    print(f"{'cut':>4} {'wall s':>8} {'sim s':>8} {'(split)':>8} {'disc s':>8} {'reward s':>8} {'rest s':>8} "
+          f"{'wall/sim':>9}")
+    for i, r in enumerate(rows):
+        rest = r["wall"] - r["sim"] - r["discovery"] - r["reward"]
+        print(f"{i + 1:>4} {r['wall']:8.3f} {r['sim']:8.3f} {r['sim_split']:8.3f} {r['discovery']:8.3f} "
+              f"{r['reward']:8.3f} {rest:8.3f} {r['wall'] / max(r['sim'], 1e-9):9.2f}")
+    wall = float(np.mean([r["wall"] for r in rows]))
+    sim = float(np.mean([r["sim"] for r in rows]))
+    print(f"mean: {wall:.3f} s per cut, of which simulation {sim:.3f} s: wall/sim = {wall / sim:.2f}; "
+          f"1,000 episodes x 5 cuts projected: {1000 * 5 * wall / 60:.1f} min")
+    return {"wall": wall, "sim": sim}
+
+
+def bench_eval(args) -> dict:
+    from topocut.episode import run_episodes
+    from topocut.eval.config import EvalConfig
+    from topocut.eval.protocol import _episode, episode_specs, scoring_for
+    from topocut.planning import HeuristicPolicy
+    from topocut.planning.heuristic import FixedTrajectoryPolicy
+    from topocut.reward.config import RewardConfig
+    from topocut.sim.env import CuttingEnv
+    from topocut.tasks import TaskConfig
+    from topocut.topology.config import TopologyConfig
+
+    ecfg = EvalConfig()
+    specs = episode_specs(ecfg)
+    stride = max(1, len(specs) // args.eval_episodes)
+    chosen = specs[::stride][: args.eval_episodes]
+    task_cfgs = {t: TaskConfig(name=t, max_cuts=ecfg.max_cuts).validate() for t in ecfg.tasks}
+    rcfg = RewardConfig(backend=args.reward_backend, device=args.device if args.reward_backend == "torch" else "cpu")
+    topo = TopologyConfig(resolution=args.topo_resolution)
+    out = {}
+    for B, eps in ((args.batch, chosen), (1, chosen[: args.ref_episodes])):
+        env = CuttingEnv(sim_config(args, B), batch_size=B)
+        sc = scoring_for(env, rcfg, topo, ecfg.min_fragment_points)
+        policies = {"oracle": HeuristicPolicy(),
+                    "heuristic": FixedTrajectoryPolicy(task_cfgs, spacing=env.cfg.spacing, board_z=env.cfg.board_z)}
+        for name, pol in policies.items():
+            run_episodes(env, [_episode(s, task_cfgs[s.task]) for s in eps[:min(B, 2)]], pol, sc,
+                         max_cuts=ecfg.max_cuts)  # warm-up: kernels, caches
+            t0 = time.perf_counter()
+            logs = run_episodes(env, [_episode(s, task_cfgs[s.task]) for s in eps], pol, sc, max_cuts=ecfg.max_cuts)
+            dt = (time.perf_counter() - t0) / len(eps)
+            out[name, B] = dt
+            cuts = sum(len(lg.actions) for lg in logs)
+            print(f"eval {name:>9} B={B:<3} {len(eps):>3} episodes, {cuts:>4} cuts: {dt:7.3f} s/episode "
+                  f"(405 episodes: {405 * dt / 60:6.1f} min); statuses "
+                  f"{dict(zip(*np.unique([lg.status for lg in logs], return_counts=True)))}")
+    for name in ("oracle", "heuristic"):
+        print(f"eval {name}: batched B={args.batch} vs one at a time: {out[name, 1] / out[name, args.batch]:.2f}x "
+              f"faster per episode")
+    return out
+
+
+def bench_policy(args) -> None:
+    import torch
+
+    from topocut.policies.base import make_obs
+    from topocut.policies.config import PolicyTrainConfig
+    from topocut.policies.module import PDDPModule, PDDPPolicy
+
+    tc = PolicyTrainConfig()
+    module = PDDPModule(train=tc)  # untrained: the time of an action does not depend on the weights
+    rng = np.random.default_rng(0)
+    obs = []
+    for b in range(args.batch):
+        pts = rng.uniform(0.4, 0.6, (2048, 3)).astype(np.float32)
+        goal = rng.uniform(0.4, 0.6, (tc.num_goal_points, 3)).astype(np.float32)
+        obs.append(make_obs(pts, np.zeros(2048, np.int32), goal, (goal[:, 0] > 0.5).astype(np.int32)))
+    pols = []
+    for b in range(args.batch):
+        p = PDDPPolicy(module, device=args.device, seed=0)
+        p.reset(type("Goal", (), {"points": obs[b]["goal"], "labels": obs[b]["goal_labels"]})(), seed=b)
+        pols.append(p)
+    sync = torch.cuda.synchronize if args.device == "cuda" else (lambda: None)
+    pols[0].act(obs[0])
+    sync()
+    t0 = time.perf_counter()
+    for p, o in zip(pols, obs):
+        p.act(o)
+    sync()
+    one = (time.perf_counter() - t0) / len(obs)
+    line = f"PDDP act ({args.device}, T={pols[0].scfg.steps}): {one * 1e3:.1f} ms per episode one at a time"
+    if hasattr(PDDPPolicy, "act_batch"):
+        PDDPPolicy.act_batch(pols, obs)
+        sync()
+        t0 = time.perf_counter()
+        PDDPPolicy.act_batch(pols, obs)
+        sync()
+        bat = (time.perf_counter() - t0) / len(obs)
+        line += f"; act_batch of {len(obs)}: {bat * 1e3:.1f} ms per episode ({one / bat:.2f}x)"
+        one = bat
+    print(line + f"; 405 episodes x 5 cuts: {405 * 5 * one / 60:.1f} min of acting")
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
+    p.add_argument("--n-grid", type=int, default=64)
+    p.add_argument("--K", type=int, default=16, help="MPPI samples = the demonstration's scenes")
+    p.add_argument("--iters", type=int, default=2)
+    p.add_argument("--cuts", type=int, default=3, help="cuts of the measured demonstration episode")
+    p.add_argument("--object", default="cake")
+    p.add_argument("--task", default="slice")
+    p.add_argument("--reward-backend", choices=("scipy", "torch"), default="torch")
+    p.add_argument("--topo-resolution", type=int, default=64)
+    p.add_argument("--batch", type=int, default=16, help="evaluation scenes (episodes at once)")
+    p.add_argument("--eval-episodes", type=int, default=32)
+    p.add_argument("--ref-episodes", type=int, default=4, help="episodes of the one-at-a-time reference")
+    p.add_argument("--only", choices=("demo", "eval", "policy"), nargs="*", default=None)
+    args = p.parse_args()
+    from topocut.sim.mpm import init_taichi
+
+    init_taichi(args.device)
+    parts = args.only or ("demo", "eval", "policy")
+    if "demo" in parts:
+        bench_demo(args)
+    if "eval" in parts:
+        bench_eval(args)
+    if "policy" in parts:
+        bench_policy(args)
+
+
+if __name__ == "__main__":
+    main()
