@@ -178,7 +178,7 @@ def bench_policy(args) -> None:
     module = PDDPModule(train=tc)  # untrained: the time of an action does not depend on the weights
     rng = np.random.default_rng(0)
     obs = []
-    for b in range(args.batch):
+    for _ in range(args.batch):
         pts = rng.uniform(0.4, 0.6, (2048, 3)).astype(np.float32)
         goal = rng.uniform(0.4, 0.6, (tc.num_goal_points, 3)).astype(np.float32)
         obs.append(make_obs(pts, np.zeros(2048, np.int32), goal, (goal[:, 0] > 0.5).astype(np.int32)))

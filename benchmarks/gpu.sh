@@ -63,6 +63,13 @@ PY
     cases=${CASES:-"tuning.scatter_block_dim=128 tuning.scatter_block_dim=384 tuning.scatter_block_dim=448"}
     timeout 560 python3 benchmarks/sim_throughput.py --device cuda --grids ${GRIDS:-84 128} --batches ${BATCHES:-16} \
       --no-ref --repeats 5 --set $cases 2>&1 | tee -a "$OUT/block_dim.txt" ;;
+  episodes)  # the episode engine: a demonstration cut vs its simulation, batched evaluation, PDDP act (#31)
+    timeout ${LIMIT:-560} python3 benchmarks/episodes.py --device cuda --n-grid 64 --K 16 --iters 2 \
+      --batch ${BATCH:-16} --eval-episodes ${EPISODES:-32} --only ${PARTS:-demo eval policy} 2>&1 \
+      | grep -v -i warn | tee -a "$OUT/bench_episodes.txt" ;;
+  train-sweep)  # perception training samples/s over batch sizes, fp32 and bf16 (#31)
+    timeout ${LIMIT:-400} python3 benchmarks/train.py --device cuda --batches 16 64 256 --amp --steps 10 2>&1 \
+      | grep -v -i warn | tee "$OUT/bench_train.txt" ;;
   bench-rest)
     for b in topology reward train train_policy; do
       [ -f benchmarks/$b.py ] && timeout 150 python3 benchmarks/$b.py --device cuda 2>&1 | tee "$OUT/bench_$b.txt"
