@@ -72,3 +72,85 @@ def test_each_episode_follows_its_own_task(logs):
     assert thick.turns == [] and len(thick.actions) == 3
     assert stick.num_pieces[-1] >= 3 and thick.num_pieces[-1] >= 3  # the cuts made pieces
     assert len({len(e.labels) for e in (stick, short, thick)}) == 3  # three particle counts in the batches
+
+
+# -- the policy call: act_batch once per step for all live episodes, act where it fails ---------------------
+class _Planes:
+    """The goal's planes, one per step; ``act_batch`` records its calls (and raises when told to)."""
+    calls: list = []
+    fail = False
+
+    def reset(self, goal, seed=None):
+        self.planes, self.t = list(goal.planes), 0
+
+    def act(self, obs):
+        if self.t >= len(self.planes):
+            return None
+        self.t += 1
+        return self.planes[self.t - 1]
+
+    @staticmethod
+    def act_batch(policies, observations):
+        _Planes.calls.append(len(policies))
+        if _Planes.fail:
+            raise RuntimeError("batched call failed")
+        return [p.act(o) for p, o in zip(policies, observations)]
+
+
+class _Boxes:
+    """B scenes of 1-D 'particles' along x (as (n,3)); a cut at x0 moves those beyond it by 0.1."""
+    batch_size = 3
+
+    def __init__(self):
+        from types import SimpleNamespace
+
+        self.cfg = SimpleNamespace(board_z=0.0, spacing=0.01)
+
+    def reset_scenes(self, objects, poses, seeds):
+        self.x = [np.stack([np.linspace(0, 1, 20 + 5 * b), np.zeros(20 + 5 * b), np.zeros(20 + 5 * b)], -1)
+                  for b in range(self.batch_size)]
+
+    def cut(self, actions):
+        for b, a in enumerate(actions):
+            if a is not None:
+                self.x[b][self.x[b][:, 0] > a.x, 0] += 0.1
+
+    def state(self):
+        from types import SimpleNamespace
+
+        return SimpleNamespace(x=self.x, damage=[np.zeros(len(x), bool) for x in self.x], sweeps=[[]] * 3)
+
+
+def _box_scoring():
+    from types import SimpleNamespace
+
+    from topocut.episode import Score, Scoring
+    from topocut.sim.action import KnifeAction
+
+    def goal_fn(task, obj, pose, spacing):
+        k = int(obj)
+        return SimpleNamespace(planes=[KnifeAction(0.2 + 0.2 * i, 0.0) for i in range(k)], points=np.zeros((2, 3)),
+                               labels=np.zeros(2, np.int32))
+
+    def discover(x, damage, sweeps, previous):
+        gaps = np.diff(np.sort(x[:, 0])) > 0.08
+        return np.concatenate([[0], np.cumsum(gaps)])[np.argsort(np.argsort(x[:, 0]))].astype(np.int32)
+
+    def score(xs, labels, goals, tasks):
+        return [Score(float(len(np.unique(lab))), 0, False, len(np.unique(lab))) for lab in labels]
+
+    return Scoring(goal_fn, discover, score)
+
+
+@pytest.mark.parametrize("fail", [False, True])
+def test_act_batch_is_one_call_per_step_and_falls_back_to_act(fail):
+    from types import SimpleNamespace
+
+    _Planes.calls, _Planes.fail = [], fail
+    eps = [Episode(str(k), None, k, SimpleNamespace(push=False)) for k in (3, 1, 2)]  # 3, 1 and 2 planes
+    logs = run_episodes(_Boxes(), eps, _Planes(), _box_scoring(), max_cuts=5)
+    assert [len(lg.actions) for lg in logs] == [3, 1, 2]  # each stopped (None) after its own planes
+    assert [lg.num_pieces[-1] for lg in logs] == [4, 2, 3] and all(lg.status == "ok" for lg in logs)
+    # steps 1-4: 3, 3 (the 1-plane episode said None at step 2), 2, 1 live episodes; one live episode
+    # calls act directly; a failing batched call was retried per episode with act
+    assert _Planes.calls == [3, 3, 2]

@@ -413,23 +413,15 @@ def run_episodes(env, episodes: list[Episode], policy, scoring: Scoring, max_cut
         engine.start(chunk, alone, initial_reward)
         for b, e in enumerate(chunk):
             reset_policy(pols[b], engine.goals[b], seed=e.seed)
+        batched = not alone and callable(getattr(type(policy), "act_batch", None))
         while any(engine.live):
-            acts = [None] * len(chunk)
-            for b in range(len(chunk)):
-                if not engine.live[b]:
-                    continue
-                obs = engine.observation(b, observe_fn)
-                if alone and hasattr(env, "get_state"):  # one episode in every scene: a planner (MPPI) may
-                    obs["sim_state"] = env.get_state(0)  # roll out from its state (batched episodes: no planner)
-                ta = time.perf_counter()
-                try:
-                    acts[b] = pols[b].act(obs)
-                except Exception as e:  # noqa: BLE001 - a broken policy fails its episode, not the run
-                    engine.end(b, "error", f"{type(e).__name__}: {e}")
-                    continue
-                engine.logs[b].act_time_s.append(time.perf_counter() - ta)
-                if "sim_state" in obs and hasattr(env, "set_state"):
-                    env.set_state(obs["sim_state"], b=None)  # the rollouts moved the scenes: restore them
+            live = [b for b in range(len(chunk)) if engine.live[b]]
+            obs = {b: engine.observation(b, observe_fn) for b in live}
+            if alone and hasattr(env, "get_state"):  # one episode in every scene: a planner (MPPI) may roll
+                obs[0]["sim_state"] = env.get_state(0)  # out from its state (batched episodes: no planner)
+            acts = _act(pols, obs, batched, engine)
+            if "sim_state" in obs.get(0, {}) and hasattr(env, "set_state"):
+                env.set_state(obs[0]["sim_state"], b=None)  # the rollouts moved the scenes: restore them
             if not any(a is not None for a in acts):
                 break
             engine.step(acts)
@@ -438,3 +430,32 @@ def run_episodes(env, episodes: list[Episode], policy, scoring: Scoring, max_cut
             if on_done is not None:
                 on_done(c0 + j, log)
     return logs
+
+
+def _act(pols: list, obs: dict, batched: bool, engine: EpisodeBatch) -> list:
+    """Each live episode's action: one ``act_batch`` call for all of them where the policy class has one (the
+    network runs once on the stacked batch; each episode draws from its own generator), else ``act`` each.
+    A failing call fails only its episode: a batched call that raises is retried one episode at a time."""
+    acts = [None] * len(pols)
+    if batched and len(obs) > 1:
+        live = list(obs)
+        ta = time.perf_counter()
+        try:
+            out = type(pols[live[0]]).act_batch([pols[b] for b in live], [obs[b] for b in live])
+        except Exception:  # noqa: BLE001 - find the episode that fails below
+            out = None
+        if out is not None:
+            dt = (time.perf_counter() - ta) / len(live)  # the batch's time, shared
+            for b, a in zip(live, out):
+                acts[b] = a
+                engine.logs[b].act_time_s.append(dt)
+            return acts
+    for b, o in obs.items():
+        ta = time.perf_counter()
+        try:
+            acts[b] = pols[b].act(o)
+        except Exception as e:  # noqa: BLE001 - a broken policy fails its episode, not the run
+            engine.end(b, "error", f"{type(e).__name__}: {e}")
+            continue
+        engine.logs[b].act_time_s.append(time.perf_counter() - ta)
+    return acts

@@ -187,9 +187,9 @@ class PDDPModule(L.LightningModule):
 
     @torch.no_grad()
     def sample_masks(self, batch, steps: int = 32, predictor: str = "analytic", use_ema: bool = True,
-                     generator: torch.Generator | None = None, denoise: bool = True,
+                     generator: torch.Generator | list[torch.Generator] | None = None, denoise: bool = True,
                      eps: float = 1e-5) -> torch.Tensor:
-        """Masks (B,N) long sampled by the reverse chain."""
+        """Masks (B,N) long sampled by the reverse chain (``generator``: one, or one per sample)."""
         model = self.ema.module if use_ema else self.model
         was_training = model.training
         model.eval()
@@ -277,6 +277,38 @@ class PDDPPolicy:
         self.last_mask = mask
         return action
 
+    @staticmethod
+    def act_batch(policies: list[PDDPPolicy], observations: list[dict]) -> list:
+        """``[p.act(o) for p, o in zip(policies, observations)]`` with one network batch per sampling step.
+
+        ``policies``: one copy per episode (``topocut.episode``'s slots) sharing the module and the sampling
+        settings, each with its own goal and generator.  Every episode draws its randomness from its own generator
+        in the order and shapes act() does (``topocut.policies.diffusion.rng``), so actions, ``last_mask`` and the
+        generators' states afterwards are those of the one-at-a-time calls (up to float rounding of the batched
+        network, which can in rare cases tip a sampled label).  Policies that do not share a module and settings
+        fall back to act() one by one.
+        """
+        if len(policies) != len(observations):
+            raise ValueError(f"act_batch: {len(policies)} policies for {len(observations)} observations")
+        if not policies:
+            return []
+        lead = policies[0]
+        if len({id(p) for p in policies}) < len(policies) or \
+                not all(p.module is lead.module and p._settings() == lead._settings() for p in policies):
+            # one object twice draws its two actions one after the other; other modules need their own batch
+            return [p.act(o) for p, o in zip(policies, observations)]
+        obs = [check_obs(o) for o in observations]
+        prepared = [p._prepare((o["points"], o["labels"]), o["goal"], o["history"], o["goal_labels"])
+                    for p, o in zip(policies, obs)]
+        results = PDDPPolicy._sample_many(policies, prepared)
+        for p, (mask, _) in zip(policies, results):
+            p.last_mask = mask
+        return [action for _, action in results]
+
+    def _settings(self) -> tuple:
+        """What must agree for policies to share one sampling batch."""
+        return self.scfg, self.device, self.board_z, self.use_ema
+
     def inputs(self, obs: dict, seed: int = 0) -> dict:
         """The world-frame input fields (topocut.policies.inputs.policy_inputs) the network gets for ``obs``."""
         tc = self.module.train_cfg
@@ -288,12 +320,8 @@ class PDDPPolicy:
         b["history"] = b["history"].reshape(1, -1)
         return b, inp["index"]
 
-    def sample(self, observation, goal=None, history=None, goal_labels=None):
-        """observation (points (n,3), labels (n,)) -> (mask (n,) uint8 over all n points, KnifeAction | None).
-
-        ``goal`` / ``goal_labels`` default to the goal of ``reset`` (labels: all 0 when it had none).  The network
-        sees an FPS subset; the mask is spread to the other points from their nearest sampled point.
-        """
+    def _prepare(self, observation, goal=None, history=None, goal_labels=None) -> dict:
+        """sample()'s arguments as an observation dict (goal defaults from reset; history None: no cut yet)."""
         points, labels = observation
         points, labels = np.asarray(points, np.float32), np.asarray(labels).astype(np.int64)
         if goal is None:
@@ -302,26 +330,55 @@ class PDDPPolicy:
             raise ValueError("PDDPPolicy.sample needs a goal: pass goal= or call reset(goal) first")
         goal = np.asarray(goal, np.float32)
         history = np.zeros((3, 7), np.float32) if history is None else history
-        obs = {"points": points, "labels": labels, "goal": goal, "goal_labels": goal_labels, "history": history}
-        action, full = None, np.zeros(len(points), np.uint8)
-        for _ in range(self.scfg.retries + 1):
-            seed = int(torch.randint(0, 2**31 - 1, (1,), generator=self.generator, device=self.device))
-            batch, idx = self._batch(obs, seed)
-            mask = self.module.sample_masks(batch, steps=self.scfg.steps, predictor=self.scfg.predictor,
-                                            use_ema=self.use_ema, generator=self.generator,
-                                            denoise=self.scfg.denoise, eps=self.scfg.eps)[0].cpu().numpy()
-            sub = points[idx]
-            action = action_from_mask(sub, mask, self.scfg.plane, board_z=self.board_z)
-            if len(points) <= len(idx):  # every point was seen (some twice)
-                full = np.zeros(len(points), np.uint8)
-                full[idx] = mask
-            else:
-                from scipy.spatial import cKDTree
+        return {"points": points, "labels": labels, "goal": goal, "goal_labels": goal_labels, "history": history}
 
-                full = mask[cKDTree(sub).query(points)[1]].astype(np.uint8)
-            if action is not None:
+    def sample(self, observation, goal=None, history=None, goal_labels=None):
+        """observation (points (n,3), labels (n,)) -> (mask (n,) uint8 over all n points, KnifeAction | None).
+
+        ``goal`` / ``goal_labels`` default to the goal of ``reset`` (labels: all 0 when it had none).  The network
+        sees an FPS subset; the mask is spread to the other points from their nearest sampled point.
+        """
+        return PDDPPolicy._sample_many([self], [self._prepare(observation, goal, history, goal_labels)])[0]
+
+    @staticmethod
+    def _sample_many(policies: list[PDDPPolicy], observations: list[dict]) -> list[tuple]:
+        """(full mask, action | None) of each policy for its prepared observation (``_prepare``).
+
+        A try draws, from each episode's generator, the FPS seed of its subset and then the sampler's noise; the
+        episodes whose mask does not split the points (action None) try again, up to ``retries`` times, batched
+        among themselves -- so each generator sees the same draws as act() on that episode alone.
+        """
+        lead = policies[0]
+        cfg, results, pending = lead.scfg, [None] * len(policies), list(range(len(policies)))
+        for _ in range(cfg.retries + 1):
+            seeds = [int(torch.randint(0, 2**31 - 1, (1,), generator=policies[b].generator, device=lead.device))
+                     for b in pending]
+            built = [policies[b]._batch(observations[b], seed) for b, seed in zip(pending, seeds)]
+            batch = {k: torch.cat([one[k] for one, _ in built]) for k in built[0][0]}  # points B,N,3 ; history B,21 ...
+            masks = lead.module.sample_masks(batch, steps=cfg.steps, predictor=cfg.predictor, use_ema=lead.use_ema,
+                                             generator=[policies[b].generator for b in pending],
+                                             denoise=cfg.denoise, eps=cfg.eps).cpu().numpy()  # B,N
+            for row, (b, (_, idx)) in enumerate(zip(pending, built)):
+                results[b] = _mask_action(observations[b]["points"], idx, masks[row], cfg.plane, lead.board_z)
+            pending = [b for b in pending if results[b][1] is None]
+            if not pending:
                 break
-        return full, action
+        return results
+
+
+def _mask_action(points, idx, mask, plane: str, board_z: float) -> tuple:
+    """(mask over all points, action | None) from the mask sampled on the rows ``idx`` of ``points``: the action
+    from the plane fitted to the sampled points; the other points take the label of their nearest sampled one."""
+    sub = points[idx]
+    action = action_from_mask(sub, mask, plane, board_z=board_z)
+    if len(points) <= len(idx):  # every point was seen (some twice)
+        full = np.zeros(len(points), np.uint8)
+        full[idx] = mask
+    else:
+        from scipy.spatial import cKDTree
+
+        full = mask[cKDTree(sub).query(points)[1]].astype(np.uint8)
+    return full, action
 
 
 def num_parameters(module: nn.Module, trainable: bool = True) -> int:

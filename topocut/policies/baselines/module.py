@@ -21,6 +21,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from topocut.policies.diffusion import rng
 from topocut.policies.inputs import goal_inputs, object_frame, policy_inputs, sample_indices, step_obs
 from topocut.policies.registry import pose_kinds
 from topocut.sim.action import KnifeAction
@@ -76,12 +77,15 @@ class GaussianDiffusion(nn.Module):
     @torch.no_grad()
     def sample(self, eps_fn, shape, steps: int | None = None, eta: float = 0.0, generator=None,
                clip: float | None = 1.0, device=None):
-        """DDIM (Song et al. 2021) over ``steps`` evenly spaced timesteps T-ratio, ..., 0 ("leading")."""
+        """DDIM (Song et al. 2021) over ``steps`` evenly spaced timesteps T-ratio, ..., 0 ("leading").
+
+        ``generator``: one, or one per sample (``topocut.policies.diffusion.rng``: sample b then draws the noise
+        a batch-1 call with generator b draws, so batched episodes equal their one-at-a-time runs)."""
         steps = steps or self.T
         if not 1 <= steps <= self.T:
             raise ValueError(f"sampling steps={steps} must lie in [1, num_train_steps={self.T}]")
         ratio = self.T // steps
-        x = torch.randn(shape, device=device or self.abar.device, generator=generator)
+        x = rng.randn(shape, generator, device=device or self.abar.device)  # B,H,A
         for t in reversed(range(0, steps * ratio, ratio)):
             a = self.abar[t]
             a_prev = self.abar[t - ratio] if t - ratio >= 0 else self.abar.new_tensor(1.0)
@@ -93,7 +97,7 @@ class GaussianDiffusion(nn.Module):
             sigma = eta * ((1 - a_prev) / (1 - a) * (1 - a / a_prev)).clamp(min=0).sqrt()
             x = a_prev.sqrt() * x0 + (1 - a_prev - sigma ** 2).clamp(min=0).sqrt() * eps
             if eta > 0 and t - ratio >= 0:
-                x = x + sigma * torch.randn(shape, device=x.device, generator=generator)
+                x = x + sigma * rng.randn(shape, generator, device=x.device)
         return x
 
 
@@ -204,6 +208,7 @@ class PoseDiffusionModule(L.LightningModule):
 
     @torch.no_grad()
     def predict(self, batch, generator=None, steps: int | None = None) -> torch.Tensor:  # -> B,6 representation
+        """Sampled action representations; ``generator``: one, or a list with one per sample."""
         B = batch["points"].shape[0]
         x = self.diffusion.sample(self._eps_fn(self.net.encode(batch)), (B, self.net.horizon, REPR_DIM),
                                   steps or self.num_inference_steps, self.eta, generator, device=self.device)
@@ -271,13 +276,36 @@ class PosePolicy:
         return policy_inputs(obs, hp.num_points, hp.num_goal_points, seed, index=idx)
 
     def act(self, obs: dict) -> KnifeAction:
-        if self.generator is None:
-            raise RuntimeError("PosePolicy.act called before reset(goal)")
-        hp = self.module.hparams
-        inp = object_frame(self.inputs(obs), hp.pos_scale, hp.board_z, hp.num_labels)
-        batch = {k: torch.as_tensor(np.asarray(v))[None].to(self.device) for k, v in inp.items()}
-        r = self.module.predict(batch, self.generator, self.steps)[0].cpu().numpy()
-        return decode_action(r, inp["center"], hp.pos_scale)
+        return PosePolicy.act_batch([self], [obs])[0]
+
+    @staticmethod
+    def act_batch(policies: list[PosePolicy], observations: list[dict]) -> list[KnifeAction]:
+        """``[p.act(o) for p, o in zip(policies, observations)]`` with one network batch per denoising step.
+
+        ``policies``: one copy per episode sharing the module (``topocut.episode``'s slots), each with its own goal
+        and generator; each episode's noise comes from its own generator in the shapes act() draws it
+        (``topocut.policies.diffusion.rng``), so the actions and the generators' states afterwards are those of the
+        one-at-a-time calls, up to the float rounding of the batched network.  Policies that do not share a module
+        and settings fall back to act() one by one."""
+        if len(policies) != len(observations):
+            raise ValueError(f"act_batch: {len(policies)} policies for {len(observations)} observations")
+        if not policies:
+            return []
+        for p in policies:
+            if p.generator is None:
+                raise RuntimeError("PosePolicy.act called before reset(goal)")
+        lead = policies[0]
+        if len(policies) > 1 and (len({id(p) for p in policies}) < len(policies) or not all(
+                p.module is lead.module and (p.device, p.steps) == (lead.device, lead.steps) for p in policies)):
+            # one object twice draws its two actions one after the other; other modules need their own batch
+            return [PosePolicy.act_batch([p], [o])[0] for p, o in zip(policies, observations)]
+        hp = lead.module.hparams
+        inps = [object_frame(p.inputs(o), hp.pos_scale, hp.board_z, hp.num_labels)
+                for p, o in zip(policies, observations)]
+        # every field has a fixed size (num_points / num_goal_points rows): stack to points B,N,3 ; history B,h,7 ...
+        batch = {k: torch.as_tensor(np.stack([np.asarray(inp[k]) for inp in inps])).to(lead.device) for k in inps[0]}
+        r = lead.module.predict(batch, [p.generator for p in policies], lead.steps).cpu().numpy()  # B,6
+        return [decode_action(r[b], inp["center"], hp.pos_scale) for b, inp in enumerate(inps)]
 
 
 def load_pose_policy(path, seed: int = 0, device: str = "cpu", steps: int | None = None) -> PosePolicy:

@@ -16,7 +16,8 @@ Two graphs:
 
 Tensor conventions: states ``i`` are long tensors of any shape (B,N); ``sigma``
 broadcasts against them (e.g. (B,1)); vector-valued outputs add a trailing
-axis of size ``dim``.
+axis of size ``dim``.  Every ``generator`` is one torch.Generator or one per row of
+the leading axis (``topocut.policies.diffusion.rng``).
 """
 from __future__ import annotations
 
@@ -26,12 +27,17 @@ import math
 import torch
 import torch.nn.functional as F
 
+from topocut.policies.diffusion import rng
+from topocut.policies.diffusion.rng import Generators
 
-def sample_categorical(probs: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
-    """Sample indices from unnormalised non-negative weights along the last axis (negatives clamp to 0)."""
+
+def sample_categorical(probs: torch.Tensor, generator: Generators = None) -> torch.Tensor:
+    """Sample indices from unnormalised non-negative weights along the last axis (negatives clamp to 0).
+
+    ``generator``: one, or one per row of the leading (batch) axis (``topocut.policies.diffusion.rng``)."""
     p = probs.clamp_min(0.0)
     c = p.cumsum(-1)  # ...,d
-    u = torch.rand(c.shape[:-1], device=p.device, generator=generator, dtype=c.dtype) * c[..., -1]
+    u = rng.rand(c.shape[:-1], generator, device=p.device, dtype=c.dtype) * c[..., -1]
     idx = (c <= u[..., None]).sum(-1)  # first index whose cumulative weight exceeds u
     return idx.clamp_max(p.shape[-1] - 1)
 
@@ -145,8 +151,8 @@ class Uniform(Graph):
 
     def sample_transition(self, i, sigma, generator=None):
         # with prob 1 - e^-sigma resample uniformly (which may land on i again)
-        move = torch.rand(i.shape, device=i.device, generator=generator) < -torch.expm1(-sigma)
-        fresh = torch.randint(0, self.dim, i.shape, device=i.device, generator=generator)
+        move = rng.rand(i.shape, generator, device=i.device) < -torch.expm1(-sigma)
+        fresh = rng.randint(0, self.dim, i.shape, generator, device=i.device)
         return torch.where(move, fresh, i)
 
     def staggered_score(self, score, dsigma):
@@ -155,7 +161,7 @@ class Uniform(Graph):
         return e * score + (1.0 - e) / self.dim * score.sum(-1, keepdim=True)
 
     def sample_limit(self, *shape, device=None, generator=None):
-        return torch.randint(0, self.dim, shape, device=device, generator=generator)
+        return rng.randint(0, self.dim, shape, generator, device=device)
 
     def score_entropy(self, score, sigma, x, x0):
         """Denoising score entropy per position (...), for log-scores ``score`` (...,d).
@@ -221,7 +227,7 @@ class Absorbing(Graph):
         return p + (i == self.mask)[..., None] * (1.0 - keep)
 
     def sample_transition(self, i, sigma, generator=None):
-        move = torch.rand(i.shape, device=i.device, generator=generator) < -torch.expm1(-sigma)
+        move = rng.rand(i.shape, generator, device=i.device) < -torch.expm1(-sigma)
         return torch.where(move, torch.full_like(i, self.mask), i)
 
     def staggered_score(self, score, dsigma):

@@ -18,6 +18,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from topocut.policies.diffusion import rng
 from topocut.policies.diffusion.graph import Graph
 from topocut.policies.diffusion.noise import Noise
 
@@ -25,7 +26,7 @@ from topocut.policies.diffusion.noise import Noise
 def _perturb(x0, graph: Graph, noise: Noise, t, sampling_eps, generator):
     B = x0.shape[0]
     if t is None:
-        t = (1.0 - sampling_eps) * torch.rand(B, device=x0.device, generator=generator) + sampling_eps
+        t = (1.0 - sampling_eps) * rng.rand((B,), generator, device=x0.device) + sampling_eps
     sigma, dsigma = noise(t)  # B, B
     xt = graph.sample_transition(x0, sigma[:, None], generator)  # B,N
     return xt, sigma, dsigma

@@ -9,6 +9,10 @@ then an optional final denoising step removes the remaining noise sigma(eps).
 
 ``model_fn(x (B,N) long, sigma (B,), cond) -> log-scores (B,N,d)``; the log-score at
 the current state must be 0 (ratio 1), as the network enforces.
+
+``generator``: one torch.Generator, or a list of B, one per row (``topocut.policies.diffusion.rng``): row b then
+draws exactly the noise a batch-1 call with generator b draws, so B independent chains can share one network
+batch (``PDDPPolicy.act_batch``) and still equal their one-at-a-time runs.
 """
 from __future__ import annotations
 
@@ -16,6 +20,7 @@ import torch
 
 from topocut.policies.diffusion.graph import Graph, sample_categorical
 from topocut.policies.diffusion.noise import Noise
+from topocut.policies.diffusion.rng import Generators
 
 PREDICTORS = ("analytic", "euler")
 
@@ -53,7 +58,7 @@ def denoise_update(model_fn, graph: Graph, noise: Noise, x, t: float, cond, gene
 @torch.no_grad()
 def sample(model_fn, graph: Graph, noise: Noise, shape: tuple[int, int], cond=None, steps: int = 32,
            predictor: str = "analytic", denoise: bool = True, eps: float = 1e-5, device=None,
-           generator: torch.Generator | None = None) -> torch.Tensor:
+           generator: Generators = None) -> torch.Tensor:
     """Draw states (B,N) long from the reverse chain."""
     if predictor not in PREDICTORS:
         raise ValueError(f"predictor={predictor!r} is not valid; choose one of {', '.join(PREDICTORS)}")
