@@ -146,3 +146,22 @@ def test_torch_backend_equals_scipy_on_shared_goals():
     for x, y in zip(a, b):
         np.testing.assert_allclose(x.distances, y.distances, rtol=1e-5, atol=1e-9)
         assert x.matching == y.matching
+
+
+def test_host_and_device_eigen_solvers_agree():
+    """reward.eig_solver: LAPACK's subset solver in threads gives torch.linalg.eigh's smallest pairs (the
+    signature uses phi^2 over whole kept eigenspaces, so bases and signs do not matter)."""
+    import dataclasses
+
+    from topocut.reward.config import RewardConfig
+    from topocut.reward.spectral import spectral_descriptors
+
+    rng = np.random.default_rng(4)
+    batch = torch.as_tensor(rng.uniform(0, 1, (3, 128, 3)) * [0.3, 0.1, 0.05])
+    cfg = RewardConfig(backend="torch", num_point=128)
+    wh, sh = spectral_descriptors(batch, dataclasses.replace(cfg, eig_solver="host"))
+    wd, sd = spectral_descriptors(batch, dataclasses.replace(cfg, eig_solver="device"))
+    assert wh.shape == wd.shape == (3, cfg.num_eig) and sh.shape == sd.shape
+    assert torch.allclose(wh, wd, rtol=1e-9, atol=1e-12) and torch.allclose(sh, sd, rtol=1e-6, atol=1e-9)
+    with pytest.raises(ValueError, match="reward.eig_solver"):
+        RewardConfig(eig_solver="gpu").validate()

@@ -45,12 +45,19 @@ class RewardConfig:
     success_distance: float | None = 0.065
     backend: str = "scipy"  # "scipy" (sparse shift-invert eigsh, CPU) or "torch" (batched dense eigh)
     device: str = "cpu"  # torch backend only
+    # torch backend: where the Laplacians' smallest eigenpairs are found.  "host": LAPACK's subset solver (evx,
+    # the num_eig + 1 smallest) in threads, one matrix each, on the Laplacians built on ``device``; "device":
+    # torch.linalg.eigh of the whole spectrum there.  On an H100 a 512-point float64 eigh is ~5 ms a matrix
+    # (cuSOLVER runs a batch one matrix at a time): host threads are several times faster (docs/benchmarks.md)
+    eig_solver: str = "host"
 
     def validate(self) -> RewardConfig:
         if self.delta <= self.gamma:
             raise ValueError(f"reward.delta={self.delta} must exceed reward.gamma={self.gamma} (paper: delta > gamma)")
         if self.backend not in ("scipy", "torch"):
             raise ValueError(f"reward.backend={self.backend!r}; valid: scipy, torch")
+        if self.eig_solver not in ("host", "device"):
+            raise ValueError(f"reward.eig_solver={self.eig_solver!r}; valid: host, device")
         for k in ("num_point", "knn", "num_eig", "num_quantiles", "min_points"):
             if getattr(self, k) < 1:
                 raise ValueError(f"reward.{k}={getattr(self, k)} must be >= 1")

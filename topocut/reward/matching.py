@@ -34,7 +34,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from topocut.reward.config import RewardConfig
-from topocut.reward.size import size_descriptor, size_distance
+from topocut.reward.size import size_descriptor, size_descriptors, size_distance
 from topocut.reward.spectral import _points, descriptor, descriptor_distance, resample, resample_groups
 
 
@@ -223,7 +223,8 @@ def _score_sets(fragment_sets, goal_fragments, cfg: RewardConfig | None = None, 
     cfg = (cfg or RewardConfig()).validate()
     names = names or [f"fragment_sets[{s}]" for s in range(len(fragment_sets))]
     raw = [[_points(f, f"{name}[{i}]") for i, f in enumerate(fs)] for name, fs in zip(names, fragment_sets)]
-    sizes = [[size_descriptor(f) for f in fs] for fs in raw]
+    flat = iter(size_descriptors([f for fs in raw for f in fs]))  # every scene's pieces in one thread pool
+    sizes = [[next(flat) for _ in fs] for fs in raw]
     goal_sets = goal_fragments if per_set else [goal_fragments]
     if per_set and len(goal_sets) != len(raw):
         raise ValueError(f"per-set goals: got {len(goal_sets)} goal lists for {len(raw)} fragment sets")
