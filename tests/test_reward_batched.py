@@ -149,7 +149,7 @@ def test_torch_backend_equals_scipy_on_shared_goals():
 
 
 def test_host_and_device_eigen_solvers_agree():
-    """reward.eig_solver: LAPACK's subset solver in threads gives torch.linalg.eigh's smallest pairs (the
+    """reward.eig_solver: LAPACK's subset solver gives torch.linalg.eigh's smallest pairs (the
     signature uses phi^2 over whole kept eigenspaces, so bases and signs do not matter)."""
     import dataclasses
 
