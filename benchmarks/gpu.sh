@@ -68,7 +68,7 @@ PY
       --batch ${BATCH:-16} --eval-episodes ${EPISODES:-32} --only ${PARTS:-demo eval policy} 2>&1 \
       | grep -v -i warn | tee -a "$OUT/bench_episodes.txt" ;;
   train-sweep)  # perception training samples/s over batch sizes, fp32 and bf16 (#31)
-    timeout ${LIMIT:-400} python3 benchmarks/train.py --device cuda --batches 16 64 256 --amp --steps 10 2>&1 \
+    timeout ${LIMIT:-400} python3 benchmarks/train.py --device cuda --batches 16 64 256 512 --amp --steps 10 2>&1 \
       | grep -v -i warn | tee "$OUT/bench_train.txt" ;;
   bench-rest)
     for b in topology reward train train_policy; do

