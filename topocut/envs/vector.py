@@ -6,19 +6,19 @@ scene), the push where the task pushes, the goal's scripted turn where the goal 
 topology discovery + the spectral reward per scene.  ``CuttingEnvGym`` is the single-scene ``gymnasium.Env``
 (num_envs = 1) on top of it, for ``gymnasium.utils.env_checker.check_env`` and single-env code.
 
-Episode rule = the evaluation protocol's (topocut.eval.protocol.evaluate_episode): ``reset(seed=s)`` loads
-``object`` at ``episode_pose(eval_cfg, s)`` with sampling seed ``s`` (the pose an evaluation episode of seed s
-gets), builds the goal with the task's ``make_goal``, labels the uncut object; a step executes
-``executed_action(KnifeAction.from_vector(a))`` per scene, then as evaluate_episode: push (task.push), discovery
-with the previous labels, reward, ``task.success``, and after cut k < max_cuts the goal's turns
-(``topocut.planning.rollout.execute_turns``).
+Episode rule = the evaluation protocol's, through the same engine (topocut.episode.EpisodeBatch, which
+evaluate_episode and the demonstrations run): ``reset(seed=s)`` gives scene b the episode of seed s + b: its
+object (``objects``: one name, or a list each scene draws one from), the pose ``episode_pose(eval_cfg, s + b)``
+and particle sampling seed s + b, the goal from the task's ``make_goal``, the uncut object labelled.  A step
+executes ``executed_action(KnifeAction.from_vector(a))`` per scene, then as the evaluation: the push where the
+task pushes (per scene), discovery with the previous labels, the spectral reward against the scene's own goal,
+``task.success``, and after cut k < max_cuts the goal's turns.
 
-Restrictions of the batched simulator (CuttingEnv holds one particle set, one material array and performs one
-Turn for all scenes): every scene of one reset holds the SAME object at the SAME pose (so the same goal); the
-scenes differ by the actions they receive.  Scenes therefore reset together: autoreset is DISABLED
-(``metadata["autoreset_mode"] = AutoresetMode.DISABLED``); call ``reset()`` when you want new episodes
-(``options={"reset_mask": m}`` is accepted only with every scene set).  A scene that has terminated or been
-truncated is frozen: later steps restore its state after the batched cut, its reward is 0 and its flags stay.
+Scenes of one batch may hold different objects and poses (CuttingEnv pads them to one particle count), but
+they reset together: autoreset is DISABLED (``metadata["autoreset_mode"] = AutoresetMode.DISABLED``); call
+``reset()`` when you want new episodes (``options={"reset_mask": m}`` is accepted only with every scene
+set).  A scene that has terminated or been truncated idles (frozen: no substep touches it); its reward is 0
+and its flags stay.
 
 Reward (``reward_mode``): "total" (default; the paper's per-step reward: R, the task's total spectral reward
 ``RewardResult.total`` after the cut) or "gain" (R after the cut minus R before it).  ``info`` always holds
@@ -90,8 +90,8 @@ class CuttingVectorEnv(VectorEnv):
                  reward_mode: str = "total", tilt_max: float | None = None, device: str = "cpu",
                  min_fragment_points: int | None = None, turns: bool = True):
         """task: a task name (knife tasks: slice, stick, dice, pyramid); task_cfg: its TaskConfig (default
-        TaskConfig(name=task)).  objects: one object name, or a list that each reset draws one from (every
-        scene gets the same).  sim_cfg: SimConfig (its batch_size is replaced by num_envs).  topo_cfg /
+        TaskConfig(name=task)).  objects: one object name, or a list from which each scene draws its own at
+        every reset.  sim_cfg: SimConfig (its batch_size is replaced by num_envs).  topo_cfg /
         reward_cfg: TopologyConfig / RewardConfig (None: defaults).  eval_cfg: EvalConfig whose pose
         randomisation (randomize_pose, translation, yaw_deg, scale_min/max) and min_fragment_points are used.
         num_points / num_goal_points: P and M of the observation.  max_cuts (None: task_cfg.max_cuts), push
@@ -135,7 +135,7 @@ class CuttingVectorEnv(VectorEnv):
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self.render_mode = None
         self.goal = None
-        self.scorer = None
+        self.engine = None  # topocut.episode.EpisodeBatch, built at the first reset
         self.episode_seed = None
 
     # -- helpers ---------------------------------------------------------------------------------------
@@ -145,38 +145,32 @@ class CuttingVectorEnv(VectorEnv):
         idx = sample_indices(np.asarray(pts, np.float64), n, seed=0, start="farthest")
         return np.asarray(pts, np.float32)[idx], np.asarray(labels, np.int64)[idx]
 
-    def _reward(self, x, labels):
-        from topocut.reward import spectral_reward
-
-        frags = self.scorer.fragments(x, labels)
-        return spectral_reward(frags, list(self.goal.fragments), self.reward_cfg), len(frags)
-
     def _obs(self) -> dict:
-        B = self.num_envs
+        B, e = self.num_envs, self.engine
         pts = np.zeros((B, self.num_points, 3), np.float32)
         lab = np.zeros((B, self.num_points), np.int64)
         for b in range(B):
-            pts[b], lab[b] = self._sample(self.x[b], self.num_points, self.labels[b])
+            pts[b], lab[b] = self._sample(e.xs[b], self.num_points, e.labels[b])
         pts = np.clip(pts, 0.0, 1.0)  # particles stay in the domain (walls); float noise at its faces
-        return {"points": pts, "labels": lab, "history": self.history.copy(),
-                "goal": np.repeat(self.goal_points[None], B, 0), "goal_labels": np.repeat(self.goal_labels[None], B, 0),
-                "cuts_done": self.cuts.astype(np.int64).copy()}
+        history = np.stack([np.stack(list(h)) for h in e.hist]).astype(np.float32)  # B,3,7 oldest first
+        return {"points": pts, "labels": lab, "history": history, "goal": self.goal_points.copy(),
+                "goal_labels": self.goal_labels.copy(),
+                "cuts_done": np.array([len(lg.actions) for lg in e.logs], np.int64)}
 
     # -- gymnasium API ---------------------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict | None = None):
-        """New episodes in every scene.  ``seed`` (int) is the episode seed: pose ``episode_pose(eval_cfg,
-        seed)``, particle sampling seed ``seed`` (evaluate_episode's episode of that seed); None draws one
-        from ``np_random``.  ``options``: {"object": name} picks the object; {"reset_mask": (B,) bool} must
-        hold every scene (the scenes of one batch reset together)."""
+        """New episodes in every scene: scene b the episode of seed ``seed`` + b (module docstring); None draws
+        the seed from ``np_random``.  ``options``: {"object": name} puts that object in every scene;
+        {"reset_mask": (B,) bool} must hold every scene (the scenes of one batch reset together)."""
         from gymnasium.utils import seeding
 
+        from topocut.episode import Episode, EpisodeBatch, default_scoring
         from topocut.eval.protocol import episode_pose
-        from topocut.planning.rollout import Scorer
 
         options = dict(options or {})
         mask = options.get("reset_mask")
         if mask is not None and not np.all(mask):
-            raise ValueError("CuttingVectorEnv resets every scene together (one particle set per batch): "
+            raise ValueError("CuttingVectorEnv resets every scene together (one simulator batch): "
                              "options['reset_mask'] must be all True")
         if seed is not None:
             self._np_random, self._np_random_seed = seeding.np_random(seed)
@@ -184,87 +178,59 @@ class CuttingVectorEnv(VectorEnv):
         else:
             if self._np_random is None:
                 self._np_random, self._np_random_seed = seeding.np_random()
-            ep_seed = int(self._np_random.integers(ID_MAX))
-        obj = options.get("object")
-        if obj is None:
-            obj = self.objects[0] if len(self.objects) == 1 else self.objects[int(self._np_random.integers(len(self.objects)))]
-        self.object, self.episode_seed = obj, ep_seed
-        self.pose = episode_pose(self.eval_cfg, ep_seed)
-        self.sim.reset(obj, self.pose, seed=ep_seed)
-        self.goal = self.task.make_goal(self.task_cfg, obj, self.pose, self.sim.cfg.spacing, board_z=self.board_z)
-        self.goal_points, self.goal_labels = self._sample(self.goal.points, self.num_goal_points, self.goal.labels)
-        self.scorer = Scorer(self.goal, self.reward_cfg, self.topo_cfg, min_fragment_points=self.min_fragment_points,
-                             device=self.device)
-        st = self.sim.state()
-        x0 = np.asarray(st.x[0])
-        lab0 = self.scorer.labels(x0, st.damage[0], None, None)  # every scene holds the same particles
-        res, npieces = self._reward(x0, lab0)
+            ep_seed = int(self._np_random.integers(ID_MAX - self.num_envs))
         B = self.num_envs
-        self.x = [np.asarray(st.x[b]) for b in range(B)]
-        self.labels = [lab0.copy() for _ in range(B)]
-        self.total = np.full(B, float(res.total), np.float64)
-        self.cuts = np.zeros(B, np.int64)
+        if options.get("object") is not None:
+            objects = [options["object"]] * B
+        elif len(self.objects) == 1:
+            objects = self.objects * B
+        else:
+            objects = [self.objects[int(i)] for i in self._np_random.integers(len(self.objects), size=B)]
+        seeds = [ep_seed + b for b in range(B)]
+        task = dataclasses.replace(self.task_cfg, push=self.push)
+        episodes = [Episode(o, episode_pose(self.eval_cfg, s), s, task, key=f"{o}_{s}") for o, s in zip(objects, seeds)]
+        if self.engine is None:
+            scoring = default_scoring(self.reward_cfg, self.topo_cfg, device=self.device, board_z=self.board_z,
+                                      min_fragment_points=self.min_fragment_points)
+            self.engine = EpisodeBatch(self.sim, scoring, self.max_cuts, self.turns, self.sim.cfg.spacing,
+                                       stop_on_success=True)
+        self.engine.start(episodes)
+        self.object, self.episode_seed = objects, ep_seed
+        gp = [self._sample(g.points, self.num_goal_points, g.labels) for g in self.engine.goals]
+        self.goal_points = np.stack([p for p, _ in gp])
+        self.goal_labels = np.stack([lab for _, lab in gp])
+        self.goal = self.engine.goals
+        self.total = np.array([s.total for s in self.engine.initial], np.float64)
         self.done = np.zeros(B, bool)
-        self.history = np.zeros((B, HISTORY_LEN, POSE_FEATURE_DIM), np.float32)
-        info = {"reward_total": self.total.copy(), "num_pieces": np.full(B, npieces, np.int64),
-                "episode_seed": np.full(B, ep_seed, np.int64)}
+        info = {"reward_total": self.total.copy(), "num_pieces": np.array([s.pieces for s in self.engine.initial],
+                                                                          np.int64),
+                "episode_seed": np.array(seeds, np.int64)}
         return self._obs(), self._with_masks(info, np.ones(B, bool))
 
     def step(self, actions):
-        from topocut.planning.rollout import TurnFailed, execute_turns, simulation_diverged_error
-        from topocut.tasks import turns_after
-
-        if self.goal is None:
+        if self.engine is None:
             raise RuntimeError("CuttingVectorEnv.step before reset()")
         B = self.num_envs
         acts = np.asarray(actions, np.float32).reshape(B, ACTION_DIM)
         knives = [executed_action(KnifeAction.from_vector(a)) for a in acts]
         active = ~self.done
-        frozen = {b: (self.sim.get_state(b), self.labels[b]) for b in range(B) if not active[b]}
-        Diverged = simulation_diverged_error()
-        B_rng = range(B)
-        reward = np.zeros(B, np.float64)
-        terminated = np.zeros(B, bool)
-        truncated = np.zeros(B, bool)
-        failed = np.zeros(B, bool)
-        success = np.zeros(B, bool)
-        gain = np.zeros(B, np.float64)
-        cut_count = np.zeros(B, np.int64)
-        num_pieces = np.zeros(B, np.int64)
-        try:
-            self.sim.cut(knives)
-            if self.push:
-                self.sim.push()
-        except Diverged:
-            failed[:] = active
-        if not failed.any():
-            st = self.sim.state()
-            self.cuts[active] += 1
-            for b in B_rng:
-                if not active[b]:
-                    continue
-                self.x[b] = np.asarray(st.x[b])
-                self.labels[b] = self.scorer.labels(st.x[b], st.damage[b], st.sweeps[b], self.labels[b])
-                res, num_pieces[b] = self._reward(self.x[b], self.labels[b])
-                gain[b] = float(res.total) - self.total[b]
-                self.total[b] = float(res.total)
-                cut_count[b] = int(res.cut_count)
-                success[b] = bool(self.task.success(res, self.task_cfg))
-                self.history[b] = np.roll(self.history[b], -1, axis=0)
-                self.history[b, -1] = knives[b].pose_feature(self.board_z)
-            k = int(self.cuts[active].max()) if active.any() else 0  # active scenes cut in lockstep
-            todo = turns_after(self.goal, k) if self.turns and k < self.max_cuts else []
-            if todo and active.any():
-                try:
-                    execute_turns(self.sim, todo, self.scorer, self.labels, self.x)
-                except (TurnFailed, Diverged):
-                    failed[:] = active
-            reward = np.where(active, gain if self.reward_mode == "gain" else self.total, 0.0)
-        for b, (state, labels) in frozen.items():  # a finished scene keeps its state (and its labels, which
-            self.sim.set_state(state, b=b)  # execute_turns re-discovered with every scene)
-            self.labels[b], self.x[b] = labels, np.asarray(state["x"])
+        scores = self.engine.step([k if active[b] else None for b, k in enumerate(knives)])
+        reward, gain = np.zeros(B, np.float64), np.zeros(B, np.float64)
+        cut_count, num_pieces = np.zeros(B, np.int64), np.zeros(B, np.int64)
+        success, failed = np.zeros(B, bool), np.zeros(B, bool)
+        for b in np.flatnonzero(active):
+            res = scores[b]
+            if res is None or self.engine.logs[b].status != "ok":  # diverged, a refused turn, a scoring error
+                failed[b] = True
+                continue
+            gain[b] = res.total - self.total[b]
+            self.total[b] = res.total
+            cut_count[b], num_pieces[b], success[b] = res.cut_count, res.pieces, res.success
+        reward[active] = (gain if self.reward_mode == "gain" else self.total)[active]
+        reward[failed] = 0.0
+        cuts = np.array([len(lg.actions) for lg in self.engine.logs])
         terminated = active & success & ~failed
-        truncated = active & ~terminated & ((self.cuts >= self.max_cuts) | failed)
+        truncated = active & ~terminated & ((cuts >= self.max_cuts) | failed)
         self.done |= terminated | truncated
         info = {"reward_total": self.total.copy(), "reward_gain": gain, "cut_count": cut_count,
                 "num_pieces": num_pieces, "success": success, "failed": failed,
