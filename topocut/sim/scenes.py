@@ -1,0 +1,217 @@
+"""Loading and reading the scenes of a CuttingEnv (a mixin: CuttingEnv holds the solver and the host state).
+
+Every scene may hold its own object: scenes are padded to the largest particle count ``n`` with material -1
+(particles no phase visits), ``counts`` names each scene's own count, and ``SimState.scene(b)`` /
+``get_state(b)`` drop the padding.  Writing goes through ``_write``: one round trip of every field for all the
+scenes written.  See docs/sim.md ("Scenes of different objects").
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from topocut.sim import pieces as P
+from topocut.sim.action import KnifeSweep
+from topocut.sim.mpm import MPMSolver
+from topocut.sim.objects import ObjectPose, sample_object
+
+NO_STEP = 2 ** 30
+
+
+@dataclass
+class SimState:
+    x: np.ndarray  # B,N,3 f32
+    v: np.ndarray  # B,N,3 f32
+    material: np.ndarray  # N, i32 (0 core, 1 skin) of scene 0 (get_state(b)["material"]: scene b's)
+    damage: np.ndarray  # B,N bool
+    sweeps: list = field(default_factory=list)  # B lists: the last cut's KnifeSweep per scene
+    piece: np.ndarray | None = None  # B,N i32: which piece the knife has left each particle in (pieces.split)
+    counts: np.ndarray | None = None  # B, particles of each scene: scene b's are rows :counts[b] (the rest pad)
+
+    def scene(self, b: int) -> tuple[np.ndarray, np.ndarray]:
+        """(x (n_b,3), damage (n_b,)) of scene b without the padding rows of a batch of different objects."""
+        n = len(self.x[b]) if self.counts is None else int(self.counts[b])
+        return self.x[b, :n], self.damage[b, :n]
+
+
+def cell_order(x: np.ndarray, n_grid: int) -> np.ndarray:
+    """Indices that order particles (N,3) by base cell, then by sampling order (a stable sort).
+
+    Particles of one cell become neighbours in memory, so the lanes of a GPU warp share their stencils
+    (MPMSolver.scatter_warp adds them before the atomics) and their grid reads hit the same lines."""
+    cell = np.floor(np.asarray(x) * n_grid - 0.5).astype(np.int64)  # N,3: the solver's base node
+    return np.lexsort((cell[:, 2], cell[:, 1], cell[:, 0]))
+
+
+class Scenes:
+    # -- particles ---------------------------------------------------------------------
+    def _ensure(self, n: int) -> MPMSolver:
+        if self.solver is None or self.solver.capacity < n:
+            if self.solver is not None:
+                self.solver.destroy()
+            capacity = int(math.ceil(n * 1.15 / 1024) * 1024)
+            self.solver = MPMSolver(self.cfg, self.B, capacity)
+        self.n = n
+        return self.solver
+
+    @property
+    def counts(self) -> np.ndarray:
+        """(B,) particles of each scene (rows :counts[b] of scene b; the rest are padding, material -1)."""
+        return np.full(self.B, self.n, np.int64) if self.scene_n is None else self.scene_n.copy()
+
+    def sample(self, object: str, pose: ObjectPose | None = None, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """Particles (N,3) and materials (N,) of ``object`` at ``pose``, ordered by base cell (as reset loads them)."""
+        x, material = sample_object(object, pose, self.cfg.spacing, self.cfg.skin_thickness, seed, self.cfg.board_z)
+        order = cell_order(x, self.cfg.n_grid)
+        return x[order], material[order]
+
+    def reset(self, object: str, pose: ObjectPose | None = None, seed: int = 0) -> SimState:
+        self.load_particles(*self.sample(object, pose, seed))
+        self.object = object
+        return self.state()
+
+    def reset_scenes(self, objects: list, poses: list | None = None, seeds: list | None = None) -> SimState:
+        """Scene b holds ``objects[b]`` at ``poses[b]`` (sampled with ``seeds[b]``): B episodes of different objects
+        and poses in one batch.  Scenes are padded to the largest particle count with particles no phase visits
+        (material -1), so each scene evolves as it would alone; ``state().scene(b)`` drops the padding."""
+        B = self.B
+        poses = list(poses) if poses is not None else [None] * B
+        seeds = list(seeds) if seeds is not None else [0] * B
+        if not len(objects) == len(poses) == len(seeds) == B:
+            raise ValueError(f"reset_scenes: got {len(objects)} objects, {len(poses)} poses, {len(seeds)} seeds "
+                             f"for batch_size={B}")
+        loaded = [self.sample(o, p, s) for o, p, s in zip(objects, poses, seeds)]
+        self.load_scenes([{"x": x, "material": m, "object": o} for (x, m), o in zip(loaded, objects)])
+        self.object = objects[0] if len(set(objects)) == 1 else list(objects)
+        return self.state()
+
+    def load_scenes(self, states: list[dict]) -> None:
+        """Load one get_state()-like dict per scene (their particle counts may differ): scene b's rows
+        :len(states[b]["x"]), padding after them.  One round trip of every field for the whole batch."""
+        if len(states) != self.B:
+            raise ValueError(f"load_scenes got {len(states)} states for batch_size={self.B}")
+        counts = np.array([len(np.asarray(st["x"]).reshape(-1, 3)) for st in states], np.int64)
+        self._ensure(int(counts.max()))
+        self.scene_n = None if (counts == self.n).all() else counts
+        self.piece = np.zeros((self.B, self.n), np.int32)
+        self._write(dict(enumerate(states)))
+        names = [st.get("object") for st in states]
+        self.object = names[0] if len(set(names)) == 1 else names
+
+    def load_particles(self, x, material, v=None) -> None:
+        """Put particles (N,3), materials (N,) and optional velocities (N,3) into every scene, at rest state."""
+        x = np.asarray(x, np.float32).reshape(-1, 3)
+        self.set_state({"x": x, "material": np.asarray(material, np.int32),
+                        "v": np.zeros_like(x) if v is None else np.asarray(v, np.float32)}, b=None)
+
+    # -- state -------------------------------------------------------------------------
+    def state(self) -> SimState:
+        """Every scene's particles (B,n,...); where scenes hold different counts, rows past counts[b] are padding
+        (``SimState.scene(b)`` drops them)."""
+        s, n = self._need(), self.n
+        return SimState(x=s.x.to_numpy()[:, :n], v=s.v.to_numpy()[:, :n], material=s.material.to_numpy()[0, :n],
+                        damage=s.damage.to_numpy()[:, :n].astype(bool), sweeps=[list(w) for w in self.sweeps],
+                        piece=self.piece.copy(), counts=self.counts)
+
+    def get_state(self, b: int = 0) -> dict:
+        s = self._need()
+        if not 0 <= b < self.B:
+            raise ValueError(f"scene b={b} out of range [0, {self.B})")
+        n = int(self.counts[b])
+        obj = self.object[b] if isinstance(self.object, list) else self.object
+        return {"x": s.x.to_numpy()[b, :n], "v": s.v.to_numpy()[b, :n], "C": s.C.to_numpy()[b, :n],
+                "F": s.F.to_numpy()[b, :n], "sigma_y": s.sigma_y.to_numpy()[b, :n],
+                "damage": s.damage.to_numpy()[b, :n].astype(bool), "material": s.material.to_numpy()[b, :n],
+                "sweeps": [w.asdict() for w in self.sweeps[b]], "object": obj,
+                "piece": self.piece[b, :n].copy(), "body": s.body.to_numpy()[b, :n]}
+
+    def set_state(self, state: dict, b: int | None = None) -> None:
+        """Load a get_state() dict into scene b (None: every scene). Missing C/F/sigma_y/damage mean rest state,
+        a missing ``piece`` one piece (the fields of a state without ``body`` are coloured anew).  A scene may
+        take a state of another particle count than the others (up to the solver's capacity): its rows past
+        that count become padding (material -1) and ``counts`` records it."""
+        x = np.asarray(state["x"], np.float32).reshape(-1, 3)
+        n = len(x)
+        if b is not None and not 0 <= b < self.B:
+            raise ValueError(f"scene b={b} out of range [0, {self.B})")
+        whole = b is None or self.B == 1
+        if whole:
+            s = self._ensure(n)
+            self.scene_n = None
+            self.piece = np.zeros((self.B, n), np.int32)
+        else:
+            s = self._need()
+            if n > s.capacity:
+                raise ValueError(f"state has {n} particles but scene {b} has room for {s.capacity}; load the "
+                                 f"largest state with b=None first (CuttingEnv.load_scenes does)")
+            counts = self.counts
+            counts[b] = n
+            if counts.max() > self.n:  # the other scenes' extra rows are padding already (material -1)
+                self.piece = np.pad(self.piece, ((0, 0), (0, int(counts.max()) - self.n)))
+            self.n = int(counts.max())
+            self.scene_n = None if (counts == self.n).all() else counts
+        self._write({sb: state for sb in (range(self.B) if whole else [b])})
+        if whole:
+            self.object = state.get("object", self.object)
+        elif "object" in state and state["object"] != self.object:  # scenes of different objects: one name each
+            names = list(self.object) if isinstance(self.object, list) else [self.object] * self.B
+            names[b] = state["object"]
+            self.object = names
+
+    def _write(self, states: dict) -> None:
+        """Write {scene: state} into the fields (one to_numpy / from_numpy per field for all of them); rows past
+        a scene's particle count become padding (material -1)."""
+        s = self.solver
+        prepared = {}  # id(state) -> its arrays: every scene of a set_state(b=None) shares one state
+        for st in states.values():
+            if id(st) in prepared:
+                continue
+            x = np.asarray(st["x"], np.float32).reshape(-1, 3)
+            n = len(x)
+            piece = np.zeros(n, np.int32) if st.get("piece") is None else np.asarray(st["piece"], np.int32)
+            if st.get("body") is not None:
+                body = np.asarray(st["body"], np.int32)
+            else:
+                body = P.colour(x, piece, self.cfg.n_grid, self.cfg.fields)[0] if piece.max(initial=0) > 0 else piece
+            vals = {"x": x, "v": st.get("v", np.zeros((n, 3))), "C": st.get("C", np.zeros((n, 3, 3))),
+                    "F": st.get("F", np.broadcast_to(np.eye(3), (n, 3, 3))),
+                    "sigma_y": st.get("sigma_y", np.full(n, self.cfg.yield_stress)),
+                    "damage": st.get("damage", np.zeros(n)), "body": body}
+            sweeps = [KnifeSweep.fromdict(d) if isinstance(d, dict) else d for d in st.get("sweeps", [])]
+            prepared[id(st)] = (n, vals, piece, st.get("material"), sweeps)
+        scenes = list(states)
+        self.dead[scenes] = False
+        targets = {"x": s.x, "v": s.v, "C": s.C, "F": s.F, "sigma_y": s.sigma_y, "damage": s.damage, "body": s.body}
+        for key, fld in targets.items():
+            arr = fld.to_numpy()  # B,cap,...
+            for sb, st in states.items():
+                n, vals = prepared[id(st)][:2]
+                arr[sb, :n] = np.asarray(vals[key])
+                arr[sb, n:] = 0  # past the scene's particles: nothing (padding, or the rows no loop reaches)
+            fld.from_numpy(arr)
+        mat = s.material.to_numpy()  # B,cap
+        for sb, st in states.items():
+            n, _, piece, material, sweeps = prepared[id(st)]
+            if material is not None:
+                mat[sb, :n] = np.asarray(material, np.int32)
+            else:  # keep the scene's materials; rows that were padding become core
+                mat[sb, :n] = np.maximum(mat[sb, :n], 0)
+            mat[sb, n:] = -1
+            self.sweeps[sb] = list(sweeps)
+            self.piece[sb, :n], self.piece[sb, n:] = piece, 0
+        s.material.from_numpy(mat)
+        s.Jp.from_numpy(np.linalg.det(s.F.to_numpy()).astype(np.float32))
+        s.sort_by_cell(self.n, self.resort > 0)  # the scatter's order must cover exactly particles 0 .. n-1
+        self.push_side[scenes] = 0
+        top = max(int(v[1]["body"].max(initial=0)) for v in prepared.values())
+        s.n_fields[None] = max(int(s.n_fields[None]), top + 1)  # only grows: see _split
+        s.bad_step.fill(NO_STEP)
+        s.k_on.fill(0)
+        self._set_frozen()
+
+    def _need(self) -> MPMSolver:
+        if self.solver is None:
+            raise RuntimeError("no particles loaded: call reset(object) or set_state(...) first")
+        return self.solver
