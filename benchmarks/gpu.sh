@@ -70,6 +70,11 @@ PY
   train-sweep)  # perception training samples/s over batch sizes, fp32 and bf16 (#31)
     timeout ${LIMIT:-400} python3 benchmarks/train.py --device cuda --batches 16 64 256 512 --amp --steps 10 2>&1 \
       | grep -v -i warn | tee "$OUT/bench_train.txt" ;;
+  protocol)  # the 405-episode protocol for the scripted policies through stage=eval (resumes: run it again)
+    timeout ${LIMIT:-560} python3 -m topocut.run stage=eval scale=paper device=cuda sim.n_grid=${GRID:-64} \
+      reward=torch 'eval.policies=[oracle,heuristic]' eval.train_seeds=1 eval.gifs=0 logger=none progress=false \
+      outputs_root=/tmp/o 2>&1 | grep -v -i warn | tail -40 | tee -a "$OUT/protocol.txt"
+    find /tmp/o -name results.md -exec cp {} "$OUT/" \; ;;
   bench-rest)
     for b in topology reward train train_policy; do
       [ -f benchmarks/$b.py ] && timeout 150 python3 benchmarks/$b.py --device cuda 2>&1 | tee "$OUT/bench_$b.txt"
