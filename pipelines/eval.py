@@ -162,6 +162,7 @@ def run(ctx: RunContext, eval, sim, topology, reward, planner, observation, data
 
         teleop = teleop_references(ctx.store, eval.tasks, eval.unseen, eval.max_cuts)
     sim = dataclasses.replace(sim, arch=ctx.device)  # one backend for Taichi, Warp and torch
+    reward = reward.on(ctx.device)  # reward=torch: its eigensolver and FPS on the run's device
     # eval.cpu_threads=1: atomic adds in a fixed order, reproducible CPU numbers (a no-op when an earlier stage of
     # the process started Taichi)
     init_taichi(arch=ctx.device, seed=ctx.seed,

@@ -102,6 +102,7 @@ def run_knife(ctx: RunContext, sim, object, task, topology, reward, planner, dat
     if existing is not None:
         return {"dataset": str(existing), "reused": True}
     sim = dataclasses.replace(sim, arch=ctx.device)  # one backend for Taichi, Warp and torch
+    reward = reward.on(ctx.device)  # reward=torch: its eigensolver and FPS on the run's device
     init_taichi(arch=ctx.device, seed=ctx.seed)
     zpath = writer.path / "data.zarr"
     ew = EpisodeWriter(zpath, points_per_step=data.points_per_step, board_z=sim.board_z)

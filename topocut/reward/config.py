@@ -51,6 +51,13 @@ class RewardConfig:
     # its host's evx 14 ms (threads do not help: scipy holds the GIL); this 2-core CPU: evx 10 ms, eigh 41 ms
     eig_solver: str = "auto"
 
+    def on(self, device: str) -> RewardConfig:
+        """This config with the torch backend on ``device`` (the run's resolved device: the reward runs where the
+        simulator does); the scipy backend is host-only and unchanged."""
+        import dataclasses
+
+        return dataclasses.replace(self, device=device) if self.backend == "torch" else self
+
     def validate(self) -> RewardConfig:
         if self.delta <= self.gamma:
             raise ValueError(f"reward.delta={self.delta} must exceed reward.gamma={self.gamma} (paper: delta > gamma)")
