@@ -75,6 +75,12 @@ PY
       reward=torch 'eval.policies=[oracle,heuristic]' eval.train_seeds=1 eval.gifs=0 logger=none progress=false \
       outputs_root=/tmp/o 2>&1 | grep -v -i warn | tail -40 | tee -a "$OUT/protocol.txt"
     find /tmp/o -name results.md -exec cp {} "$OUT/" \; ;;
+  demos)  # MPPI demonstrations through stage=mppi at 64^3, K=16, 2 iterations, horizon 1 (#31's per-cut figure)
+    timeout ${LIMIT:-560} python3 -m topocut.run stage=mppi task=slice object=cake device=cuda sim.n_grid=64 \
+      sim.batch_size=16 planner.num_samples=16 planner.iterations=2 planner.horizon=1 reward=torch \
+      data.episodes=${EPISODES:-10} task.max_cuts=5 logger=none progress=false outputs_root=/tmp/o 2>&1 \
+      | grep -v -i warn | tail -20 | tee -a "$OUT/demos.txt"
+    find /tmp/o -path "*mppi*" -name status.json -exec cat {} \; | tee -a "$OUT/demos.txt" ;;
   bench-rest)
     for b in topology reward train train_policy; do
       [ -f benchmarks/$b.py ] && timeout 150 python3 benchmarks/$b.py --device cuda 2>&1 | tee "$OUT/bench_$b.txt"
