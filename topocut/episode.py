@@ -130,6 +130,11 @@ def fragments(x, labels, min_points: int) -> list[np.ndarray]:
     return [f for f in (x[labels == c] for c in ids) if len(f) >= min_points]
 
 
+def new_history() -> deque:
+    """The pose features (3,7) of the last cuts, oldest first: zeros before the first cut."""
+    return deque([np.zeros(POSE_FEATURE_DIM, np.float32)] * HISTORY_LEN, maxlen=HISTORY_LEN)
+
+
 def step_seed(episode_seed: int, cut: int) -> int:
     """Seed of the observation before cut ``cut`` (0-based) of an episode."""
     return (int(episode_seed) * 7919 + int(cut) + 1) % (2**31 - 1)
@@ -245,8 +250,7 @@ class EpisodeBatch:
         init = (sc.score_fn(self.xs, self.labels, self.goals, self.tasks) if initial_reward
                 else [Score(float("nan"), 0, False, 0)] * n)
         self.live = [True] * n
-        self.hist = [deque([np.zeros(POSE_FEATURE_DIM, np.float32)] * HISTORY_LEN, maxlen=HISTORY_LEN)
-                     for _ in episodes]
+        self.hist = [new_history() for _ in episodes]
         for b in range(n):
             self.logs[b].initial_reward, self.logs[b].goal = float(init[b].total), self.goals[b]
             self._keep(b, "reset")

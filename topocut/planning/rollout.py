@@ -17,8 +17,8 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from topocut.episode import make_record
-from topocut.sim.action import POSE_FEATURE_DIM, KnifeAction, cut_mask, executed_action
+from topocut.episode import fragments, make_record, new_history
+from topocut.sim.action import KnifeAction, cut_mask, executed_action
 from topocut.sim.primitives import TurnRefused
 
 HISTORY_LEN = 3
@@ -59,10 +59,7 @@ class Scorer:
         return np.asarray(res.labels, np.int32)
 
     def fragments(self, x, labels) -> list[np.ndarray]:
-        x, labels = np.asarray(x), np.asarray(labels)
-        ids = [c for c in np.unique(labels) if c >= 0]  # -1: unassigned particles belong to no piece
-        frags = [x[labels == c] for c in ids]
-        return [f for f in frags if len(f) >= self.min_fragment_points]
+        return fragments(x, labels, self.min_fragment_points)  # the engine's rule: -1 is no piece
 
     def reward(self, x, labels) -> tuple[float, bool]:
         from topocut.reward import spectral_reward
@@ -206,7 +203,7 @@ def sim_rollout_factory(env, reward_cfg=None, topo_cfg=None, board_z: float = 0.
 
 
 def empty_history() -> deque:
-    return deque([np.zeros(POSE_FEATURE_DIM, np.float32)] * HISTORY_LEN, maxlen=HISTORY_LEN)
+    return new_history()
 
 
 # one dataset record: the engine's (topocut.episode.make_record), under the name teleop sessions use
