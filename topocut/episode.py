@@ -170,8 +170,9 @@ def _slot_policy(policy):
         return copy.copy(policy)
 
 
-def _board_z(env) -> float:
-    return float(getattr(getattr(env, "cfg", None), "board_z", 0.05))
+def env_board_z(env, default: float = 0.05) -> float:
+    """The board's top face of ``env`` (its cfg.board_z; ``default`` for a test double without one)."""
+    return float(getattr(getattr(env, "cfg", None), "board_z", default))
 
 
 def _spacing(env) -> float:
@@ -182,7 +183,8 @@ def _spacing(env) -> float:
     raise ValueError("run_episodes: env.cfg has no particle spacing (spacing/particle_spacing); pass spacing=")
 
 
-def _diverged_type() -> type:
+def diverged_type() -> type:
+    """topocut.sim.SimulationDiverged (imported late: this module stays free of Taichi)."""
     from topocut.planning.rollout import simulation_diverged_error
 
     return simulation_diverged_error()
@@ -212,8 +214,8 @@ class EpisodeBatch:
         self.spacing, self.record, self.frames, self.stop_on_success = spacing, record, frames, stop_on_success
         self.progress = progress
         self.B = int(getattr(env, "batch_size", 1) or 1)
-        self.board_z = _board_z(env)
-        self.Diverged = _diverged_type()
+        self.board_z = env_board_z(env)
+        self.Diverged = diverged_type()
 
     # -- episode bookkeeping ---------------------------------------------------------------------------
     def _keep(self, b: int, what: str) -> None:

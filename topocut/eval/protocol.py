@@ -31,7 +31,11 @@ from pathlib import Path
 import numpy as np
 
 from topocut.data.store import write_json_atomic
-from topocut.episode import step_seed  # noqa: F401 - the observation seeds, re-exported
+from topocut.episode import diverged_type as _diverged_type  # noqa: F401 - the tests' SimulationDiverged
+from topocut.episode import (
+    env_board_z,
+    step_seed,  # noqa: F401 - the observation seeds, re-exported
+)
 from topocut.eval.config import EvalConfig
 
 
@@ -152,16 +156,6 @@ def make_observe_fn(mode: str = "particles", num_points: int = 2048, obs_cfg=Non
 
 
 # -- one episode ---------------------------------------------------------------------------------------
-def _board_z(env) -> float:
-    return float(getattr(getattr(env, "cfg", None), "board_z", 0.05))
-
-
-def _diverged_type() -> type:
-    from topocut.planning.rollout import simulation_diverged_error
-
-    return simulation_diverged_error()
-
-
 def scoring_for(env, reward_cfg=None, topo_cfg=None, min_fragment_points: int = 4, goal_fn: Callable | None = None,
                 discover_fn: Callable | None = None, reward_fn: Callable | None = None):
     """The episode engine's Scoring (topocut.episode) for the protocol: the task's goal and success, discovery
@@ -172,7 +166,7 @@ def scoring_for(env, reward_cfg=None, topo_cfg=None, min_fragment_points: int = 
     from topocut.planning.rollout import topology_device
     from topocut.tasks import get_task
 
-    base = default_scoring(reward_cfg, topo_cfg, device=topology_device(env), board_z=_board_z(env),
+    base = default_scoring(reward_cfg, topo_cfg, device=topology_device(env), board_z=env_board_z(env),
                            min_fragment_points=min_fragment_points)
     if goal_fn is None and discover_fn is None and reward_fn is None:
         return base

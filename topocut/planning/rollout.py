@@ -17,7 +17,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from topocut.episode import fragments, make_record, new_history
+from topocut.episode import env_board_z, fragments, make_record, new_history  # noqa: F401 - env_board_z: teleop's
 from topocut.sim.action import KnifeAction, cut_mask, executed_action
 from topocut.sim.primitives import TurnRefused
 
@@ -208,10 +208,6 @@ def empty_history() -> deque:
 
 # one dataset record: the engine's (topocut.episode.make_record), under the name teleop sessions use
 make_step = make_record
-
-
-def env_board_z(env, default: float = 0.05) -> float:
-    return float(getattr(getattr(env, "cfg", None), "board_z", default))
 
 
 def scorer_scoring(scorer: Scorer):
