@@ -8,7 +8,7 @@ TASK    ?= slice
 SCALE   ?= smoke
 RUN     := $(BIN)/python -m topocut.run scale=$(SCALE) task=$(TASK)
 
-.PHONY: setup run test lint bench simulate mppi teleop pretrain bc eval sweep paper-data table2 clean-outputs
+.PHONY: setup run test lint bench simulate mppi teleop pretrain bc eval sweep paper paper-data table2 clean-outputs
 
 setup: $(STAMP)
 
@@ -49,10 +49,16 @@ sweep: setup
 	$(BIN)/python -m topocut.run -m stage=mppi task=slice,stick object=cake,cube hydra/launcher=joblib $(ARGS)
 	$(BIN)/python -m topocut.run stage=merge $(ARGS)
 
-# The paper's recipe: 5 training objects x 3 tasks x varied parameters (use a GPU machine or Slurm).
+# The paper's pipeline at paper scale on one GPU, one command (resumes where a killed run stopped; docs/results.md):
+# 1,005 MPPI demonstrations (slice, stick, dice x 5 seen objects), pretraining, 4 learned policies x 3 seeds, and
+# the 405-episode evaluation of every policy. `make run` is the same command at smoke scale on the CPU.
+paper: setup
+	$(BIN)/python -m topocut.run stage=all scale=paper device=cuda reward=torch trainer=gpu logger=csv $(ARGS)
+
+# The same demonstrations as a Hydra multirun (a job per cell: joblib here, submitit on Slurm), merged.
 paper-data: setup
 	$(BIN)/python -m topocut.run -m scale=paper stage=mppi task=slice,stick,dice \
-		object=cake,cube,ditto,ham,potato seed=0,1,2,3 hydra/launcher=joblib $(ARGS)
+		object=cake,cube,ditto,ham,potato hydra/launcher=joblib $(ARGS)
 	$(BIN)/python -m topocut.run scale=paper stage=merge $(ARGS)
 
 # Paper Table 2: graph model sort x noise x 128/256 points and PointNet, on the latest dataset, then the table.

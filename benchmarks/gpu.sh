@@ -81,6 +81,15 @@ PY
       data.episodes=${EPISODES:-10} task.max_cuts=5 logger=none progress=false outputs_root=/tmp/o 2>&1 \
       | grep -v -i warn | tail -20 | tee -a "$OUT/demos.txt"
     find /tmp/o -path "*mppi*" -name status.json -exec cat {} \; | tee -a "$OUT/demos.txt" ;;
+  paper)  # `make paper` (stage=all scale=paper) with PAPER_ARGS on top; resumes where the last call stopped (same
+    # /tmp/o on a warm machine). Leaves the eval artifact, the runs' status files and the pipeline's log in $OUT.
+    timeout "${LIMIT:-570}" python3 -m topocut.run stage=all scale=paper device=cuda reward=torch trainer=gpu \
+      logger=csv progress=false outputs_root=/tmp/o ${PAPER_ARGS:-} 2>&1 | grep -v -i "warn" | tail -120 \
+      | tee -a "$OUT/paper.txt"
+    find /tmp/o/runs -name status.json | tar -czf "$OUT/runs.tgz" -T - 2>/dev/null
+    [ -d /tmp/o/eval ] && tar -czf "$OUT/eval.tgz" -C /tmp/o eval
+    for d in /tmp/o/dataset/*/v* /tmp/o/checkpoint/*/v*; do [ -f "$d/manifest.json" ] && echo "$d" \
+      && cat "$d/manifest.json" | head -c 1500; done > "$OUT/manifests.txt" 2>/dev/null ;;
   bench-rest)
     for b in topology reward train train_policy; do
       [ -f benchmarks/$b.py ] && timeout 150 python3 benchmarks/$b.py --device cuda 2>&1 | tee "$OUT/bench_$b.txt"

@@ -1,6 +1,12 @@
-"""stage=all: run the stages in order with the same overrides, each as its own run."""
+"""stage=all: run the stages in order with the same overrides, each as its own run.
+
+``make paper`` is this stage at scale=paper on one GPU: MPPI demonstrations over data.tasks x data.objects (one
+shard each, merged), perception pretraining, every learned policy trained with eval.train_seeds seeds, and the
+405-episode evaluation of every policy (docs/results.md).  ``make run`` is the same command at smoke scale.
+"""
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 from topocut.utils.context import RunContext
@@ -23,6 +29,7 @@ def produced_versions(stage: str, summary: dict, cfg) -> dict[str, str]:
     """Overrides that make the next stages read exactly what ``stage`` wrote or reused, not whatever is
     ``latest`` under that name (another run may commit a newer version meanwhile)."""
     for key, produced_by, name_key, version_key in (("dataset", "mppi", "dataset", "version"),
+                                                    ("dataset", "merge", "dataset", "version"),
                                                     ("checkpoint", "pretrain", "encoder", "encoder_version")):
         if stage == produced_by and summary.get(key):
             path = Path(summary[key])
@@ -41,7 +48,23 @@ def _under(key: str, pinned: tuple[str, ...]) -> bool:
     return any(key == p or key.startswith(p + ".") for p in pinned)
 
 
+def cells(config: dict) -> list[tuple[str, str]]:
+    """The (task, object) demonstration cells: data.tasks x data.objects, each [] meaning the run's own."""
+    data = config["data"]
+    return [(t, o) for t in (data["tasks"] or [config["task"]["name"]])
+            for o in (data["objects"] or [config["object"]["name"]])]
+
+
+def train_seeds(config: dict) -> list[int]:
+    """The seeds stage=bc trains with: seed .. seed + eval.train_seeds - 1, the ones stage=eval pools."""
+    return [config["seed"] + i for i in range(config["eval"]["train_seeds"])]
+
+
 def run(ctx: RunContext, sequence: list[str], trainer=None) -> dict:
+    """Each stage of ``sequence`` as its own run under ``<run dir>/<label>``, later ones pinned to what earlier ones
+    wrote.  mppi runs once per cell (several cells: shards, then one merge of exactly those); bc once per training
+    seed.  Every run reuses a committed artifact of the same config, so a killed pipeline resumes where it stopped;
+    the summary ends with each run's wall time."""
     from topocut.run import run_stage
 
     if trainer is not None and str(trainer.strategy).startswith("ddp") and trainer.devices != 1:
@@ -51,15 +74,40 @@ def run(ctx: RunContext, sequence: list[str], trainer=None) -> dict:
                          f"trainer.devices={trainer.devices} starts several. Run the stages one by one, e.g. "
                          "`python -m topocut.run stage=pretrain trainer=ddp` and then `stage=bc trainer=ddp`")
 
-    base = [o for o in ctx.overrides if not o.split("=")[0].lstrip("+~") == "stage"]
-    summaries, pins = {}, {}
-    for name in sequence:
+    def key(o: str) -> str:
+        return o.split("=")[0].lstrip("+~")
+
+    base = [o for o in ctx.overrides if key(o) != "stage"]
+    summaries, pins, wall = {}, {}, {}
+
+    def one(name: str, label: str, own: dict | None = None) -> dict:
+        """One run of stage ``name``; ``own``: this run's keys (cell, seed), replacing the user's same keys."""
+        own = own or {}
         pinned = tuple(k.lstrip("+") for k in pins)
-        overrides = [o for o in base if not _under(o.split("=")[0].lstrip("+~"), pinned)]
-        overrides += [f"{k}={v}" for k, v in pins.items()] + [f"stage={name}"]
+        overrides = [o for o in base if key(o) not in own and not _under(key(o), pinned)]
+        overrides += [f"{k}={v}" for k, v in {**pins, **own}.items()] + [f"stage={name}"]
         cfg = _compose(overrides)
-        summaries[name] = run_stage(cfg, ctx.run_dir / name, overrides)
-        pins.update(produced_versions(name, summaries[name], cfg))
+        started = time.time()
+        summaries[label] = run_stage(cfg, ctx.run_dir / label, overrides)
+        wall[label] = round(time.time() - started, 1)
+        pins.update(produced_versions(name, summaries[label], cfg))
+        return summaries[label]
+
+    for name in sequence:
+        if name == "mppi" and len(cells(ctx.config)) > 1:
+            shards = [Path(one("mppi", f"mppi-{t}-{o}", {"task": t, "object": o, "data.shard": "true"})["dataset"])
+                      for t, o in cells(ctx.config)]
+            one("merge", "merge", {"stage.run.only": "[" + ",".join(f"'{p.parent.name}'" for p in shards) + "]"})
+        elif name == "mppi":
+            (t, o), = cells(ctx.config)
+            data = ctx.config["data"]
+            one("mppi", "mppi", {"task": t, "object": o} if data["tasks"] or data["objects"] else None)
+        elif name == "bc" and len(train_seeds(ctx.config)) > 1:
+            for s in train_seeds(ctx.config):
+                one("bc", f"bc-s{s}", {"seed": s})
+        else:
+            one(name, name)
+    summaries["wall_s"] = wall
     print_summary("pipeline: " + " -> ".join(sequence), summaries)
     table = summaries.get("eval", {}).get("table")
     if table:  # the run ends on the results table

@@ -208,27 +208,40 @@ def run(ctx: RunContext, eval, sim, topology, reward, planner, observation, data
 
 
 def render_episodes(specs, policies, env, task_cfgs, out_dir, eval, reward, topology, observe_fn, spacing):
-    """A GIF of the first ``eval.gifs`` episodes per task, for PDDP (or the first policy): particles
-    coloured by cluster id after every cut (the episode engine's own frames and labels)."""
-    from topocut.episode import run_episodes
+    """For PDDP (or the first policy), the first ``eval.gifs`` episodes per task: a GIF each (particles coloured by
+    cluster id after every cut and turn, the knife of the cut, the board: the episode engine's own frames), and
+    ``sequences.png``, the paper's cutting-sequence figure (a row per task: initial state, goal, each cut)."""
+    from topocut.episode import env_board_z, run_episodes
     from topocut.eval.protocol import _episode, scoring_for
-    from topocut.sim.render import render_particles, write_gif
+    from topocut.sim.action import KnifeAction
+    from topocut.sim.render import render_particles, render_sequences, write_gif
 
     name = next((n for n in policies if n.split("@")[0] == "pddp"), next(iter(policies)))
     sc = scoring_for(env, reward, topology, eval.min_fragment_points)
+    board_z, rows = env_board_z(env), []
     for task in eval.tasks:
         chosen = [s for s in specs if s.task == task][: eval.gifs]
         logs = run_episodes(env, [_episode(s, task_cfgs[task]) for s in chosen], policies[name], sc,
                             max_cuts=eval.max_cuts, observe_fn=observe_fn, stop_on_success=eval.stop_on_success,
                             spacing=spacing, frames=True)
         for spec, log in zip(chosen, logs):
-            frames = []
+            frames, panels = [], []
             x0 = log.frames[0][0]
             limits = (x0.min(0) - 0.03, x0.max(0) + 0.03)
             for i, (x, labels, what) in enumerate(log.frames):
-                title = f"{name} {spec.key} {what}"
-                frames.append(render_particles(x, labels, out_dir / f"{spec.key}_{name}_{i}.png", title=title,
-                                               limits=limits, size=6))
+                cut = int(what.split()[1].rstrip(":")) if what.startswith("cut ") else 0  # "cut k: R=..."
+                knife = KnifeAction(*log.actions[cut - 1]) if 0 < cut <= len(log.actions) else None
+                frames.append(render_particles(x, labels, out_dir / f"{spec.key}_{name}_{i}.png",
+                                               title=f"{name} {spec.key} {what}", limits=limits, size=6,
+                                               knife=knife, board_z=board_z))
+                if i == 0 or knife is not None:
+                    panels.append((x, labels, knife, "initial" if i == 0 else what))
+                if i == 0 and log.goal is not None:
+                    panels.append((log.goal.points, log.goal.labels, None, "goal"))
             write_gif(frames, out_dir / f"{spec.key}_{name}.gif", fps=1.5)
             for f in frames:
                 f.unlink()
+            if len(rows) < len(eval.tasks) and spec is chosen[0]:
+                rows.append((f"{task}: {spec.object}", panels))
+    if rows:
+        render_sequences(rows, out_dir / "sequences.png", board_z=board_z)

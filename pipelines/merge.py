@@ -22,10 +22,17 @@ def shards_of(store, dataset: str) -> dict:
     return out
 
 
-def run(ctx: RunContext, data) -> dict:
+def run(ctx: RunContext, data, only: list[str] | None = None) -> dict:
+    """``only``: merge just these shards (stage=all passes the ones its cells wrote); [] = every shard."""
     from topocut.data.episodes import EpisodeDataset, merge
 
     shards = shards_of(ctx.store, data.dataset)
+    if only:
+        missing = [n for n in only if n not in shards]
+        if missing:
+            raise MissingArtifact(f"stage.run.only: {missing[0]!r} is no shard of {data.dataset!r}; valid: "
+                                  f"{', '.join(sorted(shards)) or '(none)'}")
+        shards = {n: shards[n] for n in only}
     if not shards:
         raise MissingArtifact(f"no dataset shards of {data.dataset!r} (manifest shard_of: {data.dataset}) under "
                               f"{ctx.store.root / 'dataset'}; run a multirun first, e.g. "

@@ -1,7 +1,7 @@
 """stage=mppi: MPPI demonstrations guided by the spectral reward -> a versioned zarr dataset.
 
 One run writes ``data.episodes`` episodes of one task and object (seeds derived from
-``seed``).  In a Hydra multirun each job writes its own shard
+``seed``).  In a Hydra multirun (or with ``data.shard=true``, as stage=all's cells) each job writes its own shard
 ``dataset/<data.dataset>-<task>-<object>-s<seed>-<config key>`` marked ``shard_of: <data.dataset>`` in its
 manifest (the key keeps jobs of a sweep over any other setting apart); ``stage=merge`` joins them.
 Episodes are committed one by one: a killed run resumes where it stopped, and each episode draws its MPPI
@@ -95,7 +95,7 @@ def run_knife(ctx: RunContext, sim, object, task, topology, reward, planner, dat
                      ("reward", reward), ("planner", planner), ("episodes", data.episodes),
                      ("points_per_step", data.points_per_step), ("seed", ctx.seed))
     name, extra = data.dataset, {"seed": ctx.seed, "device": ctx.device}
-    if _is_multirun():
+    if data.shard or _is_multirun():
         name = f"{data.dataset}-{task.name}-{object.name}-s{ctx.seed}-{config_key(config)[:8]}"
         extra["shard_of"] = data.dataset
     writer, existing = ctx.store.begin("dataset", name, config, extra=extra)

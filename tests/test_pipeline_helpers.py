@@ -102,3 +102,67 @@ def test_merge_takes_shards_by_manifest_not_by_name_prefix(tmp_path):
     commit("demos")  # the merged dataset itself
     assert shards_of(store, "demos") == {Path(a).parent.name: a, Path(b).parent.name: b}
     assert list(shards_of(store, "demos-paper")) == ["demos-paper-dice-ham-s1-cccccccc"]
+
+
+def test_stage_all_at_paper_shape_runs_a_shard_per_cell_one_merge_and_a_bc_per_seed(tmp_path, monkeypatch):
+    """make paper's plan, with the stages replaced by recorders: every (task, object) cell writes its own shard,
+    the merge takes exactly those, bc runs once per training seed, and each later stage reads the versions the
+    earlier ones wrote; the user's other overrides reach every run, their task= gives way to the cells'."""
+    import topocut.run
+    from pipelines.all import run
+
+    calls = []
+
+    def fake(cfg, run_dir, overrides):
+        stage, i = cfg.stage.name, len(calls)
+        calls.append((run_dir.name, cfg, overrides))
+        if stage == "mppi":
+            return {"dataset": f"/o/dataset/demos-{cfg.task.name}-{cfg.object.name}-s0-k{i}/v001"}
+        if stage == "merge":
+            return {"dataset": "/o/dataset/demos/v005"}
+        if stage == "pretrain":
+            return {"checkpoint": "/o/checkpoint/perception/v002"}
+        if stage == "bc":
+            return {"pddp": {"checkpoint": f"/o/checkpoint/pddp/v00{i}", "seed": cfg.seed}}
+        return {}
+
+    monkeypatch.setattr(topocut.run, "run_stage", fake)
+    user = ["task=slice", "planner.iterations=1", "seed=4", "eval.train_seeds=3", "data.tasks=[slice,dice]",
+            "data.objects=[cake,cube]", "stage=all"]
+    config = {"data": {"tasks": ["slice", "dice"], "objects": ["cake", "cube"]}, "task": {"name": "slice"},
+              "object": {"name": "cake"}, "seed": 4, "eval": {"train_seeds": 3}}
+    ctx = SimpleNamespace(overrides=user, config=config, run_dir=tmp_path)
+    out = run(ctx, ["mppi", "pretrain", "bc", "eval"])
+    labels = [c[0] for c in calls]
+    assert labels == ["mppi-slice-cake", "mppi-slice-cube", "mppi-dice-cake", "mppi-dice-cube", "merge", "pretrain",
+                      "bc-s4", "bc-s5", "bc-s6", "eval"]
+    cfgs = {c[0]: c[1] for c in calls}
+    assert [(cfgs[k].task.name, cfgs[k].object.name, cfgs[k].data.shard) for k in labels[:4]] == \
+        [("slice", "cake", True), ("slice", "cube", True), ("dice", "cake", True), ("dice", "cube", True)]
+    assert cfgs["mppi-dice-cube"].task.max_cuts >= 3  # the dice cell composes dice's own config
+    assert list(cfgs["merge"].stage.run.only) == [f"demos-{t}-{o}-s0-k{i}" for i, (t, o) in
+                                                  enumerate([("slice", "cake"), ("slice", "cube"), ("dice", "cake"),
+                                                             ("dice", "cube")])]
+    assert not cfgs["merge"].data.shard and cfgs["pretrain"].data.version == "v005"
+    assert [cfgs[f"bc-s{s}"].seed for s in (4, 5, 6)] == [4, 5, 6]
+    assert all(cfgs[f"bc-s{s}"].data.encoder_version == "v002" for s in (4, 5, 6))
+    ev = cfgs["eval"]
+    assert ev.seed == 4 and ev.eval.train_seeds == 3 and ev.data.version == "v005"
+    assert dict(ev.eval.checkpoints) == {"pddp": "v008"}  # the last seed's: eval finds its siblings by manifest
+    assert all(c.planner.iterations == 1 for _, c, _ in calls)
+    assert set(out["wall_s"]) == set(labels)
+
+
+def test_stage_all_refuses_an_unknown_cell():
+    from hydra import compose, initialize_config_dir
+
+    from pipelines.all import CONF_DIR
+    from topocut.config import ConfigError, validate
+
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose(config_name="config", overrides=["stage=all", "data.objects=[cake,pizza]"])
+        with pytest.raises(ConfigError, match="data.objects.*'pizza'.*valid: .*cake"):
+            validate(cfg)
+        cfg = compose(config_name="config", overrides=["stage=all", "data.tasks=[slice,scooping]"])
+        with pytest.raises(ConfigError, match="data.tasks.*'scooping'.*valid: slice, stick, dice, pyramid"):
+            validate(cfg)

@@ -73,6 +73,11 @@ class DataConfig:
     points_per_step: int = 2048
     encoder: str = "perception"  # checkpoint name of the pretrained encoder Φ
     encoder_version: str = "latest"
+    # stage=all's demonstration cells: one mppi run per (task, object), each a shard of ``dataset``, then one
+    # merge. [] = the run's own task / object (one cell, no shard). scale=paper: 3 tasks x the 5 seen objects.
+    tasks: list[str] = field(default_factory=list)
+    objects: list[str] = field(default_factory=list)
+    shard: bool = False  # stage=mppi writes a shard of ``dataset`` (set by stage=all's cells; multiruns always do)
 
 
 @dataclass
@@ -197,8 +202,12 @@ def validate(cfg: DictConfig) -> None:
         except InvalidName as e:
             raise ConfigError(str(e)) from e
     _check(0.0 <= cfg.trainer.val_fraction < 1.0, "trainer.val_fraction", "must lie in [0, 1)")
-    bad = [o for o in cfg.trainer.held_out_objects if o not in OBJECTS]
-    _check(not bad, "trainer.held_out_objects", f"unknown object {bad[0]!r}; valid: {', '.join(OBJECTS)}" if bad else "")
+    from topocut.tasks import CUTTING_TASKS
+
+    for key, names, valid in (("trainer.held_out_objects", cfg.trainer.held_out_objects, OBJECTS),
+                              ("data.objects", cfg.data.objects, OBJECTS), ("data.tasks", cfg.data.tasks, CUTTING_TASKS)):
+        bad = [o for o in names if o not in valid]
+        _check(not bad, key, f"unknown {key.split('.')[-1][:-1]} {bad[0]!r}; valid: {', '.join(valid)}" if bad else "")
     for key, value, lo in (("data.episodes", cfg.data.episodes, 1), ("data.points_per_step", cfg.data.points_per_step, 1),
                            ("trainer.batch_size", cfg.trainer.batch_size, 1),
                            ("trainer.num_workers", cfg.trainer.num_workers, 0)):
