@@ -77,7 +77,7 @@ def run(ctx: RunContext, sequence: list[str], trainer=None) -> dict:
     def key(o: str) -> str:
         return o.split("=")[0].lstrip("+~")
 
-    base = [o for o in ctx.overrides if key(o) != "stage"]
+    base = [o for o in ctx.overrides if not _under(key(o), ("stage",))]  # stage.run.*: stage=all's own keys
     summaries, pins, wall = {}, {}, {}
 
     def one(name: str, label: str, own: dict | None = None) -> dict:

@@ -128,7 +128,8 @@ def test_stage_all_at_paper_shape_runs_a_shard_per_cell_one_merge_and_a_bc_per_s
 
     monkeypatch.setattr(topocut.run, "run_stage", fake)
     user = ["task=slice", "planner.iterations=1", "seed=4", "eval.train_seeds=3", "data.tasks=[slice,dice]",
-            "data.objects=[cake,cube]", "stage=all"]
+            "data.objects=[cake,cube]", "stage=all",
+            "stage.run.sequence=[mppi,pretrain,bc,eval]"]
     config = {"data": {"tasks": ["slice", "dice"], "objects": ["cake", "cube"]}, "task": {"name": "slice"},
               "object": {"name": "cake"}, "seed": 4, "eval": {"train_seeds": 3}}
     ctx = SimpleNamespace(overrides=user, config=config, run_dir=tmp_path)
