@@ -25,9 +25,10 @@ def _compose(overrides: list[str]):
         return compose(config_name="config", overrides=overrides)
 
 
-def produced_versions(stage: str, summary: dict, cfg) -> dict[str, str]:
+def produced_versions(stage: str, summary: dict, cfg, policies=None) -> dict[str, str]:
     """Overrides that make the next stages read exactly what ``stage`` wrote or reused, not whatever is
-    ``latest`` under that name (another run may commit a newer version meanwhile)."""
+    ``latest`` under that name (another run may commit a newer version meanwhile); bc's checkpoints only for
+    ``policies`` (the evaluation's: it refuses a pin of a policy it does not run), all when None."""
     for key, produced_by, name_key, version_key in (("dataset", "mppi", "dataset", "version"),
                                                     ("dataset", "merge", "dataset", "version"),
                                                     ("checkpoint", "pretrain", "encoder", "encoder_version")):
@@ -37,7 +38,8 @@ def produced_versions(stage: str, summary: dict, cfg) -> dict[str, str]:
                 return {f"data.{version_key}": path.name}
     if stage == "bc":  # one checkpoint per policy: {name: {"checkpoint": .../<name>/vNNN, ...}}
         versions = {name: Path(out["checkpoint"]).name for name, out in summary.items()
-                    if isinstance(out, dict) and out.get("checkpoint") and Path(out["checkpoint"]).parent.name == name}
+                    if isinstance(out, dict) and out.get("checkpoint") and Path(out["checkpoint"]).parent.name == name
+                    and (policies is None or name in policies)}
         if versions:  # one dict override: a key like `eval.checkpoints.3dda` is not valid override grammar
             return {"++eval.checkpoints": "{" + ",".join(f"{k}:{v}" for k, v in versions.items()) + "}"}
     return {}
@@ -90,7 +92,8 @@ def run(ctx: RunContext, sequence: list[str], trainer=None) -> dict:
         started = time.time()
         summaries[label] = run_stage(cfg, ctx.run_dir / label, overrides)
         wall[label] = round(time.time() - started, 1)
-        pins.update(produced_versions(name, summaries[label], cfg))
+        made = produced_versions(name, summaries[label], cfg, policies=ctx.config["eval"]["policies"])
+        pins.update(made)
         return summaries[label]
 
     for name in sequence:

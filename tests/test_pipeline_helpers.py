@@ -24,6 +24,8 @@ def test_stage_all_pins_the_versions_its_stages_produced():
     pins = produced_versions("bc", bc, cfg)
     assert pins == {"++eval.checkpoints": "{pddp:v004,dp3:v002}"}
     assert produced_versions("bc", {"3dda": {"rank": 1}}, cfg) == {}
+    assert produced_versions("bc", bc, cfg, policies=["oracle", "dp3"]) == {"++eval.checkpoints": "{dp3:v002}"}
+    assert produced_versions("bc", bc, cfg, policies=["oracle"]) == {}
 
 
 def test_stage_all_pins_parse_as_hydra_overrides():
@@ -131,7 +133,7 @@ def test_stage_all_at_paper_shape_runs_a_shard_per_cell_one_merge_and_a_bc_per_s
             "data.objects=[cake,cube]", "stage=all",
             "stage.run.sequence=[mppi,pretrain,bc,eval]"]
     config = {"data": {"tasks": ["slice", "dice"], "objects": ["cake", "cube"]}, "task": {"name": "slice"},
-              "object": {"name": "cake"}, "seed": 4, "eval": {"train_seeds": 3}}
+              "object": {"name": "cake"}, "seed": 4, "eval": {"train_seeds": 3, "policies": ["oracle", "pddp"]}}
     ctx = SimpleNamespace(overrides=user, config=config, run_dir=tmp_path)
     out = run(ctx, ["mppi", "pretrain", "bc", "eval"])
     labels = [c[0] for c in calls]
