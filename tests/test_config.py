@@ -136,3 +136,27 @@ def test_help_lists_every_group_choice_and_examples():
                  "object: burger, cake, cube, ditto, donut, ham, potato, steak, sushi, tomato",
                  "python -m topocut.run stage=mppi task=dice object=potato seed=3"):
         assert line in proc.stdout, proc.stdout
+
+
+def test_open_dicts_take_new_keys_from_the_command_line():
+    """`eval.task_overrides={slice:{...}}` as documented: under scale=paper (which sets no such key) OmegaConf's
+    struct flag refused the new key; the entry point gives open-dict overrides Hydra's `++`."""
+    import subprocess
+    import sys
+
+    from hydra.errors import ConfigCompositionException
+
+    from topocut.run import open_dict_overrides
+
+    argv = ["scale=paper", "eval.task_overrides={slice:{thickness:0.05}}", "eval.checkpoints.pddp=v002",
+            "+eval.policy_kwargs.M={a:1}", "eval.tasks=[slice]", "eval.checkpoints_x=1"]
+    assert open_dict_overrides(argv) == ["scale=paper", "++eval.task_overrides={slice:{thickness:0.05}}",
+                                         "++eval.checkpoints.pddp=v002", "+eval.policy_kwargs.M={a:1}",
+                                         "eval.tasks=[slice]", "eval.checkpoints_x=1"]
+    with pytest.raises(ConfigCompositionException, match="task_overrides"):  # what the rewrite is for
+        _compose("stage=eval", "scale=paper", "eval.task_overrides={slice:{thickness:0.05}}")
+    proc = subprocess.run([sys.executable, "-m", "topocut.run", "stage=eval", "scale=paper",
+                           "eval.task_overrides={slice:{thickness:0.05}}", "--cfg", "job", "-p", "eval.task_overrides"],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "thickness: 0.05" in proc.stdout, proc.stdout

@@ -127,6 +127,21 @@ def main(cfg: DictConfig) -> None:
     log.info("summary: %s", json.dumps(summary, default=str))
 
 
+# Dicts the schema leaves open: OmegaConf refuses a new key in them under Hydra's struct flag ("not in struct";
+# only `++key=` adds one), so `eval.task_overrides={slice:{thickness:0.05}}` as documented failed wherever the
+# scale set no such key.  Their overrides are given Hydra's add-or-override prefix.
+OPEN_DICTS = ("eval.checkpoints", "eval.task_overrides", "eval.policy_kwargs")
+
+
+def open_dict_overrides(argv: list[str]) -> list[str]:
+    """``argv`` with ``++`` before every plain override of (a key inside) an open dict."""
+    def is_open(a: str) -> bool:
+        key = a.split("=", 1)[0]
+        return "=" in a and any(key == d or key.startswith(d + ".") for d in OPEN_DICTS)
+
+    return [f"++{a}" if is_open(a) else a for a in argv]
+
+
 def preflight(argv: list[str]) -> None:
     """Compose the config before Hydra does, to refuse a typo'd option or key and an unwritable outputs_root as
     user errors: Hydra reports them (and fails to create the run directory) with status 1 and a traceback.
@@ -153,6 +168,7 @@ def preflight(argv: list[str]) -> None:
 
 if __name__ == "__main__":
     os.environ.setdefault("HYDRA_FULL_ERROR", "0")
+    sys.argv[1:] = open_dict_overrides(sys.argv[1:])
     try:
         preflight(sys.argv[1:])
     except ConfigError as e:
