@@ -123,9 +123,10 @@ def render_sequences(rows, path, board_z: float, view=(25.0, -60.0), size: float
             _draw(ax, x, _colors(labels, len(np.asarray(x).reshape(-1, 3))), view, size, (lo, hi), knife, board_z)
             ax.set_title(caption, fontsize=6, pad=0)
             if c == 0:
-                ax.text2D(-0.12, 0.5, title, transform=ax.transAxes, rotation=90, va="center", ha="center",
+                ax.text2D(-0.08, 0.5, title, transform=ax.transAxes, rotation=90, va="center", ha="center",
                           fontsize=7, fontweight="bold")
-    fig.subplots_adjust(left=0.03, right=0.995, bottom=0.0, top=0.96, wspace=0.0, hspace=0.08)
+    width, height = fig.get_size_inches()  # margins in inches: the row titles left, the captions on top
+    fig.subplots_adjust(left=0.22 / width, right=0.995, bottom=0.0, top=1 - 0.16 / height, wspace=0.0, hspace=0.08)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path)
