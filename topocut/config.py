@@ -204,10 +204,11 @@ def validate(cfg: DictConfig) -> None:
     _check(0.0 <= cfg.trainer.val_fraction < 1.0, "trainer.val_fraction", "must lie in [0, 1)")
     from topocut.tasks import CUTTING_TASKS
 
-    for key, names, valid in (("trainer.held_out_objects", cfg.trainer.held_out_objects, OBJECTS),
-                              ("data.objects", cfg.data.objects, OBJECTS), ("data.tasks", cfg.data.tasks, CUTTING_TASKS)):
+    for key, names, valid, what in (("trainer.held_out_objects", cfg.trainer.held_out_objects, OBJECTS, "object"),
+                                    ("data.objects", cfg.data.objects, OBJECTS, "object"),
+                                    ("data.tasks", cfg.data.tasks, CUTTING_TASKS, "knife task")):
         bad = [o for o in names if o not in valid]
-        _check(not bad, key, f"unknown {key.split('.')[-1][:-1]} {bad[0]!r}; valid: {', '.join(valid)}" if bad else "")
+        _check(not bad, key, f"unknown {what} {bad[0]!r}; valid: {', '.join(valid)}" if bad else "")
     for key, value, lo in (("data.episodes", cfg.data.episodes, 1), ("data.points_per_step", cfg.data.points_per_step, 1),
                            ("trainer.batch_size", cfg.trainer.batch_size, 1),
                            ("trainer.num_workers", cfg.trainer.num_workers, 0)):
