@@ -36,10 +36,10 @@ def big(labels: np.ndarray, at_least: int = 50) -> list[np.ndarray]:
     return [np.flatnonzero(labels == i) for i in ids[np.argsort(-counts)] if counts[ids == i][0] >= at_least]
 
 
-@pytest.mark.parametrize("n_grid", [48, 64])
-def test_a_cut_splits_on_its_plane_wherever_it_falls_in_a_cell(n_grid):
+@pytest.mark.parametrize("n_grid,positions", [(48, 8), (64, 4)])
+def test_a_cut_splits_on_its_plane_wherever_it_falls_in_a_cell(n_grid, positions):
     dx = 1.0 / n_grid
-    planes = 0.5 + dx * np.arange(8) / 8  # 8 positions spread over one cell
+    planes = 0.5 + dx * np.arange(positions) / positions  # spread over one cell (64³: 4, to keep the suite short)
     env = CuttingEnv(SimConfig(n_grid=n_grid), batch_size=len(planes))
     x0 = env.reset("cube", POSE).x[0].astype(np.float64)
     env.cut([KnifeAction(x=float(c), y=0.5) for c in planes])
@@ -96,7 +96,8 @@ def oracle_beats_wrong_thickness(x, x0, goal, first, spacing):
         assert sim > wrong, (r, sim, wrong)
 
 
-@pytest.mark.parametrize("object,task", [("cube", "slice"), ("cube", "stick"), ("cake", "slice"), ("cake", "stick")])
+# cake-slice is left out to keep the suite under 20 min: cake-stick makes the cake's slices first (and turns one)
+@pytest.mark.parametrize("object,task", [("cube", "slice"), ("cube", "stick"), ("cake", "stick")])
 def test_goal_steps_executed_give_the_goal_pieces(object, task):
     """The oracle: the goal's own steps (cuts, and the Turn that lays the cake's slab flat) executed exactly give
     every goal piece: IoU >= 0.8 with a discovered piece, and >= 95% of its particles in one of our own
