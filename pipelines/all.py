@@ -92,8 +92,7 @@ def run(ctx: RunContext, sequence: list[str], trainer=None) -> dict:
         started = time.time()
         summaries[label] = run_stage(cfg, ctx.run_dir / label, overrides)
         wall[label] = round(time.time() - started, 1)
-        made = produced_versions(name, summaries[label], cfg, policies=ctx.config["eval"]["policies"])
-        pins.update(made)
+        pins.update(produced_versions(name, summaries[label], cfg, policies=ctx.config["eval"]["policies"]))
         return summaries[label]
 
     for name in sequence:
