@@ -213,7 +213,6 @@ def render_episodes(specs, policies, env, task_cfgs, out_dir, eval, reward, topo
     ``sequences.png``, the paper's cutting-sequence figure (a row per task: initial state, goal, each cut)."""
     from topocut.episode import env_board_z, run_episodes
     from topocut.eval.protocol import _episode, scoring_for
-    from topocut.sim.action import KnifeAction
     from topocut.sim.render import render_particles, render_sequences, write_gif
 
     name = next((n for n in policies if n.split("@")[0] == "pddp"), next(iter(policies)))
@@ -228,9 +227,7 @@ def render_episodes(specs, policies, env, task_cfgs, out_dir, eval, reward, topo
             frames, panels = [], []
             x0 = log.frames[0][0]
             limits = (x0.min(0) - 0.03, x0.max(0) + 0.03)
-            for i, (x, labels, what) in enumerate(log.frames):
-                cut = int(what.split()[1].rstrip(":")) if what.startswith("cut ") else 0  # "cut k: R=..."
-                knife = KnifeAction(*log.actions[cut - 1]) if 0 < cut <= len(log.actions) else None
+            for i, (x, labels, what, knife) in enumerate(log.frames):  # knife: a cut's executed action
                 frames.append(render_particles(x, labels, out_dir / f"{spec.key}_{name}_{i}.png",
                                                title=f"{name} {spec.key} {what}", limits=limits, size=6,
                                                knife=knife, board_z=board_z))

@@ -154,3 +154,19 @@ def test_act_batch_is_one_call_per_step_and_falls_back_to_act(fail):
     # steps 1-4: 3, 3 (the 1-plane episode said None at step 2), 2, 1 live episodes; one live episode
     # calls act directly; a failing batched call was retried per episode with act
     assert _Planes.calls == [3, 3, 2]
+
+
+def test_frames_carry_the_executed_cut_with_the_state_it_made():
+    """Renders draw each cut's knife from the frame itself: the reset frame has none, each cut frame the action
+    the engine executed (= EpisodeLog.actions), in order, with the labels scored after it."""
+    from types import SimpleNamespace
+
+    _Planes.calls, _Planes.fail = [], False
+    eps = [Episode(str(k), None, k, SimpleNamespace(push=False)) for k in (3, 2)]
+    logs = run_episodes(_Boxes(), eps, _Planes(), _box_scoring(), max_cuts=5, frames=True)
+    for lg in logs:
+        assert lg.frames[0][2] == "reset" and lg.frames[0][3] is None
+        cuts = [f for f in lg.frames if f[3] is not None]
+        assert [f[2].split(":")[0] for f in cuts] == [f"cut {k + 1}" for k in range(len(lg.actions))]
+        np.testing.assert_allclose([f[3].to_vector() for f in cuts], lg.actions, atol=1e-6)
+        assert [len(np.unique(f[1])) for f in cuts] == lg.num_pieces

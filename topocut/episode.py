@@ -65,7 +65,8 @@ class EpisodeLog:
     time_s: float = 0.0
     steps: list[dict] = field(default_factory=list)  # dataset records (record=True)
     labels: np.ndarray | None = None  # the final particle labels
-    frames: list = field(default_factory=list)  # (x, labels, what) after reset, each cut, each turn (frames=True)
+    # (x, labels, what, knife) after reset, each cut, each turn (frames=True); knife: the cut's executed KnifeAction
+    frames: list = field(default_factory=list)
     goal: object = None
 
 
@@ -218,9 +219,9 @@ class EpisodeBatch:
         self.Diverged = diverged_type()
 
     # -- episode bookkeeping ---------------------------------------------------------------------------
-    def _keep(self, b: int, what: str) -> None:
+    def _keep(self, b: int, what: str, knife=None) -> None:
         if self.frames:
-            self.logs[b].frames.append((self.xs[b].copy(), np.asarray(self.labels[b]).copy(), what))
+            self.logs[b].frames.append((self.xs[b].copy(), np.asarray(self.labels[b]).copy(), what, knife))
 
     def end(self, b: int, status: str, error: str) -> None:
         self.live[b] = False
@@ -329,7 +330,7 @@ class EpisodeBatch:
             log.actions.append([float(v) for v in a.to_vector()])
             self.hist[b].append(a.pose_feature(self.board_z))
             self.xs[b], self.labels[b] = x1, lab1
-            self._keep(b, f"cut {k + 1}: R={res.total:.2f}")
+            self._keep(b, f"cut {k + 1}: R={res.total:.2f}", knife=a)
             out[b] = res
             if self.progress is not None:
                 self.progress(1, info=f"{self.eps[b].key or self.eps[b].object} cut {k + 1}: reward {res.total:.3f}")
@@ -403,7 +404,7 @@ def run_episodes(env, episodes: list[Episode], policy, scoring: Scoring, max_cut
     ``record``: keep dataset records (topocut.data) in ``EpisodeLog.steps``.  ``on_done(i, log)`` is called
     as episode i finishes (evaluation writes its JSON there, so a killed run resumes); ``progress(n, info)``
     after every executed cut of every episode; ``initial_reward``: score the uncut scene too; ``batch`` False:
-    one episode at a time (in every scene); ``frames``: keep (x, labels, what) of every state (renders).
+    one episode at a time (in every scene); ``frames``: keep (x, labels, what, knife) of every state (renders).
     Returns one EpisodeLog per episode, in order.
     """
     B = int(getattr(env, "batch_size", 1) or 1)
