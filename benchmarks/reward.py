@@ -1,6 +1,6 @@
-"""Spectral reward timing: scipy path vs a dense-eigh reference, and the batched torch path.
+"""Spectral reward timing: scipy path vs a dense-eigh reference, and the batched torch path with each eigensolver.
 
-python benchmarks/reward.py [--device cpu|cuda] [--batch 64] [--repeat 5]
+python benchmarks/reward.py [--device cpu|cuda] [--batches 16 64 128] [--repeat 5]
 Targets: <= 50 ms per 512-point fragment on CPU (scipy); <= 5 ms per fragment batched on a GPU.
 """
 from __future__ import annotations
@@ -30,7 +30,7 @@ def timeit(fn, repeat: int) -> float:
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
-    ap.add_argument("--batch", type=int, default=64)
+    ap.add_argument("--batches", type=int, nargs="+", default=[16, 64, 128])
     ap.add_argument("--repeat", type=int, default=5)
     args = ap.parse_args()
     cfg = RewardConfig()
@@ -57,20 +57,29 @@ def main():
 
     if args.device == "cuda" and not torch.cuda.is_available():
         raise SystemExit("--device cuda requested but torch.cuda.is_available() is False")
-    batch = torch.tensor(np.stack([resample(cloud(s), cfg) for s in range(args.batch)]), device=args.device)
+    import dataclasses
 
-    def batched():
-        w, s = spectral_descriptors(batch, cfg, sigma=sigma)
-        if args.device == "cuda":
-            torch.cuda.synchronize()
-        return w
+    w0, _ = descriptor(resample(cloud(0), cfg), sigma, cfg)
+    solvers = ["device", "subspace", "host"] if args.device == "cuda" else ["host", "subspace", "device"]
+    print(f"batched torch ({args.device}): the reward's eigensolvers (reward.eig_solver), the first the reference")
+    for B in args.batches:
+        batch = torch.tensor(np.stack([resample(cloud(s), cfg) for s in range(B)]), device=args.device)
+        ref = None
+        for solver in solvers:
+            c = dataclasses.replace(cfg, eig_solver=solver)
 
-    t_b = timeit(batched, args.repeat)
-    wb = batched()[0].cpu().numpy()
-    w0, _ = descriptor(batch[0].cpu().numpy(), sigma, cfg)
-    print(f"batched torch ({args.device}), B={args.batch}: {1e3 * t_b:8.1f} ms total, "
-          f"{1e3 * t_b / args.batch:6.2f} ms/fragment   (target <= 5 ms on GPU); "
-          f"vs scipy per fragment {t_fast * args.batch / t_b:.2f}x; max |dlambda| = {np.abs(wb - w0).max():.1e}")
+            def batched(c=c, batch=batch):
+                w, s = spectral_descriptors(batch, c, sigma=sigma)
+                if args.device == "cuda":
+                    torch.cuda.synchronize()
+                return w
+
+            t_b = timeit(batched, args.repeat)
+            ref = ref or t_b
+            wb = batched()[0].cpu().numpy()
+            print(f"  B={B:4d} {solver:9s}: {1e3 * t_b:8.1f} ms total, {1e3 * t_b / B:6.2f} ms/fragment, "
+                  f"{ref / t_b:5.2f}x the {solvers[0]} solver; vs scipy per fragment {t_fast * B / t_b:6.2f}x; "
+                  f"max |dlambda| vs scipy = {np.abs(wb - w0).max():.1e}")
 
 
 if __name__ == "__main__":

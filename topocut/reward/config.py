@@ -45,10 +45,12 @@ class RewardConfig:
     success_distance: float | None = 0.065
     backend: str = "scipy"  # "scipy" (sparse shift-invert eigsh, CPU) or "torch" (batched dense eigh)
     device: str = "cpu"  # torch backend only
-    # torch backend: where the Laplacians' smallest eigenpairs are found.  "device": torch.linalg.eigh of the
-    # whole spectrum where the Laplacians were built; "host": LAPACK's subset solver (evx, the num_eig + 1
-    # smallest); "auto": device on CUDA, host on the CPU.  Measured (512 points, float64): H100 4.8 ms a matrix,
-    # its host's evx 14 ms (threads do not help: scipy holds the GIL); this 2-core CPU: evx 10 ms, eigh 41 ms
+    # torch backend: how the Laplacians' smallest eigenpairs are found.  "subspace": the num_eig + 1 smallest by
+    # batched shift-invert subspace iteration where the Laplacians were built (topocut.reward.eigen; every matrix
+    # at once); "device": torch.linalg.eigh of the whole spectrum there (the reference: cuSOLVER runs a batch one
+    # matrix after another, 4.7 ms each on an H100); "host": LAPACK's subset solver (evx; 14 ms a matrix on the
+    # H100's host, 10 ms on this 2-core CPU; threads do not help, scipy holds the GIL); "auto": subspace on
+    # CUDA, host on the CPU.  Figures: docs/benchmarks.md#spectral-reward
     eig_solver: str = "auto"
 
     def on(self, device: str) -> RewardConfig:
@@ -63,8 +65,8 @@ class RewardConfig:
             raise ValueError(f"reward.delta={self.delta} must exceed reward.gamma={self.gamma} (paper: delta > gamma)")
         if self.backend not in ("scipy", "torch"):
             raise ValueError(f"reward.backend={self.backend!r}; valid: scipy, torch")
-        if self.eig_solver not in ("auto", "host", "device"):
-            raise ValueError(f"reward.eig_solver={self.eig_solver!r}; valid: auto, host, device")
+        if self.eig_solver not in ("auto", "host", "device", "subspace"):
+            raise ValueError(f"reward.eig_solver={self.eig_solver!r}; valid: auto, host, device, subspace")
         for k in ("num_point", "knn", "num_eig", "num_quantiles", "min_points"):
             if getattr(self, k) < 1:
                 raise ValueError(f"reward.{k}={getattr(self, k)} must be >= 1")

@@ -230,9 +230,11 @@ def spectral_descriptors(batch, cfg: RewardConfig | None = None, sigma=None):
     The clouds are used as given (resample beforehand, e.g. with fps_torch).  sigma: float,
     (B,) tensor, or None for each cloud's own mean kNN distance x sigma_scale.  Dense
     (B,n,n) Laplacians in float64 on the batch's device; their eigenpairs per ``reward.eig_solver`` (host LAPACK
-    subset solver, returning CPU tensors, or torch.linalg.eigh on the device).
+    subset solver, returning CPU tensors; batched subspace iteration or torch.linalg.eigh on the device).
     """
     import torch
+
+    from topocut.reward.eigen import smallest_eigenpairs_subspace
 
     cfg = _cfg(cfg)
     x = torch.as_tensor(batch).to(torch.float64)  # B,n,3
@@ -256,7 +258,10 @@ def spectral_descriptors(batch, cfg: RewardConfig | None = None, sigma=None):
         w, v = smallest_eigenpairs_batch(L.cpu().numpy(), cfg.num_eig + 1)  # B,K+1 / B,n,K+1
         w, v = np.maximum(w[:, 1:], 0.0), v[:, :, 1:]
         return torch.as_tensor(w), torch.as_tensor(hks_signature(w, v, cfg))
-    w, v = torch.linalg.eigh(L)  # ascending
+    if cfg.eig_solver == "device":  # the whole spectrum (the reference)
+        w, v = torch.linalg.eigh(L)  # ascending
+    else:  # subspace, or auto on CUDA: only the K + 1 smallest pairs, every matrix at once (topocut.reward.eigen)
+        w, v = smallest_eigenpairs_subspace(L, cfg.num_eig + 1)
     w, v = w[:, 1:cfg.num_eig + 1].clamp_min(0.0), v[:, :, 1:cfg.num_eig + 1]
     lamK = w[:, -1:].clamp_min(cfg.eig_floor)  # B,1
     q = (torch.arange(cfg.num_quantiles, dtype=torch.float64, device=x.device) + 0.5) / cfg.num_quantiles
