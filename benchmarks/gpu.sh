@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Runs on the lent GPU machine (see docs/benchmarks.md for how the figures were made).
 # The machine has torch/lightning/scipy but not taichi, warp, hydra, trimesh, zarr: they travel as
-# wheels under .whl/ (warp split in three parts, one per call). Usage: bash benchmarks/gpu.sh <phase>
+# wheels under .whl/ (warp split in three parts, one per call; hydra-joblib-launcher in .whl/b for multiruns).
+# Usage: bash benchmarks/gpu.sh <phase>
 set -uo pipefail
 phase=${1:-wheels}
 W=/tmp/w
@@ -67,6 +68,11 @@ PY
     timeout ${LIMIT:-560} python3 benchmarks/episodes.py --device cuda --n-grid 64 --K 16 --iters 2 \
       --batch ${BATCH:-16} --eval-episodes ${EPISODES:-32} --only ${PARTS:-demo eval policy} 2>&1 \
       | grep -v -i warn | tee -a "$OUT/bench_episodes.txt" ;;
+  reward)  # the reward's eigensolvers batched on the GPU: whole-spectrum eigh (reference), subspace, host (#31)
+    timeout 300 python3 benchmarks/reward.py --device cuda 2>&1 | tee -a "$OUT/bench_reward.txt" ;;
+  demo-procs)  # MPPI demonstrations from JOBS processes sharing the GPU (joblib launcher) vs one process (#31)
+    timeout ${LIMIT:-560} python3 benchmarks/demo_processes.py --device cuda --jobs ${JOBS:-4} \
+      --episodes ${EPISODES:-4} 2>&1 | grep -v -i warn | tee -a "$OUT/demo_procs.txt" ;;
   train-sweep)  # perception training samples/s over batch sizes, fp32 and bf16 (#31)
     timeout ${LIMIT:-400} python3 benchmarks/train.py --device cuda --batches 16 64 256 512 --amp --steps 10 2>&1 \
       | grep -v -i warn | tee "$OUT/bench_train.txt" ;;

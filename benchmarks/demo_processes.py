@@ -1,0 +1,93 @@
+"""MPPI demonstrations from several processes sharing one GPU (Hydra's joblib launcher) against one process.
+
+    python benchmarks/demo_processes.py --device cuda --jobs 4 --episodes 4
+    python benchmarks/demo_processes.py --device cpu --n-grid 32 --K 4 --jobs 2 --episodes 1   # smoke
+
+One demonstration process leaves the GPU idle most of the time (its host work: the split of pieces, topology
+discovery launches, the planner's Python), so the way to more demonstrations per hour on one GPU is more
+processes, each with its own cells: exactly a Hydra multirun over objects on the joblib launcher, which
+``stage=all`` and ``make data-sweep`` already express.  This script times
+
+1. the reference: one ``stage=mppi`` process, one object, ``--episodes`` episodes;
+2. ``--jobs`` processes at once: ``-m stage=mppi object=<jobs objects> hydra/launcher=joblib``, the same
+   episodes per object,
+
+each as a fresh command (Taichi's and Warp's kernel caches are warmed by a first, untimed run), and prints the
+cuts per second of each, their ratio, and the projection to 1,000 episodes of the measured cuts per episode.
+Both include process start-up and compilation from the warm caches: a real run pays those once per job.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+OBJECTS = ["cake", "cube", "ham", "potato", "ditto"]
+
+
+def stage_args(args, root: Path) -> list[str]:
+    return [f"task={args.task}", f"device={args.device}", f"sim.n_grid={args.n_grid}", f"sim.batch_size={args.K}",
+            f"planner.num_samples={args.K}", f"planner.iterations={args.iters}", "planner.horizon=1",
+            "reward=torch", f"data.episodes={args.episodes}", "task.max_cuts=5", "stage.run.compare_heuristic=false",
+            "logger=none", "progress=false", f"outputs_root={root}", *args.set]
+
+
+def run(cmd: list[str], root: Path) -> tuple[float, int, int]:
+    """Wall seconds of ``cmd``, and the cuts and episodes its mppi runs wrote (their status.json files)."""
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "WANDB_MODE": "disabled"})
+    wall = time.perf_counter() - t0
+    if proc.returncode:
+        sys.exit(f"{' '.join(cmd)} failed ({proc.returncode}):\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}")
+    cuts = episodes = 0
+    for f in root.rglob("status.json"):
+        s = json.loads(f.read_text())
+        if s.get("stage") == "mppi" and s.get("status") == "ok":
+            cuts += int(s["summary"]["cuts"])
+            episodes += int(s["summary"]["episodes"])
+    return wall, cuts, episodes
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--device", default="cuda", choices=["cpu", "cuda"])
+    ap.add_argument("--jobs", type=int, default=4)
+    ap.add_argument("--episodes", type=int, default=4)
+    ap.add_argument("--task", default="slice")
+    ap.add_argument("--n-grid", type=int, default=64)
+    ap.add_argument("--K", type=int, default=16)
+    ap.add_argument("--iters", type=int, default=2)
+    ap.add_argument("--set", nargs="*", default=[], help="more overrides for every run")
+    args = ap.parse_args()
+    if args.jobs > len(OBJECTS):
+        sys.exit(f"--jobs={args.jobs}: at most {len(OBJECTS)} (one object per job)")
+    py = [sys.executable, "-m", "topocut.run"]
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        warm = tmp / "warm"  # compile once: every later process loads Taichi's and Warp's caches
+        run([*py, "stage=mppi", "object=cube", *stage_args(args, warm), "data.episodes=1"], warm)
+        one = tmp / "one"
+        w1, c1, e1 = run([*py, "stage=mppi", f"object={OBJECTS[0]}", *stage_args(args, one)], one)
+        many = tmp / "many"
+        objs = ",".join(OBJECTS[:args.jobs])
+        wj, cj, ej = run([*py, "-m", "stage=mppi", f"object={objs}", "hydra/launcher=joblib",
+                          f"hydra.launcher.n_jobs={args.jobs}", *stage_args(args, many)], many)
+    r1, rj = c1 / w1, cj / wj
+    print(f"{args.device}, {args.n_grid}^3, K={args.K}, {args.iters} iterations, task {args.task}, "
+          f"{args.episodes} episodes per process")
+    print(f"  1 process:       {e1:3d} episodes, {c1:4d} cuts in {w1:7.1f} s: {r1:6.3f} cuts/s")
+    print(f"  {args.jobs} processes (joblib): {ej:3d} episodes, {cj:4d} cuts in {wj:7.1f} s: {rj:6.3f} cuts/s, "
+          f"{rj / r1:.2f}x the one process")
+    per_ep = cj / max(ej, 1)
+    for name, r in (("1 process", r1), (f"{args.jobs} processes", rj)):
+        print(f"  1,000 episodes ({per_ep:.2f} cuts each) at the rate of {name}: {1000 * per_ep / r / 60:6.1f} min; "
+              f"of 5 cuts each: {5000 / r / 60:6.1f} min")
+
+
+if __name__ == "__main__":
+    main()
