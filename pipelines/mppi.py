@@ -135,7 +135,7 @@ def run_knife(ctx: RunContext, sim, object, task, topology, reward, planner, dat
                     "goal": goal.points, "goal_labels": goal.labels, "status": summary["status"],
                     "final_reward": summary["final_reward"], "success": summary["success"]}
             record.update({k: summary[k] for k in ("status", "num_cuts", "final_reward", "success", "rewards",
-                                                   "turns")})
+                                                   "turns", "time_s")})
             if summary["status"] != "ok":  # why it failed, in the episode log and the dataset's episode entry
                 meta["error"] = record["error"] = summary.get("error", "unknown")
                 log.warning("mppi episode %d (seed %d) failed after %d cuts: %s", e, seed, summary["num_cuts"],

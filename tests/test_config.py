@@ -160,3 +160,25 @@ def test_open_dicts_take_new_keys_from_the_command_line():
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "thickness: 0.05" in proc.stdout, proc.stdout
+
+
+def test_seeding_matches_lightning_without_importing_it():
+    """seed_everything_all draws what Lightning's seed_everything(workers=True) draws (python, numpy, torch) and
+    sets its worker variables, in a process that never imports Lightning (its import costs a stage=mppi process
+    30-40 s on the GPU machine)."""
+    import subprocess
+    import sys
+
+    code = ("import sys, random, numpy as np, torch, os\n"
+            "from topocut.utils.runtime import seed_everything_all\n"
+            "seed_everything_all(11)\n"
+            "print(random.random(), np.random.rand(), float(torch.rand(1)), os.environ['PL_GLOBAL_SEED'],"
+            " os.environ['PL_SEED_WORKERS'], 'lightning' in sys.modules)\n"
+            "from lightning.pytorch import seed_everything\n"
+            "seed_everything(11, workers=True, verbose=False)\n"
+            "print(random.random(), np.random.rand(), float(torch.rand(1)), os.environ['PL_GLOBAL_SEED'],"
+            " os.environ['PL_SEED_WORKERS'])\n")
+    ours, theirs = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                                  check=True).stdout.split("\n")[:2]
+    assert ours.endswith(" False")  # Lightning not imported
+    assert ours.rsplit(" ", 1)[0] == theirs

@@ -42,11 +42,16 @@ def seed_everything_all(seed: int) -> None:
     """Seed python, numpy, torch (with dataloader workers) and record the seed for Taichi/Warp.
 
     Taichi takes its seed at ``ti.init(random_seed=...)`` (see ``topocut.sim.init_taichi``), and
-    Warp's random functions take explicit seeds, so both read ``TOPOCUT_SEED``.
+    Warp's random functions take explicit seeds, so both read ``TOPOCUT_SEED``.  What Lightning's
+    ``seed_everything(seed, workers=True)`` does, without importing Lightning: its import pulls in torchmetrics
+    and, where installed, transformers and torch._dynamo (30-40 s of every stage=mppi process on the lent GPU
+    machine, docs/benchmarks.md); the training stages' Trainer reads the same two variables.
     """
+    import torch
+
     random.seed(seed)
     np.random.seed(seed % (2**32))
+    torch.manual_seed(seed)  # every device's generator, CUDA's included
     os.environ["TOPOCUT_SEED"] = str(seed)
-    from lightning.pytorch import seed_everything
-
-    seed_everything(seed, workers=True, verbose=False)
+    os.environ["PL_GLOBAL_SEED"] = str(seed)
+    os.environ["PL_SEED_WORKERS"] = "1"
