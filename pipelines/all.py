@@ -62,10 +62,18 @@ def train_seeds(config: dict) -> list[int]:
     return [config["seed"] + i for i in range(config["eval"]["train_seeds"])]
 
 
+def _timed_stage(cfg, run_dir: Path, overrides: list[str]) -> tuple[dict, float]:
+    """run_stage in a joblib worker: (its summary, its wall seconds)."""
+    from topocut.run import run_stage
+
+    started = time.time()
+    return run_stage(cfg, run_dir, overrides), round(time.time() - started, 1)
+
+
 def run(ctx: RunContext, sequence: list[str], trainer=None) -> dict:
     """Each stage of ``sequence`` as its own run under ``<run dir>/<label>``, later ones pinned to what earlier ones
-    wrote.  mppi runs once per cell (several cells: shards, then one merge of exactly those); bc once per training
-    seed.  Every run reuses a committed artifact of the same config, so a killed pipeline resumes where it stopped;
+    wrote.  mppi runs once per cell (several cells: shards, data.jobs of them at once in worker processes, then one
+    merge of exactly those); bc once per training seed.  Every run reuses a committed artifact of the same config, so a killed pipeline resumes where it stopped;
     the summary ends with each run's wall time."""
     from topocut.run import run_stage
 
@@ -82,12 +90,16 @@ def run(ctx: RunContext, sequence: list[str], trainer=None) -> dict:
     base = [o for o in ctx.overrides if not _under(key(o), ("stage",))]  # stage.run.*: stage=all's own keys
     summaries, pins, wall = {}, {}, {}
 
-    def one(name: str, label: str, own: dict | None = None) -> dict:
-        """One run of stage ``name``; ``own``: this run's keys (cell, seed), replacing the user's same keys."""
-        own = own or {}
+    def overrides_of(name: str, own: dict) -> list[str]:
+        """The user's overrides, less stage=all's own keys, the pinned ones and ``own`` (this run's keys: cell,
+        seed), then the pins, ``own`` and the stage."""
         pinned = tuple(k.lstrip("+") for k in pins)
         overrides = [o for o in base if key(o) not in own and not _under(key(o), pinned)]
-        overrides += [f"{k}={v}" for k, v in {**pins, **own}.items()] + [f"stage={name}"]
+        return overrides + [f"{k}={v}" for k, v in {**pins, **own}.items()] + [f"stage={name}"]
+
+    def one(name: str, label: str, own: dict | None = None) -> dict:
+        """One run of stage ``name``; ``own``: this run's keys (cell, seed), replacing the user's same keys."""
+        overrides = overrides_of(name, own or {})
         cfg = _compose(overrides)
         started = time.time()
         summaries[label] = run_stage(cfg, ctx.run_dir / label, overrides)
@@ -95,10 +107,29 @@ def run(ctx: RunContext, sequence: list[str], trainer=None) -> dict:
         pins.update(produced_versions(name, summaries[label], cfg, policies=ctx.config["eval"]["policies"]))
         return summaries[label]
 
+    def cells_at_once(todo: list[tuple[str, dict]], jobs: int) -> list[dict]:
+        """mppi runs of ``todo`` [(label, own keys)], ``jobs`` at a time in joblib's worker processes (each its
+        own Taichi/CUDA context; composed here, run there); their summaries in order."""
+        from joblib import Parallel, delayed
+
+        runs = []
+        for label, own in todo:
+            overrides = overrides_of("mppi", own)
+            runs.append((label, _compose(overrides), overrides))
+        started = time.time()
+        out = Parallel(n_jobs=min(jobs, len(runs)), backend="loky")(
+            delayed(_timed_stage)(cfg, ctx.run_dir / label, overrides) for label, cfg, overrides in runs)
+        for (label, _, _), (summary, seconds) in zip(runs, out):
+            summaries[label], wall[label] = summary, seconds
+        wall["mppi-cells"] = round(time.time() - started, 1)
+        return [summaries[label] for label, _, _ in runs]
+
     for name in sequence:
         if name == "mppi" and len(cells(ctx.config)) > 1:
-            shards = [Path(one("mppi", f"mppi-{t}-{o}", {"task": t, "object": o, "data.shard": "true"})["dataset"])
-                      for t, o in cells(ctx.config)]
+            todo = [(f"mppi-{t}-{o}", {"task": t, "object": o, "data.shard": "true"}) for t, o in cells(ctx.config)]
+            jobs = int(ctx.config["data"]["jobs"])
+            done = cells_at_once(todo, jobs) if jobs > 1 else [one("mppi", label, own) for label, own in todo]
+            shards = [Path(s["dataset"]) for s in done]
             one("merge", "merge", {"stage.run.only": "[" + ",".join(f"'{p.parent.name}'" for p in shards) + "]"})
         elif name == "mppi":
             (t, o), = cells(ctx.config)

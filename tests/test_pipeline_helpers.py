@@ -106,20 +106,33 @@ def test_merge_takes_shards_by_manifest_not_by_name_prefix(tmp_path):
     assert list(shards_of(store, "demos-paper")) == ["demos-paper-dice-ham-s1-cccccccc"]
 
 
-def test_stage_all_at_paper_shape_runs_a_shard_per_cell_one_merge_and_a_bc_per_seed(tmp_path, monkeypatch):
+@pytest.mark.parametrize("jobs", [1, 2])
+def test_stage_all_at_paper_shape_runs_a_shard_per_cell_one_merge_and_a_bc_per_seed(tmp_path, monkeypatch, jobs):
     """make paper's plan, with the stages replaced by recorders: every (task, object) cell writes its own shard,
     the merge takes exactly those, bc runs once per training seed, and each later stage reads the versions the
-    earlier ones wrote; the user's other overrides reach every run, their task= gives way to the cells'."""
+    earlier ones wrote; the user's other overrides reach every run, their task= gives way to the cells'.
+    data.jobs=2: the cells run two at a time through joblib (its threading backend here, so that the recorder in
+    this process sees them; the pipeline asks for loky's worker processes) and the plan is the same."""
+    import joblib
+
     import topocut.run
     from pipelines.all import run
 
     calls = []
+    backends = []
+    real = joblib.Parallel
+
+    def parallel(n_jobs, backend):
+        backends.append((n_jobs, backend))
+        return real(n_jobs=n_jobs, backend="threading")
+
+    monkeypatch.setattr(joblib, "Parallel", parallel)
 
     def fake(cfg, run_dir, overrides):
         stage, i = cfg.stage.name, len(calls)
         calls.append((run_dir.name, cfg, overrides))
         if stage == "mppi":
-            return {"dataset": f"/o/dataset/demos-{cfg.task.name}-{cfg.object.name}-s0-k{i}/v001"}
+            return {"dataset": f"/o/dataset/demos-{cfg.task.name}-{cfg.object.name}-s0-k/v001"}
         if stage == "merge":
             return {"dataset": "/o/dataset/demos/v005"}
         if stage == "pretrain":
@@ -132,20 +145,23 @@ def test_stage_all_at_paper_shape_runs_a_shard_per_cell_one_merge_and_a_bc_per_s
     user = ["task=slice", "planner.iterations=1", "seed=4", "eval.train_seeds=3", "data.tasks=[slice,dice]",
             "data.objects=[cake,cube]", "stage=all",
             "stage.run.sequence=[mppi,pretrain,bc,eval]"]
-    config = {"data": {"tasks": ["slice", "dice"], "objects": ["cake", "cube"]}, "task": {"name": "slice"},
+    config = {"data": {"tasks": ["slice", "dice"], "objects": ["cake", "cube"], "jobs": jobs}, "task": {"name": "slice"},
               "object": {"name": "cake"}, "seed": 4, "eval": {"train_seeds": 3, "policies": ["oracle", "pddp"]}}
     ctx = SimpleNamespace(overrides=user, config=config, run_dir=tmp_path)
     out = run(ctx, ["mppi", "pretrain", "bc", "eval"])
     labels = [c[0] for c in calls]
-    assert labels == ["mppi-slice-cake", "mppi-slice-cube", "mppi-dice-cake", "mppi-dice-cube", "merge", "pretrain",
-                      "bc-s4", "bc-s5", "bc-s6", "eval"]
+    cells = ["mppi-slice-cake", "mppi-slice-cube", "mppi-dice-cake", "mppi-dice-cube"]
+    assert (sorted(labels[:4]) if jobs > 1 else labels[:4]) == (sorted(cells) if jobs > 1 else cells)
+    assert labels[4:] == ["merge", "pretrain", "bc-s4", "bc-s5", "bc-s6", "eval"]
+    assert backends == ([(2, "loky")] if jobs > 1 else [])
+    labels = cells + labels[4:]
     cfgs = {c[0]: c[1] for c in calls}
     assert [(cfgs[k].task.name, cfgs[k].object.name, cfgs[k].data.shard) for k in labels[:4]] == \
         [("slice", "cake", True), ("slice", "cube", True), ("dice", "cake", True), ("dice", "cube", True)]
     assert cfgs["mppi-dice-cube"].task.max_cuts >= 3  # the dice cell composes dice's own config
-    assert list(cfgs["merge"].stage.run.only) == [f"demos-{t}-{o}-s0-k{i}" for i, (t, o) in
-                                                  enumerate([("slice", "cake"), ("slice", "cube"), ("dice", "cake"),
-                                                             ("dice", "cube")])]
+    assert list(cfgs["merge"].stage.run.only) == [f"demos-{t}-{o}-s0-k" for t, o in
+                                                  [("slice", "cake"), ("slice", "cube"), ("dice", "cake"),
+                                                   ("dice", "cube")]]
     assert not cfgs["merge"].data.shard and cfgs["pretrain"].data.version == "v005"
     assert [cfgs[f"bc-s{s}"].seed for s in (4, 5, 6)] == [4, 5, 6]
     assert all(cfgs[f"bc-s{s}"].data.encoder_version == "v002" for s in (4, 5, 6))
@@ -153,7 +169,7 @@ def test_stage_all_at_paper_shape_runs_a_shard_per_cell_one_merge_and_a_bc_per_s
     assert ev.seed == 4 and ev.eval.train_seeds == 3 and ev.data.version == "v005"
     assert dict(ev.eval.checkpoints) == {"pddp": "v008"}  # the last seed's: eval finds its siblings by manifest
     assert all(c.planner.iterations == 1 for _, c, _ in calls)
-    assert set(out["wall_s"]) == set(labels)
+    assert set(out["wall_s"]) == set(labels) | ({"mppi-cells"} if jobs > 1 else set())
 
 
 def test_stage_all_refuses_an_unknown_cell():

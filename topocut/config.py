@@ -78,6 +78,10 @@ class DataConfig:
     tasks: list[str] = field(default_factory=list)
     objects: list[str] = field(default_factory=list)
     shard: bool = False  # stage=mppi writes a shard of ``dataset`` (set by stage=all's cells; multiruns always do)
+    # stage=all: demonstration cells made at once, each in its own process (joblib's loky workers).  One process
+    # leaves a GPU mostly idle (its host work), so on one H100 8 processes make ~8x the demonstrations per hour
+    # of one (docs/benchmarks.md#demonstrations-from-several-processes); 1: one cell after another, in-process
+    jobs: int = 1
 
 
 @dataclass
@@ -210,6 +214,7 @@ def validate(cfg: DictConfig) -> None:
         bad = [o for o in names if o not in valid]
         _check(not bad, key, f"unknown {what} {bad[0]!r}; valid: {', '.join(valid)}" if bad else "")
     for key, value, lo in (("data.episodes", cfg.data.episodes, 1), ("data.points_per_step", cfg.data.points_per_step, 1),
+                           ("data.jobs", cfg.data.jobs, 1),
                            ("trainer.batch_size", cfg.trainer.batch_size, 1),
                            ("trainer.num_workers", cfg.trainer.num_workers, 0)):
         _check(value >= lo, key, f"{value} is not valid; must be >= {lo}")
