@@ -28,6 +28,7 @@ import tempfile
 import time
 from pathlib import Path
 
+
 def stage_args(args, root: Path) -> list[str]:
     return [f"task={args.task}", f"device={args.device}", f"sim.n_grid={args.n_grid}", f"sim.batch_size={args.K}",
             f"planner.num_samples={args.K}", f"planner.iterations={args.iters}", "planner.horizon=1",
