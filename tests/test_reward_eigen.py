@@ -134,3 +134,31 @@ def test_a_batch_gives_what_each_matrix_gives_alone():
         np.testing.assert_allclose(w[b].numpy(), wb[0].numpy(), rtol=0, atol=1e-9 * float(wb[0, -1]))
     exact = 3.0 * np.sort(2 - 2 * np.cos(np.pi * np.arange(160) / 160))[:21]
     np.testing.assert_allclose(w[-1].numpy(), exact, atol=1e-9 * exact[-1])
+
+
+def test_groups_of_different_sizes_share_one_padded_eigen_call():
+    """Fragments of 256 and of 90 points in one subspace call (the smaller Laplacians padded with isolated nodes
+    above every eigenvalue) give each group's host (LAPACK) descriptors; the solver is called once."""
+    import topocut.reward.eigen as eigen
+    from topocut.reward.spectral import spectral_descriptors_groups
+
+    clouds = torch.tensor(fragment_clouds(256)) * 0.01
+    small = clouds[:, ::3][:, :90].contiguous()  # 4 clouds of 90 points
+    cfg = RewardConfig(backend="torch", num_point=256)
+    calls = []
+    real = eigen.smallest_eigenpairs_subspace
+
+    def counted(L, m, **kw):
+        calls.append(tuple(L.shape))
+        return real(L, m, **kw)
+
+    eigen.smallest_eigenpairs_subspace = counted
+    try:
+        got = spectral_descriptors_groups([clouds, small], dataclasses.replace(cfg, eig_solver="subspace"))
+    finally:
+        eigen.smallest_eigenpairs_subspace = real
+    assert calls == [(8, 256, 256)]
+    for batch, (w, s) in zip([clouds, small], got):
+        wh, sh = spectral_descriptors(batch, dataclasses.replace(cfg, eig_solver="host"))
+        torch.testing.assert_close(w, wh, rtol=1e-9, atol=1e-12)
+        torch.testing.assert_close(s, sh, rtol=1e-6, atol=1e-8)

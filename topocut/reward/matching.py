@@ -164,10 +164,10 @@ def _descriptors(clouds: list[np.ndarray], sigma, cfg: RewardConfig) -> list:
 
 def _describe_groups(groups, sigma, cfg: RewardConfig, out: list) -> None:
     """Fill out[i] with (eigvals, signature) numpy arrays from [(indices, (b,n,3) tensor)] (torch backend)."""
-    from topocut.reward.spectral import spectral_descriptors
+    from topocut.reward.spectral import spectral_descriptors_groups
 
-    for idx, batch in groups:
-        w, s = spectral_descriptors(batch, cfg, sigma=sigma)
+    described = spectral_descriptors_groups([batch for _, batch in groups], cfg, sigma=sigma)  # one eigen call
+    for (idx, _), (w, s) in zip(groups, described):
         w, s = w.cpu().numpy(), s.cpu().numpy()  # one copy per group, not one sync per fragment
         for j, i in enumerate(idx):
             out[i] = (w[j], s[j])

@@ -232,11 +232,53 @@ def spectral_descriptors(batch, cfg: RewardConfig | None = None, sigma=None):
     (B,n,n) Laplacians in float64 on the batch's device; their eigenpairs per ``reward.eig_solver`` (host LAPACK
     subset solver, returning CPU tensors; batched subspace iteration or torch.linalg.eigh on the device).
     """
+    return spectral_descriptors_groups([batch], cfg, sigma)[0]
+
+
+def spectral_descriptors_groups(batches, cfg: RewardConfig | None = None, sigma=None):
+    """``spectral_descriptors`` of several batches [(B_i,n_i,3)] (clouds of different sizes): [(eigvals, signature)].
+
+    With the subspace solver every batch's Laplacian goes into one eigen call: each (n_i,n_i) Laplacian is padded to
+    the largest n with isolated nodes of degree c above every eigenvalue (c = 2 x the largest degree + 1 > lambda_max
+    by Gershgorin), so its K + 1 smallest pairs are the unpadded matrix's, with vectors zero on the padding.  One call
+    instead of one per size: the solver's cost is its launches, not its matrices (docs/reward.md).
+    """
     import torch
 
     from topocut.reward.eigen import smallest_eigenpairs_subspace
 
     cfg = _cfg(cfg)
+    Ls = [_laplacians(b, cfg, sigma) for b in batches]  # [(B_i,n_i,n_i)]
+    if not Ls:
+        return []
+    dev = Ls[0].device
+    host = cfg.eig_solver == "host" or (cfg.eig_solver == "auto" and dev.type == "cpu")
+    out = []
+    if host:  # the K + 1 smallest pairs by LAPACK's subset solver (RewardConfig.eig_solver)
+        for L in Ls:
+            w, v = smallest_eigenpairs_batch(L.cpu().numpy(), cfg.num_eig + 1)  # B,K+1 / B,n,K+1
+            w, v = np.maximum(w[:, 1:], 0.0), v[:, :, 1:]
+            out.append((torch.as_tensor(w), torch.as_tensor(hks_signature(w, v, cfg))))
+        return out
+    if cfg.eig_solver == "device":  # the whole spectrum of each matrix (the reference)
+        pairs = [torch.linalg.eigh(L) for L in Ls]  # ascending
+    else:  # subspace, or auto on CUDA: only the K + 1 smallest pairs, every matrix at once (topocut.reward.eigen)
+        n = max(L.shape[-1] for L in Ls)
+        c = 2.0 * max(float(L.diagonal(dim1=1, dim2=2).max()) for L in Ls) + 1.0
+        padded = torch.cat([_pad_laplacian(L, n, c) for L in Ls])  # sum B_i,n,n
+        w, v = smallest_eigenpairs_subspace(padded, cfg.num_eig + 1)
+        sizes = [len(L) for L in Ls]
+        pairs = [(wi, vi[:, :L.shape[-1]]) for wi, vi, L in zip(w.split(sizes), v.split(sizes), Ls)]
+    for w, v in pairs:
+        w, v = w[:, 1:cfg.num_eig + 1].clamp_min(0.0), v[:, :, 1:cfg.num_eig + 1]
+        out.append((w, _signature(w, v, cfg)))
+    return out
+
+
+def _laplacians(batch, cfg: RewardConfig, sigma):
+    """Dense float64 Laplacians (B,n,n) of the symmetrised Gaussian kNN graphs of batch (B,n,3)."""
+    import torch
+
     x = torch.as_tensor(batch).to(torch.float64)  # B,n,3
     if x.dim() != 3 or x.shape[-1] != 3:
         raise ValueError(f"spectral_descriptors expects (B,n,3), got {tuple(x.shape)}")
@@ -252,21 +294,29 @@ def spectral_descriptors(batch, cfg: RewardConfig | None = None, sigma=None):
     s = torch.as_tensor(s, dtype=torch.float64, device=x.device).reshape(-1, 1, 1).expand(B, 1, 1)
     W = torch.zeros_like(d).scatter_(-1, jk, torch.exp(-(dk / s) ** 2))
     W = torch.maximum(W, W.transpose(1, 2))
-    L = torch.diag_embed(W.sum(-1)) - W
-    host = cfg.eig_solver == "host" or (cfg.eig_solver == "auto" and x.device.type == "cpu")
-    if host:  # the K + 1 smallest pairs by LAPACK's subset solver (RewardConfig.eig_solver)
-        w, v = smallest_eigenpairs_batch(L.cpu().numpy(), cfg.num_eig + 1)  # B,K+1 / B,n,K+1
-        w, v = np.maximum(w[:, 1:], 0.0), v[:, :, 1:]
-        return torch.as_tensor(w), torch.as_tensor(hks_signature(w, v, cfg))
-    if cfg.eig_solver == "device":  # the whole spectrum (the reference)
-        w, v = torch.linalg.eigh(L)  # ascending
-    else:  # subspace, or auto on CUDA: only the K + 1 smallest pairs, every matrix at once (topocut.reward.eigen)
-        w, v = smallest_eigenpairs_subspace(L, cfg.num_eig + 1)
-    w, v = w[:, 1:cfg.num_eig + 1].clamp_min(0.0), v[:, :, 1:cfg.num_eig + 1]
+    return torch.diag_embed(W.sum(-1)) - W
+
+
+def _pad_laplacian(L, n: int, c: float):
+    """L (B,m,m) as (B,n,n): the extra n - m nodes isolated with diagonal c (eigenvalue c, vectors on them only)."""
+    import torch
+
+    B, m, _ = L.shape
+    if m == n:
+        return L
+    P = torch.diag_embed(L.new_full((B, n), c))
+    P[:, :m, :m] = L
+    return P
+
+
+def _signature(w, v, cfg: RewardConfig):
+    """hks_signature in torch: w (B,K), v (B,n,K) -> (B, len(hks_times) * num_quantiles)."""
+    import torch
+
     lamK = w[:, -1:].clamp_min(cfg.eig_floor)  # B,1
-    q = (torch.arange(cfg.num_quantiles, dtype=torch.float64, device=x.device) + 0.5) / cfg.num_quantiles
+    q = (torch.arange(cfg.num_quantiles, dtype=torch.float64, device=w.device) + 0.5) / cfg.num_quantiles
     sigs = []
     for c in cfg.hks_times:
         h = (torch.exp(-w * (c / lamK))[:, None, :] * v ** 2).sum(-1)  # B,n
         sigs.append(torch.quantile(h / h.mean(-1, keepdim=True), q, dim=-1).T)  # B,Q
-    return w, torch.cat(sigs, -1)
+    return torch.cat(sigs, -1)
