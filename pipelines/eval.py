@@ -6,12 +6,14 @@ Policies: ``oracle`` (the goal's ideal planes for the true pose: the R̂ referen
 ``eval.checkpoints``, latest for the others; with ``eval.train_seeds=k > 1`` the k checkpoints of that training
 run trained with seeds ``seed .. seed+k-1``, each evaluated as ``<policy>@s<seed>`` and pooled by the report),
 and ``module.path:ClassName`` entries: your own Policy class, imported (topocut.policies.registry.load_external).
-Episodes are committed one by one; an interrupted evaluation resumes.
+Episodes are committed one by one; an interrupted evaluation resumes.  ``eval.jobs=J`` runs them in J worker
+processes (batches dealt round-robin), then the report as usual.
 """
 from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 from pathlib import Path
 
 from omegaconf import OmegaConf
@@ -22,6 +24,7 @@ from topocut.utils.context import RunContext
 
 CONF_TASKS = Path(__file__).resolve().parent.parent / "conf" / "task"
 SCRIPTED, LEARNED = registry.scripted(), registry.learned()  # topocut.policies.registry: the one policy list
+log = logging.getLogger("topocut")
 
 
 def task_configs(names, max_cuts: int, overrides=None) -> dict:
@@ -56,6 +59,7 @@ def artifact_config(eval, sim, topology, reward, planner, observation, sampler, 
                   ("tasks", {n: dataclasses.asdict(t) for n, t in task_cfgs.items()}), ("seed", seed))
     if not eval.policy_kwargs:  # evaluations from before the key keep their artifact key
         out["eval"].pop("policy_kwargs", None)
+    out["eval"].pop("jobs", None)  # how many processes, not what is evaluated
     return out
 
 
@@ -181,6 +185,9 @@ def run(ctx: RunContext, eval, sim, topology, reward, planner, observation, data
         return {"eval": str(existing), "reused": True}
     write_json_atomic(writer.path / RUNS_FILE, runs)  # run name -> policy and training seed, for the report
     observe_fn = make_observe_fn(eval.observation, eval.num_points, observation, seed=eval.seed)
+    if eval.jobs > 1:  # the episodes in worker processes; the run below then finds them all written (resume)
+        evaluate_in_processes(specs, eval.jobs, env.batch_size, ctx, writer.path, eval, sim, topology, reward,
+                              planner, observation, sampler, task_cfgs)
     run_evaluation(specs, policies, env, task_cfgs, writer.path, reward, topology, observe_fn, cfg=eval,
                    progress=ctx.progress, logger=ctx.logger, spacing=sim.spacing)
     for t in teleop:  # the human reference: each committed log replayed like a policy, one episode each
@@ -205,6 +212,48 @@ def run(ctx: RunContext, eval, sim, topology, reward, planner, observation, data
     print((path / "results.md").read_text())
     return {"eval": str(path), "episodes": len(specs) * len(policies) + len(teleop), "rows": len(rows),
             "table": str(path / "results.md")}
+
+
+def split_specs(specs: list, jobs: int, batch: int) -> list[list]:
+    """specs in batches of ``batch`` (as run_evaluation groups them), dealt round-robin to ``jobs`` parts: each part
+    regroups into exactly those batches, so an episode runs beside the same others as in one process."""
+    groups = [specs[i:i + batch] for i in range(0, len(specs), batch)]
+    return [[s for g in groups[j::jobs] for s in g] for j in range(jobs)]
+
+
+def evaluate_in_processes(specs, jobs: int, batch: int, ctx: RunContext, out_dir: Path, eval, sim, topology, reward,
+                          planner, observation, sampler, task_cfgs) -> None:
+    """The episodes of ``specs`` in ``jobs`` joblib worker processes (each its own Taichi/CUDA context), their JSONs
+    written under out_dir as run_evaluation writes them."""
+    from joblib import Parallel, delayed
+
+    parts = [p for p in split_specs(specs, jobs, batch) if p]
+    log.info("eval: %d episode specs x %d policies in %d processes (eval.jobs=%d); their episodes resume like one "
+             "process's", len(specs), len(eval.policies), len(parts), jobs)
+    Parallel(n_jobs=len(parts), backend="loky")(
+        delayed(_evaluate_part)(part, str(ctx.store.root), str(out_dir), ctx.device, ctx.seed, eval, sim, topology,
+                                reward, planner, observation, sampler, task_cfgs) for part in parts)
+
+
+def _evaluate_part(specs, store_root: str, out_dir: str, device: str, seed: int, eval, sim, topology, reward, planner,
+                   observation, sampler, task_cfgs) -> None:
+    """One worker of evaluate_in_processes: its own simulator and policies, then run_evaluation of its specs."""
+    from topocut.data.store import ArtifactStore
+    from topocut.eval.protocol import make_observe_fn, run_evaluation
+    from topocut.sim import CuttingEnv, init_taichi
+    from topocut.utils.runtime import seed_everything_all
+
+    seed_everything_all(seed)
+    init_taichi(arch=device, seed=seed, cpu_threads=(eval.cpu_threads or None) if device == "cpu" else None)
+    env = CuttingEnv(sim, batch_size=max(1, sim.batch_size))
+    ctx = RunContext(store=ArtifactStore(Path(store_root)), run_dir=Path(out_dir), device=device, seed=seed,
+                     logger=None, progress=False)
+    policies, _ = build_policies(ctx, eval.policies, env, sim, planner, reward, topology, task_cfgs, sampler,
+                                 versions=eval.checkpoints, train_seeds=eval.train_seeds,
+                                 policy_kwargs=eval.policy_kwargs)
+    observe_fn = make_observe_fn(eval.observation, eval.num_points, observation, seed=eval.seed)
+    run_evaluation(specs, policies, env, task_cfgs, out_dir, reward, topology, observe_fn, cfg=eval, progress=False,
+                   spacing=sim.spacing)
 
 
 def render_episodes(specs, policies, env, task_cfgs, out_dir, eval, reward, topology, observe_fn, spacing):

@@ -185,3 +185,26 @@ def test_stage_all_refuses_an_unknown_cell():
         cfg = compose(config_name="config", overrides=["stage=all", "data.tasks=[slice,scooping]"])
         with pytest.raises(ConfigError, match="data.tasks.*'scooping'.*valid: slice, stick, dice, pyramid"):
             validate(cfg)
+
+
+def test_eval_jobs_deal_whole_batches_and_leave_the_artifact_key_alone():
+    """eval.jobs: batches of sim.batch_size specs dealt round-robin (each part regroups into exactly the batches one
+    process runs, every spec once); the number of processes does not key the evaluation artifact."""
+    import dataclasses
+
+    from pipelines.eval import artifact_config, split_specs
+    from topocut.eval.config import EvalConfig
+
+    specs = list(range(11))
+    parts = split_specs(specs, 3, 2)
+    assert parts == [[0, 1, 6, 7], [2, 3, 8, 9], [4, 5, 10]]
+    batches = {tuple(specs[i:i + 2]) for i in range(0, 11, 2)}
+    for part in parts:
+        assert {tuple(part[i:i + 2]) for i in range(0, len(part), 2)} <= batches
+    assert sorted(s for p in split_specs(specs, 4, 3) for s in p) == specs
+    assert split_specs(specs, 20, 4)[3:] == [[]] * 17  # more processes than batches: the rest idle (dropped)
+    ev = EvalConfig()
+    keys = [artifact_config(dataclasses.replace(ev, jobs=j), None, None, None, None, None, None, {}, 0) for j in (1, 8)]
+    assert keys[0] == keys[1] and "jobs" not in keys[0]["eval"]
+    with pytest.raises(ValueError, match="eval.jobs=0"):
+        dataclasses.replace(ev, jobs=0).validate()

@@ -51,6 +51,10 @@ class EvalConfig:
     bootstrap_seed: int = 0
     # Taichi CPU threads when the eval stage starts Taichi: 1 = reproducible CPU runs (docs/evaluation.md), 0 = all cores
     cpu_threads: int = 0
+    # processes evaluating at once (joblib's loky workers, each its own simulator and policies; batches of
+    # sim.batch_size episode specs dealt round-robin, so every batch is the one a single process runs).  Not part of
+    # the artifact's key: the episodes are the same however many processes run them
+    jobs: int = 1
     observation: str = "particles"  # particles (FPS of particles) | depth (topocut.topology.observation)
     num_points: int = 2048  # observation points handed to the policy (matches data.points_per_step)
     min_fragment_points: int = 4  # smaller labelled clusters are debris, not pieces
@@ -77,6 +81,8 @@ class EvalConfig:
         if self.episodes_per_cell < 1 or self.max_cuts < 1:
             raise ValueError(f"eval.episodes_per_cell={self.episodes_per_cell} and eval.max_cuts={self.max_cuts} "
                              "must be >= 1")
+        if self.jobs < 1:
+            raise ValueError(f"eval.jobs={self.jobs} must be >= 1 (processes evaluating at once)")
         if self.train_seeds < 1 or self.bootstrap_resamples < 1 or self.cpu_threads < 0:
             raise ValueError(f"eval.train_seeds={self.train_seeds} and eval.bootstrap_resamples="
                              f"{self.bootstrap_resamples} must be >= 1, eval.cpu_threads={self.cpu_threads} >= 0")
