@@ -165,3 +165,28 @@ def test_host_and_device_eigen_solvers_agree():
     assert torch.allclose(wh, wd, rtol=1e-9, atol=1e-12) and torch.allclose(sh, sd, rtol=1e-6, atol=1e-9)
     with pytest.raises(ValueError, match="reward.eig_solver"):
         RewardConfig(eig_solver="gpu").validate()
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="the captured-graph pick loop runs on CUDA only")
+def test_fps_graph_picks_equal_the_launched_loop_and_numpy():
+    """fps_torch on CUDA replays one captured graph per pick: the same picks as the kernel-by-kernel loop and as
+    numpy's fps of each (unpadded) cloud."""
+    import topocut.metrics.sampling as sampling
+
+    rng = np.random.default_rng(8)
+    clouds = [rng.random((int(n), 3)) * [0.03, 0.15, 0.1] for n in rng.integers(100, 900, 6)]
+    N = max(len(c) for c in clouds)
+    P, M = np.zeros((6, N, 3)), np.zeros((6, N), bool)
+    for b, c in enumerate(clouds):
+        P[b, :len(c)], M[b, :len(c)] = c, True
+    p, m = torch.tensor(P, device="cuda"), torch.tensor(M, device="cuda")
+    graph = fps_torch(p, 64, m).cpu().numpy()
+    old = sampling.GRAPH_MIN_PICKS
+    sampling.GRAPH_MIN_PICKS = 10 ** 9
+    try:
+        loop = fps_torch(p, 64, m).cpu().numpy()
+    finally:
+        sampling.GRAPH_MIN_PICKS = old
+    np.testing.assert_array_equal(graph, loop)
+    for b, c in enumerate(clouds):
+        np.testing.assert_array_equal(graph[b], fps(c, 64))
