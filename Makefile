@@ -67,7 +67,7 @@ table2: setup
 		model.num_points=128,256 hydra/launcher=joblib $(ARGS)
 	$(BIN)/python -m topocut.run -m stage=pretrain scale=$(SCALE) model=pointnet model.sort=false,true \
 		model.num_points=512 hydra/launcher=joblib $(ARGS)
-	$(BIN)/python -m topocut.models.table2 --root $${TOPOCUT_OUTPUTS:-outputs}
+	$(BIN)/python experiments/table2.py --root $${TOPOCUT_OUTPUTS:-outputs}
 
 clean-outputs:
 	rm -rf $${TOPOCUT_OUTPUTS:-outputs}

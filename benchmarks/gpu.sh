@@ -124,7 +124,7 @@ PY
       | tee "$OUT/table2.txt"
     timeout 220 python3 -m topocut.run -m hydra/launcher=joblib hydra.launcher.n_jobs=2 stage=pretrain model=pointnet \
       model.sort=false,true model.num_points=512 $G 2>&1 | grep -E "summary|Error" | tee -a "$OUT/table2.txt"
-    python3 -m topocut.models.table2 --root /tmp/o --out "$OUT/table2.md" ;;
+    python3 experiments/table2.py --root /tmp/o --out "$OUT/table2.md" ;;
   train)  # pretrain F, then PDDP / w/o perception / DP3 / 3DDA on the merged dataset
     G="scale=smoke device=cuda trainer=gpu outputs_root=/tmp/o logger=none progress=false"
     python3 -m topocut.run stage=merge $G 2>&1 | grep -E "summary|Error" | tee "$OUT/merge.txt"

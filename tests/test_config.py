@@ -182,3 +182,18 @@ def test_seeding_matches_lightning_without_importing_it():
                                   check=True).stdout.split("\n")[:2]
     assert ours.endswith(" False")  # Lightning not imported
     assert ours.rsplit(" ", 1)[0] == theirs
+
+
+def test_host_threads_follow_omp_num_threads(monkeypatch):
+    """host_threads: OMP_NUM_THREADS when set (joblib's workers get cpu_count // n_jobs), else every core."""
+    import os
+
+    from topocut.utils.runtime import host_threads
+
+    monkeypatch.setenv("OMP_NUM_THREADS", "3")
+    assert host_threads() == 3
+    for value in ("", "0", "x"):
+        monkeypatch.setenv("OMP_NUM_THREADS", value)
+        assert host_threads() == (os.cpu_count() or 1)
+    monkeypatch.delenv("OMP_NUM_THREADS")
+    assert host_threads() == (os.cpu_count() or 1)

@@ -6,14 +6,13 @@ those keys therefore leaves one version per row; this module reads them back and
 
     python -m topocut.run -m stage=pretrain model.sort=false,true model.noise=false,true model.num_points=128,256
     python -m topocut.run -m stage=pretrain model=pointnet model.num_points=512,2048
-    python -m topocut.models.table2 --root outputs --out docs/perception_table2.md
+    python experiments/table2.py --root outputs --out docs/perception_table2.md
 
 Rows sharing a configuration (reruns, whatever their seed) are listed once, the newest version winning;
 ``other`` names the settings without a column of their own on which the rows differ.
 """
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 
@@ -122,21 +121,3 @@ def _fmt(v) -> str:
 def markdown(rows: list[dict]) -> str:
     head = "| " + " | ".join(COLUMNS) + " |\n|" + "---|" * len(COLUMNS) + "\n"
     return head + "".join("| " + " | ".join(_fmt(r[c]) for c in COLUMNS) + " |\n" for r in rows)
-
-
-def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--root", default="outputs", help="artifact store root (outputs_root)")
-    ap.add_argument("--out", default=None, help="write the markdown table here (default: print only)")
-    args = ap.parse_args(argv)
-    rows = collect(args.root)
-    if not rows:
-        raise SystemExit(f"no checkpoint/perception* versions under {args.root!r}; run stage=pretrain first")
-    text = markdown(rows)
-    print(text)
-    if args.out:
-        Path(args.out).write_text(text)
-
-
-if __name__ == "__main__":
-    main()

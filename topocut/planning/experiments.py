@@ -1,7 +1,7 @@
 """Experiments of the additional tasks (docs/tasks.md): pyramid cutting (paper appendix "Pyramid Cutting
-Task"), MPPI driven only by the spectral reward; and cream writing (``... experiments writing``).
+Task"), MPPI driven only by the spectral reward; and cream writing (``... task_figures.py writing``).
 
-``python -m topocut.planning.experiments pyramid --out docs/img/pyramid.png`` starts MPPI from a
+``python experiments/task_figures.py pyramid --out docs/img/pyramid.png`` starts MPPI from a
 plane that misses the goal (shifted, yawed and less tilted than the ideal one), lets it sample
 (x, y, yaw, tilt) of one cut, scores every sample by simulating the cut, discovering the pieces
 and computing the spectral reward against the corner tetrahedron, and draws the planned plane,
@@ -13,7 +13,6 @@ rank; every reported number is the reward under the default RewardConfig.
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import time
@@ -253,36 +252,3 @@ def writing_experiment(word: str = "CORL", n_grid: int = 48, num_samples: int = 
                                   (f"MPPI over strokes (K={num_samples}, {iterations} it.)", xm[0], sm, planned)])
         Path(out).with_suffix(".json").write_text(json.dumps(result, indent=2, default=float))
     return result
-
-
-def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    sub = ap.add_subparsers(dest="cmd", required=True)
-    p = sub.add_parser("pyramid", help="MPPI on the pyramid task; figure + JSON of the numbers")
-    p.add_argument("--out", default="docs/img/pyramid.png")
-    p.add_argument("--n-grid", type=int, default=48)
-    p.add_argument("--samples", type=int, default=8)
-    p.add_argument("--iterations", type=int, default=6)
-    p.add_argument("--size", type=float, default=0.1)
-    p.add_argument("--init", type=float, nargs=3, default=(-0.02, 0.35, -0.3), metavar=("OFFSET", "DYAW", "DTILT"))
-    p.add_argument("--delta", type=float, default=1.1)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
-    w = sub.add_parser("writing", help="cream writing: scripted writer vs MPPI over strokes; figure + JSON")
-    w.add_argument("--out", default="docs/img/cream_writing.png")
-    w.add_argument("--word", default="CORL")
-    w.add_argument("--n-grid", type=int, default=48)
-    w.add_argument("--samples", type=int, default=4)
-    w.add_argument("--iterations", type=int, default=2)
-    w.add_argument("--seed", type=int, default=0)
-    args = ap.parse_args(argv)
-    if args.cmd == "writing":
-        res = writing_experiment(args.word, args.n_grid, args.samples, args.iterations, args.seed, args.out)
-    else:
-        res = pyramid_experiment(args.n_grid, args.samples, args.iterations, args.size, tuple(args.init),
-                                 args.delta, args.seed, args.device, args.out)
-    print(json.dumps(res, indent=2, default=float))
-
-
-if __name__ == "__main__":
-    main()

@@ -84,10 +84,11 @@ def size_descriptor(points, spacing: float | None = None) -> np.ndarray:
 
 def size_descriptors(clouds: list) -> list[np.ndarray]:
     """size_descriptor of each cloud, in threads (the KD-tree queries and the sorts release the GIL)."""
-    import os
     from concurrent.futures import ThreadPoolExecutor
 
-    workers = max(1, min(len(clouds), os.cpu_count() or 1))
+    from topocut.utils.runtime import host_threads
+
+    workers = max(1, min(len(clouds), host_threads()))
     if workers == 1:
         return [size_descriptor(c) for c in clouds]
     with ThreadPoolExecutor(max_workers=workers) as pool:

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -27,6 +26,7 @@ from topocut.sim.config import SimConfig
 from topocut.sim.mpm import MPMSolver, init_taichi
 from topocut.sim.primitives import Primitives
 from topocut.sim.scenes import NO_STEP, Scenes, SimState, cell_order  # noqa: F401 - SimState, cell_order: re-exported
+from topocut.utils.runtime import host_threads
 
 
 class SimulationDiverged(RuntimeError):
@@ -179,7 +179,7 @@ class CuttingEnv(Scenes, Primitives):
         cut = [b for b in range(self.B) if not idle[b]]
         self.push_side[idle] = 0  # an idle scene cut nothing off
         side[idle] = s.field_side.to_numpy().reshape(self.B, -1)[idle]
-        with ThreadPoolExecutor(max_workers=max(1, min(len(cut), os.cpu_count() or 1))) as pool:
+        with ThreadPoolExecutor(max_workers=max(1, min(len(cut), host_threads()))) as pool:
             for b, (after, field, conflicts, cut_off, sides) in zip(cut, pool.map(one, cut)):
                 c = counts[b]
                 self.piece[b, :c], body[b, :c], self.push_side[b], side[b] = after, field, cut_off, sides

@@ -1,11 +1,10 @@
 """Headless pictures of particle scenes: PNG scatter plots (matplotlib Agg) and GIFs (imageio).
 
-``python -m topocut.sim.render --objects docs/img/objects.png`` draws every
+``python experiments/render_objects.py --objects docs/img/objects.png`` draws every
 object of topocut.sim.objects (core grey, skin orange) for docs/sim.md.
 """
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 import numpy as np
@@ -174,16 +173,3 @@ def render_objects(path, spacing: float = 0.006, view=(25.0, -60.0)) -> Path:
     fig.savefig(path, bbox_inches="tight")
     plt.close(fig)
     return path
-
-
-def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--objects", metavar="PNG", help="draw every object into this PNG")
-    args = ap.parse_args(argv)
-    if not args.objects:
-        ap.error("nothing to do: pass --objects PATH")
-    print(render_objects(args.objects))
-
-
-if __name__ == "__main__":
-    main()

@@ -55,3 +55,14 @@ def seed_everything_all(seed: int) -> None:
     os.environ["TOPOCUT_SEED"] = str(seed)
     os.environ["PL_GLOBAL_SEED"] = str(seed)
     os.environ["PL_SEED_WORKERS"] = "1"
+
+
+def host_threads() -> int:
+    """Threads one process may use for its host work (the piece split, the piece sizes): OMP_NUM_THREADS when set
+    (joblib's loky workers get cpu_count // n_jobs there, so 8 demonstration processes on 16 cores do not run 16
+    threads each), else every core."""
+    try:
+        n = int(os.environ.get("OMP_NUM_THREADS", ""))
+    except ValueError:
+        n = 0
+    return max(1, n if n > 0 else (os.cpu_count() or 1))
