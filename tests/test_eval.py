@@ -367,8 +367,9 @@ def test_teleop_is_not_a_policy_eval_runs():
 def test_eval_artifact_key_covers_sampler_and_task_parameters():
     import dataclasses
 
-    from pipelines.eval import artifact_config, task_configs
+    from pipelines.eval import artifact_config
     from topocut.data.store import config_key
+    from topocut.eval.runner import task_configs
     from topocut.policies.config import SamplerConfig
 
     tasks = task_configs(["slice"], 5)
@@ -441,7 +442,7 @@ def test_teleop_reference_replays_committed_logs_like_a_policy(tmp_path):
 
 def test_eval_task_overrides_reach_the_task_configs_and_are_checked():
     """eval.task_overrides puts task parameters over conf/task/<task>.yaml (the smoke scale's 5 cm slabs)."""
-    from pipelines.eval import task_configs
+    from topocut.eval.runner import task_configs
 
     cfgs = task_configs(["slice", "dice"], 2, {"slice": {"thickness": 0.05}})
     assert (cfgs["slice"].thickness, cfgs["slice"].max_cuts, cfgs["slice"].push) == (0.05, 2, False)

@@ -175,7 +175,7 @@ def _ckpt(store, name, seed, trainer="a", data="dataset/demos:v001@abc"):
 
 def test_eval_finds_each_training_seeds_checkpoint_of_the_same_run(tmp_path, monkeypatch):
     import topocut.policies.baselines.module as baselines
-    from pipelines.eval import build_policies, seed_checkpoints
+    from topocut.eval.runner import build_policies, seed_checkpoints
 
     store = ArtifactStore(tmp_path)
     _ckpt(store, "dp3", 0)  # v001

@@ -46,7 +46,7 @@ def test_stage_all_pins_parse_as_hydra_overrides():
 
 def test_eval_loads_the_pinned_checkpoint_version_and_records_it(tmp_path, monkeypatch):
     import topocut.policies.baselines.module as baselines
-    from pipelines.eval import build_policies
+    from topocut.eval.runner import build_policies
 
     store = ArtifactStore(tmp_path)
     for i in range(3):  # checkpoint/dp3/v001..v003
@@ -192,8 +192,9 @@ def test_eval_jobs_deal_whole_batches_and_leave_the_artifact_key_alone():
     process runs, every spec once); the number of processes does not key the evaluation artifact."""
     import dataclasses
 
-    from pipelines.eval import artifact_config, split_specs
+    from pipelines.eval import artifact_config
     from topocut.eval.config import EvalConfig
+    from topocut.eval.runner import split_specs
 
     specs = list(range(11))
     parts = split_specs(specs, 3, 2)

@@ -7,7 +7,7 @@ fields it reads.  Every learned policy reads the same ``topocut.policies.inputs.
 *with its piece labels* included -- built by ``topocut.policies.inputs.policy_inputs``.
 
 The stages ask this module instead of keeping their own lists: ``pipelines/bc.py`` (what it trains and how:
-``training_setup``), ``pipelines/eval.py`` (what it builds and loads: ``load_learned``), the pose baselines'
+``training_setup``), ``topocut/eval/runner.py`` (what it builds and loads: ``load_learned``), the pose baselines'
 module (``pose_kinds``); ``display_names()`` is Table 1's row labels.
 
 Torch-free at import; the builders import their modules when called.

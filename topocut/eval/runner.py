@@ -1,0 +1,207 @@
+"""What stage=eval runs, as library functions: the task configs, the policies (scripted, MPPI, learned checkpoints
+per training seed, your own classes), the episodes in several processes, and the GIF / cutting-sequence renders.
+pipelines/eval.py reads the config, calls these and commits the artifact (docs/evaluation.md).
+"""
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+from omegaconf import OmegaConf
+
+from topocut.policies import registry
+from topocut.utils.context import RunContext
+
+CONF_TASKS = Path(__file__).resolve().parent.parent.parent / "conf" / "task"
+SCRIPTED, LEARNED = registry.scripted(), registry.learned()  # topocut.policies.registry: the one policy list
+_log = logging.getLogger("topocut")
+
+
+def task_configs(names, max_cuts: int, overrides=None) -> dict:
+    """TaskConfig per task from conf/task/<name>.yaml (one source of truth for task parameters), with
+    ``overrides[name]`` (eval.task_overrides) on top; the cut budget is eval.max_cuts, raised to the task's
+    own minimum (``min_cuts``: a die needs 3)."""
+    from topocut.goals.config import TaskConfig
+
+    out = {}
+    for name in names:
+        f = CONF_TASKS / f"{name}.yaml"
+        if not f.exists():
+            raise KeyError(f"eval.tasks: unknown task {name!r}; valid: {', '.join(sorted(p.stem for p in CONF_TASKS.glob('*.yaml')))}")
+        over = (overrides or {}).get(name, {})
+        cfg = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(TaskConfig), OmegaConf.load(f), over))
+        from topocut.tasks import get_task
+
+        cfg.max_cuts = max(max_cuts, get_task(name).min_cuts)  # dice need 3 cuts even where eval.max_cuts is 2
+        cfg.validate()
+        out[name] = cfg
+    return out
+
+
+def _train_seed(manifest: dict):
+    """The seed a checkpoint was trained with (the bc stage records it in the manifest and its config)."""
+    seed = manifest.get("seed", (manifest.get("config") or {}).get("seed"))
+    return int(seed) if isinstance(seed, int) and not isinstance(seed, bool) else None
+
+
+def _training_run(manifest: dict) -> str:
+    """What makes checkpoints the same training run but for the seed: their config without it, and their inputs."""
+    config = {k: v for k, v in (manifest.get("config") or {}).items() if k != "seed"}
+    return json.dumps([config, manifest.get("inputs") or {}], sort_keys=True, default=str)
+
+
+def seed_checkpoints(store, name: str, version: str = "latest", seeds=None) -> list[tuple[int | None, Path]]:
+    """[(training seed, checkpoint path)] of ``checkpoint/<name>`` to evaluate.
+
+    ``seeds`` None: the ``version`` (pinned or latest) alone.  Otherwise, per seed, the newest version trained with
+    that seed whose training config (but the seed) and inputs equal ``version``'s: the siblings a Hydra multirun
+    (`-m stage=bc seed=0,1,2`) commits.  A seed without one is a MissingArtifact naming the command that trains it.
+    """
+    from topocut.data.store import CorruptArtifact, MissingArtifact
+
+    anchor = store.resolve("checkpoint", name, version)
+    manifest = store.manifest(anchor)
+    if seeds is None:
+        return [(_train_seed(manifest), anchor)]
+    run, found = _training_run(manifest), {}
+    for v in reversed(store.versions("checkpoint", name)):
+        try:
+            m = store.manifest(store.root / "checkpoint" / name / v)
+        except CorruptArtifact:  # an unreadable or other-schema version is no sibling of a readable one
+            continue
+        seed = _train_seed(m)
+        if seed in seeds and seed not in found and _training_run(m) == run:
+            found[seed] = v
+    missing = [s for s in seeds if s not in found]
+    if missing:
+        raise MissingArtifact(
+            f"checkpoint/{name}: eval.train_seeds={len(seeds)} pools the checkpoints trained with seeds "
+            f"{', '.join(map(str, seeds))} like {anchor.name} (same training config and inputs); none was trained "
+            f"with seed {', '.join(map(str, missing))}. Train them with `python -m topocut.run -m stage=bc "
+            f"seed={','.join(map(str, seeds))}` (same overrides otherwise), or set eval.train_seeds=1")
+    return [(s, store.resolve("checkpoint", name, found[s])) for s in seeds]
+
+
+def build_policies(ctx: RunContext, names, env, sim, planner, reward, topology, task_cfgs, sampler=None,
+                   versions=None, train_seeds: int = 1, runs: dict | None = None, policy_kwargs=None):
+    """{run name: policy}, {run name: checkpoint ref}.  A learned policy is one run (its name) with
+    ``train_seeds=1``, else one run ``<name>@s<seed>`` per training seed ctx.seed .. ctx.seed+k-1; ``runs``, when
+    given, receives {run name: {"policy", "train_seed", "checkpoint"}} (the report's policies.json)."""
+    from topocut.eval.report import run_name
+    from topocut.planning import HeuristicPolicy, MPPIPolicy, sim_rollout_factory
+    from topocut.planning.heuristic import FixedTrajectoryPolicy
+
+    registry.check(names, "eval.policies", external=True, kwargs=policy_kwargs)
+    seeds = None if train_seeds == 1 else [ctx.seed + i for i in range(train_seeds)]
+    policies, inputs, runs = {}, {}, runs if runs is not None else {}
+    for name in names:
+        if registry.is_import_path(name):  # your own policy class (docs/evaluation.md): episodes/<safe name>/
+            ext = registry.load_external(name)
+            runs[ext.run] = {"policy": name, "train_seed": None, "checkpoint": None, "display": ext.display}
+            inputs[ext.run] = ext.fingerprint()  # its source keys the artifact
+            policies[ext.run] = ext.build(policy_kwargs)
+            continue
+        if name in SCRIPTED:
+            runs[name] = {"policy": name, "train_seed": None, "checkpoint": None}
+        if name == "oracle":
+            policies[name] = HeuristicPolicy()
+        elif name == "heuristic":
+            policies[name] = FixedTrajectoryPolicy(task_cfgs, spacing=sim.spacing, board_z=sim.board_z)
+        elif name == "mppi":
+            push = {task: bool(t.push) for task, t in task_cfgs.items()}  # rollouts do what the episode does
+            factory = sim_rollout_factory(env, reward, topology, board_z=sim.board_z, push=push)
+            policies[name] = MPPIPolicy(planner, factory, seed=ctx.seed)
+        else:
+            for seed, path in seed_checkpoints(ctx.store, name, (versions or {}).get(name, "latest"), seeds):
+                run = name if seeds is None else run_name(name, seed)
+                inputs[run] = ctx.store.ref(path)
+                runs[run] = {"policy": name, "train_seed": seed, "checkpoint": inputs[run]}
+                policies[run] = _load_learned(ctx, name, path, sim, sampler)
+    return policies, inputs
+
+
+def _load_learned(ctx, name: str, path: Path, sim, sampler):
+    # the sampler's seed is the evaluation's, whatever seed trained the checkpoint: training seeds differ in
+    # their weights alone
+    return registry.load_learned(name, path / "model.ckpt", device=ctx.device, seed=ctx.seed,
+                                 board_z=getattr(sim, "board_z", 0.05), sampler=sampler)
+
+
+def split_specs(specs: list, jobs: int, batch: int) -> list[list]:
+    """specs in batches of ``batch`` (as run_evaluation groups them), dealt round-robin to ``jobs`` parts: each part
+    regroups into exactly those batches, so an episode runs beside the same others as in one process."""
+    groups = [specs[i:i + batch] for i in range(0, len(specs), batch)]
+    return [[s for g in groups[j::jobs] for s in g] for j in range(jobs)]
+
+
+def evaluate_in_processes(specs, jobs: int, batch: int, ctx: RunContext, out_dir: Path, eval, sim, topology, reward,
+                          planner, observation, sampler, task_cfgs) -> None:
+    """The episodes of ``specs`` in ``jobs`` joblib worker processes (each its own Taichi/CUDA context), their JSONs
+    written under out_dir as run_evaluation writes them."""
+    from joblib import Parallel, delayed
+
+    parts = [p for p in split_specs(specs, jobs, batch) if p]
+    _log.info("eval: %d episode specs x %d policies in %d processes (eval.jobs=%d); their episodes resume like one "
+             "process's", len(specs), len(eval.policies), len(parts), jobs)
+    Parallel(n_jobs=len(parts), backend="loky")(
+        delayed(_evaluate_part)(part, str(ctx.store.root), str(out_dir), ctx.device, ctx.seed, eval, sim, topology,
+                                reward, planner, observation, sampler, task_cfgs) for part in parts)
+
+
+def _evaluate_part(specs, store_root: str, out_dir: str, device: str, seed: int, eval, sim, topology, reward, planner,
+                   observation, sampler, task_cfgs) -> None:
+    """One worker of evaluate_in_processes: its own simulator and policies, then run_evaluation of its specs."""
+    from topocut.data.store import ArtifactStore
+    from topocut.eval.protocol import make_observe_fn, run_evaluation
+    from topocut.sim import CuttingEnv, init_taichi
+    from topocut.utils.runtime import seed_everything_all
+
+    seed_everything_all(seed)
+    init_taichi(arch=device, seed=seed, cpu_threads=(eval.cpu_threads or None) if device == "cpu" else None)
+    env = CuttingEnv(sim, batch_size=max(1, sim.batch_size))
+    ctx = RunContext(store=ArtifactStore(Path(store_root)), run_dir=Path(out_dir), device=device, seed=seed,
+                     logger=None, progress=False)
+    policies, _ = build_policies(ctx, eval.policies, env, sim, planner, reward, topology, task_cfgs, sampler,
+                                 versions=eval.checkpoints, train_seeds=eval.train_seeds,
+                                 policy_kwargs=eval.policy_kwargs)
+    observe_fn = make_observe_fn(eval.observation, eval.num_points, observation, seed=eval.seed)
+    run_evaluation(specs, policies, env, task_cfgs, out_dir, reward, topology, observe_fn, cfg=eval, progress=False,
+                   spacing=sim.spacing)
+
+
+def render_episodes(specs, policies, env, task_cfgs, out_dir, eval, reward, topology, observe_fn, spacing):
+    """For PDDP (or the first policy), the first ``eval.gifs`` episodes per task: a GIF each (particles coloured by
+    cluster id after every cut and turn, the knife of the cut, the board: the episode engine's own frames), and
+    ``sequences.png``, the paper's cutting-sequence figure (a row per task: initial state, goal, each cut)."""
+    from topocut.episode import env_board_z, run_episodes
+    from topocut.eval.protocol import _episode, scoring_for
+    from topocut.sim.render import render_particles, render_sequences, write_gif
+
+    name = next((n for n in policies if n.split("@")[0] == "pddp"), next(iter(policies)))
+    sc = scoring_for(env, reward, topology, eval.min_fragment_points)
+    board_z, rows = env_board_z(env), []
+    for task in eval.tasks:
+        chosen = [s for s in specs if s.task == task][: eval.gifs]
+        logs = run_episodes(env, [_episode(s, task_cfgs[task]) for s in chosen], policies[name], sc,
+                            max_cuts=eval.max_cuts, observe_fn=observe_fn, stop_on_success=eval.stop_on_success,
+                            spacing=spacing, frames=True)
+        for spec, log in zip(chosen, logs):
+            frames, panels = [], []
+            x0 = log.frames[0][0]
+            limits = (x0.min(0) - 0.03, x0.max(0) + 0.03)
+            for i, (x, labels, what, knife) in enumerate(log.frames):  # knife: a cut's executed action
+                frames.append(render_particles(x, labels, out_dir / f"{spec.key}_{name}_{i}.png",
+                                               title=f"{name} {spec.key} {what}", limits=limits, size=6,
+                                               knife=knife, board_z=board_z))
+                if i == 0 or knife is not None:
+                    panels.append((x, labels, knife, "initial" if i == 0 else what))
+                if i == 0 and log.goal is not None:
+                    panels.append((log.goal.points, log.goal.labels, None, "goal"))
+            write_gif(frames, out_dir / f"{spec.key}_{name}.gif", fps=1.5)
+            for f in frames:
+                f.unlink()
+            if len(rows) < len(eval.tasks) and spec is chosen[0]:
+                rows.append((f"{task}: {spec.object}", panels))
+    if rows:
+        render_sequences(rows, out_dir / "sequences.png", board_z=board_z)
