@@ -129,9 +129,9 @@ def test_a_checkpoint_from_before_goal_input_loads_as_the_task_blind_network(tmp
 
 def test_the_registry_is_the_one_policy_list():
     from pipelines import bc
-    from pipelines import eval as eval_stage
     from topocut.eval import config as eval_config
     from topocut.eval import report
+    from topocut.eval import runner as eval_stage
     from topocut.policies.baselines import module as baselines
 
     assert registry.names() == ("oracle", "heuristic", "mppi", "dp3", "3dda", "pddp_noperc", "pddp_graphconv", "pddp")
