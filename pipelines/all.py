@@ -73,7 +73,8 @@ def _timed_stage(cfg, run_dir: Path, overrides: list[str]) -> tuple[dict, float]
 def run(ctx: RunContext, sequence: list[str], trainer=None) -> dict:
     """Each stage of ``sequence`` as its own run under ``<run dir>/<label>``, later ones pinned to what earlier ones
     wrote.  mppi runs once per cell (several cells: shards, data.jobs of them at once in worker processes, then one
-    merge of exactly those); bc once per training seed.  Every run reuses a committed artifact of the same config, so a killed pipeline resumes where it stopped;
+    merge of exactly those); bc once per training seed (trainer.jobs of them at once).
+    Every run reuses a committed artifact of the same config, so a killed pipeline resumes where it stopped;
     the summary ends with each run's wall time."""
     from topocut.run import run_stage
 
@@ -107,37 +108,38 @@ def run(ctx: RunContext, sequence: list[str], trainer=None) -> dict:
         pins.update(produced_versions(name, summaries[label], cfg, policies=ctx.config["eval"]["policies"]))
         return summaries[label]
 
-    def cells_at_once(todo: list[tuple[str, dict]], jobs: int) -> list[dict]:
-        """mppi runs of ``todo`` [(label, own keys)], ``jobs`` at a time in joblib's worker processes (each its
-        own Taichi/CUDA context; composed here, run there); their summaries in order."""
+    def at_once(name: str, todo: list[tuple[str, dict]], jobs: int) -> list[dict]:
+        """Runs of stage ``name`` for ``todo`` [(label, own keys)], ``jobs`` at a time in joblib's worker processes
+        (each its own Taichi/CUDA context; composed here, run there); their summaries in order."""
         from joblib import Parallel, delayed
 
+        if jobs <= 1:
+            return [one(name, label, own) for label, own in todo]
         runs = []
         for label, own in todo:
-            overrides = overrides_of("mppi", own)
+            overrides = overrides_of(name, own)
             runs.append((label, _compose(overrides), overrides))
         started = time.time()
         out = Parallel(n_jobs=min(jobs, len(runs)), backend="loky")(
             delayed(_timed_stage)(cfg, ctx.run_dir / label, overrides) for label, cfg, overrides in runs)
-        for (label, _, _), (summary, seconds) in zip(runs, out):
+        for (label, cfg, _), (summary, seconds) in zip(runs, out):
             summaries[label], wall[label] = summary, seconds
-        wall["mppi-cells"] = round(time.time() - started, 1)
+            pins.update(produced_versions(name, summary, cfg, policies=ctx.config["eval"]["policies"]))
+        wall[f"{name}-at-once"] = round(time.time() - started, 1)
         return [summaries[label] for label, _, _ in runs]
 
     for name in sequence:
         if name == "mppi" and len(cells(ctx.config)) > 1:
             todo = [(f"mppi-{t}-{o}", {"task": t, "object": o, "data.shard": "true"}) for t, o in cells(ctx.config)]
-            jobs = int(ctx.config["data"]["jobs"])
-            done = cells_at_once(todo, jobs) if jobs > 1 else [one("mppi", label, own) for label, own in todo]
-            shards = [Path(s["dataset"]) for s in done]
+            shards = [Path(s["dataset"]) for s in at_once("mppi", todo, int(ctx.config["data"]["jobs"]))]
             one("merge", "merge", {"stage.run.only": "[" + ",".join(f"'{p.parent.name}'" for p in shards) + "]"})
         elif name == "mppi":
             (t, o), = cells(ctx.config)
             data = ctx.config["data"]
             one("mppi", "mppi", {"task": t, "object": o} if data["tasks"] or data["objects"] else None)
         elif name == "bc" and len(train_seeds(ctx.config)) > 1:
-            for s in train_seeds(ctx.config):
-                one("bc", f"bc-s{s}", {"seed": s})
+            at_once("bc", [(f"bc-s{s}", {"seed": s}) for s in train_seeds(ctx.config)],
+                    int(ctx.config["trainer"]["jobs"]))
         else:
             one(name, name)
     summaries["wall_s"] = wall

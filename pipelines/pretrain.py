@@ -19,6 +19,7 @@ def run(ctx: RunContext, model, trainer, data) -> dict:
     ds_path = ctx.store.resolve("dataset", data.dataset, data.version)
     inputs = {"dataset": ctx.store.ref(ds_path)}
     config = as_dict(("model", model), ("trainer", trainer), ("seed", ctx.seed))
+    config["trainer"].pop("jobs", None)  # how many trainings run at once, not what is trained
     name = checkpoint_name(model)
     writer, existing = ctx.store.begin("checkpoint", name, config, inputs, extra={"seed": ctx.seed,
                                                                                   "device": ctx.device})

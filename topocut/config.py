@@ -63,6 +63,9 @@ class TrainerConfig:
     val_fraction: float = 0.2
     log_every_n_steps: int = 5
     held_out_objects: list[str] = field(default_factory=lambda: ["donut", "burger", "sushi", "steak"])
+    # stage=all: training seeds (eval.train_seeds) trained at once, each stage=bc in its own process on the same
+    # device (joblib's loky workers; scale=paper: 3).  Not part of a checkpoint's key
+    jobs: int = 1
 
 
 @dataclass
@@ -214,7 +217,7 @@ def validate(cfg: DictConfig) -> None:
         bad = [o for o in names if o not in valid]
         _check(not bad, key, f"unknown {what} {bad[0]!r}; valid: {', '.join(valid)}" if bad else "")
     for key, value, lo in (("data.episodes", cfg.data.episodes, 1), ("data.points_per_step", cfg.data.points_per_step, 1),
-                           ("data.jobs", cfg.data.jobs, 1),
+                           ("data.jobs", cfg.data.jobs, 1), ("trainer.jobs", cfg.trainer.jobs, 1),
                            ("trainer.batch_size", cfg.trainer.batch_size, 1),
                            ("trainer.num_workers", cfg.trainer.num_workers, 0)):
         _check(value >= lo, key, f"{value} is not valid; must be >= {lo}")
