@@ -14,7 +14,7 @@ from __future__ import annotations
 import dataclasses
 
 from pipelines._common import as_dict
-from topocut.eval.runner import build_policies, evaluate_in_processes, render_episodes, task_configs
+from topocut.eval.runner import evaluate_in_processes, render_episodes, setup, task_configs
 from topocut.utils.context import RunContext
 
 
@@ -33,12 +33,10 @@ def artifact_config(eval, sim, topology, reward, planner, observation, sampler, 
     return out
 
 
-
 def run(ctx: RunContext, eval, sim, topology, reward, planner, observation, data, sampler=None) -> dict:
     from topocut.data.store import write_json_atomic
-    from topocut.eval.protocol import episode_specs, make_observe_fn, run_evaluation
+    from topocut.eval.protocol import episode_specs, run_evaluation
     from topocut.eval.report import RUNS_FILE, write_report
-    from topocut.sim import CuttingEnv, init_taichi
 
     specs = episode_specs(eval)
     task_cfgs = task_configs(eval.tasks, eval.max_cuts, eval.task_overrides)
@@ -49,16 +47,9 @@ def run(ctx: RunContext, eval, sim, topology, reward, planner, observation, data
         teleop = teleop_references(ctx.store, eval.tasks, eval.unseen, eval.max_cuts)
     sim = dataclasses.replace(sim, arch=ctx.device)  # one backend for Taichi, Warp and torch
     reward = reward.on(ctx.device)  # reward=torch: its eigensolver and FPS on the run's device
-    # eval.cpu_threads=1: atomic adds in a fixed order, reproducible CPU numbers (a no-op when an earlier stage of
-    # the process started Taichi)
-    init_taichi(arch=ctx.device, seed=ctx.seed,
-                cpu_threads=(eval.cpu_threads or None) if ctx.device == "cpu" else None)
-    # sim.batch_size scenes: B episodes of a policy at once (MPPI: one episode, its rollouts the scenes)
-    env = CuttingEnv(sim, batch_size=max(1, sim.batch_size))
     runs: dict = {}
-    policies, inputs = build_policies(ctx, eval.policies, env, sim, planner, reward, topology, task_cfgs, sampler,
-                                      versions=eval.checkpoints, train_seeds=eval.train_seeds, runs=runs,
-                                      policy_kwargs=eval.policy_kwargs)
+    env, policies, inputs, observe_fn = setup(ctx, eval, sim, topology, reward, planner, observation, task_cfgs,
+                                              sampler, runs=runs)
     inputs.update({f"teleop/{t.spec.key}": t.ref for t in teleop})
     config = artifact_config(eval, sim, topology, reward, planner, observation, sampler, task_cfgs, ctx.seed)
     writer, existing = ctx.store.begin("eval", eval.name, config, inputs, extra={"seed": ctx.seed,
@@ -66,7 +57,6 @@ def run(ctx: RunContext, eval, sim, topology, reward, planner, observation, data
     if existing is not None:
         return {"eval": str(existing), "reused": True}
     write_json_atomic(writer.path / RUNS_FILE, runs)  # run name -> policy and training seed, for the report
-    observe_fn = make_observe_fn(eval.observation, eval.num_points, observation, seed=eval.seed)
     if eval.jobs > 1:  # the episodes in worker processes; the run below then finds them all written (resume)
         evaluate_in_processes(specs, eval.jobs, env.batch_size, ctx, writer.path, eval, sim, topology, reward,
                               planner, observation, sampler, task_cfgs)

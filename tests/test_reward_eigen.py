@@ -162,3 +162,16 @@ def test_groups_of_different_sizes_share_one_padded_eigen_call():
         wh, sh = spectral_descriptors(batch, dataclasses.replace(cfg, eig_solver="host"))
         torch.testing.assert_close(w, wh, rtol=1e-9, atol=1e-12)
         torch.testing.assert_close(s, sh, rtol=1e-6, atol=1e-8)
+
+
+def test_a_matrix_not_converged_by_max_iter_is_said():
+    """Too few steps: the pairs come back (Ritz pairs of the last block) with a RuntimeWarning naming the count."""
+    L = knn_laplacians(fragment_clouds(160))
+    with pytest.warns(RuntimeWarning, match=r"4 of 4 matrices not converged after max_iter=2"):
+        w, v = smallest_eigenpairs_subspace(L, 21, max_iter=2, min_iter=1)
+    assert w.shape == (4, 21) and v.shape == (4, 160, 21) and torch.isfinite(w).all()
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the default budget converges without a word
+        smallest_eigenpairs_subspace(L, 21)

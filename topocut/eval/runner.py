@@ -153,21 +153,34 @@ def _evaluate_part(specs, store_root: str, out_dir: str, device: str, seed: int,
                    observation, sampler, task_cfgs) -> None:
     """One worker of evaluate_in_processes: its own simulator and policies, then run_evaluation of its specs."""
     from topocut.data.store import ArtifactStore
-    from topocut.eval.protocol import make_observe_fn, run_evaluation
-    from topocut.sim import CuttingEnv, init_taichi
+    from topocut.eval.protocol import run_evaluation
     from topocut.utils.runtime import seed_everything_all
 
     seed_everything_all(seed)
-    init_taichi(arch=device, seed=seed, cpu_threads=(eval.cpu_threads or None) if device == "cpu" else None)
-    env = CuttingEnv(sim, batch_size=max(1, sim.batch_size))
     ctx = RunContext(store=ArtifactStore(Path(store_root)), run_dir=Path(out_dir), device=device, seed=seed,
                      logger=None, progress=False)
-    policies, _ = build_policies(ctx, eval.policies, env, sim, planner, reward, topology, task_cfgs, sampler,
-                                 versions=eval.checkpoints, train_seeds=eval.train_seeds,
-                                 policy_kwargs=eval.policy_kwargs)
-    observe_fn = make_observe_fn(eval.observation, eval.num_points, observation, seed=eval.seed)
+    env, policies, _, observe_fn = setup(ctx, eval, sim, topology, reward, planner, observation, task_cfgs, sampler)
     run_evaluation(specs, policies, env, task_cfgs, out_dir, reward, topology, observe_fn, cfg=eval, progress=False,
                    spacing=sim.spacing)
+
+
+def setup(ctx: RunContext, eval, sim, topology, reward, planner, observation, task_cfgs, sampler=None,
+          runs: dict | None = None):
+    """An evaluation's simulator, policies and observation: (env, {run: policy}, {run: checkpoint ref}, observe_fn).
+    ``sim`` and ``reward`` already on ctx.device; ``runs`` as build_policies."""
+    from topocut.eval.protocol import make_observe_fn
+    from topocut.sim import CuttingEnv, init_taichi
+
+    # eval.cpu_threads=1: atomic adds in a fixed order, reproducible CPU numbers (a no-op when an earlier stage of
+    # the process started Taichi)
+    init_taichi(arch=ctx.device, seed=ctx.seed,
+                cpu_threads=(eval.cpu_threads or None) if ctx.device == "cpu" else None)
+    # sim.batch_size scenes: B episodes of a policy at once (MPPI: one episode, its rollouts the scenes)
+    env = CuttingEnv(sim, batch_size=max(1, sim.batch_size))
+    policies, inputs = build_policies(ctx, eval.policies, env, sim, planner, reward, topology, task_cfgs, sampler,
+                                      versions=eval.checkpoints, train_seeds=eval.train_seeds, runs=runs,
+                                      policy_kwargs=eval.policy_kwargs)
+    return env, policies, inputs, make_observe_fn(eval.observation, eval.num_points, observation, seed=eval.seed)
 
 
 def render_episodes(specs, policies, env, task_cfgs, out_dir, eval, reward, topology, observe_fn, spacing):

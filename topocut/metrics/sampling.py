@@ -61,7 +61,8 @@ def fps_torch(points, n: int, mask=None):
     operations in its order, so in float64 row b equals ``fps(points[b][mask[b]], n)`` mapped back to
     padded indices (an exact tie in the start's centroid distance may break the other way: the centroid is
     summed in another order).  A cloud with m < n valid points gets its m FPS picks (all of its points when
-    they are distinct) followed by n - m copies of its last pick; ``valid_rows`` flags the copies.
+    they are distinct) followed by n - m copies of its last pick; ``valid_rows`` flags the copies.  On CUDA the pick
+    loop is replayed from one captured graph (``_picks_graph``: the same kernels, the same picks).
     """
     import torch
 

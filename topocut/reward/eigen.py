@@ -18,6 +18,8 @@ one matrix after another: 97 ms for 128 matrices of 63 on an H100).
 """
 from __future__ import annotations
 
+import warnings
+
 import torch
 
 
@@ -40,7 +42,8 @@ def smallest_eigenpairs_subspace(L: torch.Tensor, m: int, block: int | None = No
     done when every kept pair's residual ||L v - theta v|| is at most ``tol`` x its largest diagonal entry (a
     bound on ||L|| / 2 for a Laplacian); checks (a Rayleigh-Ritz step and one host sync each) come after
     ``min_iter`` steps and then every ``check_every``, and finished matrices leave the batch.  At most
-    ``max_iter`` steps.  ``block``: columns iterated (default max(m + 11, 32): at 32 the Ritz step's small eigh
+    ``max_iter`` steps: a matrix not converged by then keeps its last Ritz pairs and a RuntimeWarning says so.
+    ``block``: columns iterated (default max(m + 11, 32): at 32 the Ritz step's small eigh
     stays on cuSOLVER's batched Jacobi solver); when twice that reaches n the dense ``torch.linalg.eigh`` is used
     instead.  ``shift``: s = shift x the mean diagonal entry (a Laplacian's null space makes L itself singular;
     a smaller shift converges a little faster but the explicit inverse then limits the eigenvalues' accuracy:
@@ -74,7 +77,11 @@ def smallest_eigenpairs_subspace(L: torch.Tensor, m: int, block: int | None = No
         Vm = V[:, :, :m]
         res = (Lt @ Vm - Vm * theta[:, None, :m]).norm(dim=1)  # b,m
         done = (res <= bound[todo, None]).all(-1)  # b,
-        if it == max_iter:
+        if it == max_iter and not bool(done.all()):  # kept, but said: the reward's numbers rest on these pairs
+            worst = float((res.amax(-1) / bound[todo]).amax())
+            warnings.warn(f"smallest_eigenpairs_subspace: {int((~done).sum())} of {B} matrices not converged after "
+                          f"max_iter={max_iter} steps (worst residual {worst:.1f}x the tolerance); raise max_iter or "
+                          f"use reward.eig_solver=device", RuntimeWarning, stacklevel=2)
             done = torch.ones_like(done)
         w_out[todo[done]], v_out[todo[done]] = theta[done, :m], Vm[done]
         keep = ~done
