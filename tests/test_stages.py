@@ -276,3 +276,24 @@ def test_user_errors_print_one_message_and_exit_2(tmp_path, overrides, needle):
     assert proc.returncode == 2 and needle in out and "Traceback" not in out, out[-3000:]
     status = json.loads(next((tmp_path / "runs").rglob("status.json")).read_text())
     assert status["status"] == "failed" and "Traceback" in status["traceback"]
+
+
+def test_eval_in_two_processes_writes_the_episodes_of_one(tmp_path):
+    """eval.jobs=2: two loky worker processes, each its own simulator, write the same episodes (rewards, cut
+    counts, actions) as one process; the report counts them all."""
+    ev = ["stage=eval", "scale=smoke", "eval.policies=[oracle,heuristic]", "eval.tasks=[slice]", "eval.max_cuts=1",
+          "eval.bootstrap_resamples=100", *[o for o in FAST if not o.startswith(("stage.run", "task.max_cuts"))],
+          "sim.batch_size=1"]  # batches of one spec: the 2 specs are dealt to 2 workers
+    runs = {}
+    for jobs in (1, 2):
+        proc = _ok(topocut(tmp_path / f"j{jobs}", *ev, f"eval.jobs={jobs}", timeout=400))
+        assert _summary(proc)["episodes"] == 4
+        files = sorted((tmp_path / f"j{jobs}" / "eval" / "table1" / "v001" / "episodes").glob("*/*.json"))
+        runs[jobs] = {f.parent.name + "/" + f.name: json.loads(f.read_text()) for f in files}
+    assert len(runs[1]) == 4 and runs[1].keys() == runs[2].keys()
+    assert "2 processes (eval.jobs=2)" in _output(proc)
+    assert "the workers wrote 4 new episodes (2 + 2)" in _output(proc)  # the stage itself then only reads them
+    for key, one in runs[1].items():
+        two = runs[2][key]
+        assert (one["final_reward"], one["cut_counts"], one["actions"]) == \
+            (two["final_reward"], two["cut_counts"], two["actions"]), key

@@ -144,24 +144,28 @@ def evaluate_in_processes(specs, jobs: int, batch: int, ctx: RunContext, out_dir
     parts = [p for p in split_specs(specs, jobs, batch) if p]
     _log.info("eval: %d episode specs x %d policies in %d processes (eval.jobs=%d); their episodes resume like one "
              "process's", len(specs), len(eval.policies), len(parts), jobs)
-    Parallel(n_jobs=len(parts), backend="loky")(
+    wrote = Parallel(n_jobs=len(parts), backend="loky")(
         delayed(_evaluate_part)(part, str(ctx.store.root), str(out_dir), ctx.device, ctx.seed, eval, sim, topology,
                                 reward, planner, observation, sampler, task_cfgs) for part in parts)
+    _log.info("eval: the workers wrote %d new episodes (%s)", sum(wrote), " + ".join(map(str, wrote)))
 
 
 def _evaluate_part(specs, store_root: str, out_dir: str, device: str, seed: int, eval, sim, topology, reward, planner,
-                   observation, sampler, task_cfgs) -> None:
-    """One worker of evaluate_in_processes: its own simulator and policies, then run_evaluation of its specs."""
+                   observation, sampler, task_cfgs) -> int:
+    """One worker of evaluate_in_processes: its own simulator and policies, then run_evaluation of its specs;
+    returns how many episodes it wrote (those already there are resumed, not rerun)."""
     from topocut.data.store import ArtifactStore
-    from topocut.eval.protocol import run_evaluation
+    from topocut.eval.protocol import episode_path, run_evaluation
     from topocut.utils.runtime import seed_everything_all
 
     seed_everything_all(seed)
     ctx = RunContext(store=ArtifactStore(Path(store_root)), run_dir=Path(out_dir), device=device, seed=seed,
                      logger=None, progress=False)
     env, policies, _, observe_fn = setup(ctx, eval, sim, topology, reward, planner, observation, task_cfgs, sampler)
+    before = sum(episode_path(out_dir, n, s).exists() for s in specs for n in policies)
     run_evaluation(specs, policies, env, task_cfgs, out_dir, reward, topology, observe_fn, cfg=eval, progress=False,
                    spacing=sim.spacing)
+    return sum(episode_path(out_dir, n, s).exists() for s in specs for n in policies) - before
 
 
 def setup(ctx: RunContext, eval, sim, topology, reward, planner, observation, task_cfgs, sampler=None,

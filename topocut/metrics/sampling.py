@@ -138,7 +138,8 @@ GRAPH_MIN_PICKS = 16  # fewer picks: capturing the step costs more than launchin
 def _picks_graph(p, dist, cur, n: int, sqdist):
     """The pick loop of fps_torch replayed from one captured CUDA graph: the same kernels in the same order (so the
     same picks, bit for bit), but one graph launch a pick instead of ~8 kernel launches and their Python (512 picks
-    of 48 clouds: ~55 ms launched one by one on an H100).  p (B,N,3), dist (B,N), cur (B,) on one CUDA device;
+    of 48 padded clouds on an H100: 32.0 ms launched one by one, 26.1 ms replayed; the small kernels' GPU time,
+    not their launches, bounds it).  p (B,N,3), dist (B,N), cur (B,) on one CUDA device;
     returns (B,n) long."""
     import torch
 
