@@ -25,6 +25,12 @@ export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 WANDB_MODE=disabled
 OUT=${OUT:-/tmp/out}
 mkdir -p "$OUT"
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
+mps_start() {  # CUDA Multi-Process Service: one daemon, the GPU's settings untouched (compute mode stays Default)
+  export CUDA_MPS_PIPE_DIRECTORY=/tmp/mps-pipe CUDA_MPS_LOG_DIRECTORY=/tmp/mps-log
+  mkdir -p "$CUDA_MPS_PIPE_DIRECTORY" "$CUDA_MPS_LOG_DIRECTORY"
+  nvidia-cuda-mps-control -d && echo "MPS daemon started" || echo "MPS: nvidia-cuda-mps-control failed"
+}
+mps_stop() { echo quit | nvidia-cuda-mps-control; sleep 1; echo "MPS daemon stopped"; }
 case "$phase" in
   wheels) ls /tmp/site | head -50 ;;
   bench-sim)
@@ -70,9 +76,13 @@ PY
       | grep -v -i warn | tee -a "$OUT/bench_episodes.txt" ;;
   reward)  # the reward's eigensolvers batched on the GPU: whole-spectrum eigh (reference), subspace, host (#31)
     timeout 300 python3 benchmarks/reward.py --device cuda 2>&1 | tee -a "$OUT/bench_reward.txt" ;;
-  demo-procs)  # MPPI demonstrations from JOBS processes sharing the GPU (joblib launcher) vs one process (#31)
+  demo-procs)  # MPPI demonstrations from JOBS processes sharing the GPU (joblib launcher) vs one process (#31);
+    # MPS=1: under CUDA's Multi-Process Service (its daemon started here, stopped after), processes' kernels overlap
+    [ "${MPS:-0}" = 1 ] && mps_start
+    echo "== JOBS=${JOBS:-4} EPISODES=${EPISODES:-4} MPS=${MPS:-0} ${DEMO_ARGS:-}" | tee -a "$OUT/demo_procs.txt"
     timeout ${LIMIT:-560} python3 benchmarks/demo_processes.py --device cuda --jobs ${JOBS:-4} \
-      --episodes ${EPISODES:-4} 2>&1 | grep -v -i warn | tee -a "$OUT/demo_procs.txt" ;;
+      --episodes ${EPISODES:-4} ${DEMO_ARGS:-} 2>&1 | grep -v -i warn | tee -a "$OUT/demo_procs.txt"
+    [ "${MPS:-0}" = 1 ] && mps_stop ;;
   train-sweep)  # perception training samples/s over batch sizes, fp32 and bf16 (#31)
     timeout ${LIMIT:-400} python3 benchmarks/train.py --device cuda --batches 16 64 256 512 --amp --steps 10 2>&1 \
       | grep -v -i warn | tee "$OUT/bench_train.txt" ;;
