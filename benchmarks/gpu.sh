@@ -86,11 +86,21 @@ PY
   train-sweep)  # perception training samples/s over batch sizes, fp32 and bf16 (#31)
     timeout ${LIMIT:-400} python3 benchmarks/train.py --device cuda --batches 16 64 256 512 --amp --steps 10 2>&1 \
       | grep -v -i warn | tee "$OUT/bench_train.txt" ;;
-  protocol)  # the 405-episode protocol for the scripted policies through stage=eval (resumes: run it again)
+  protocol)  # the 405-episode protocol through stage=eval (resumes: run it again); POLICIES (default: the scripted
+    # ones), EVAL_JOBS processes (MPS=1: under CUDA's Multi-Process Service), EVAL_ARGS more overrides
+    [ "${MPS:-0}" = 1 ] && mps_start
+    echo "== POLICIES=${POLICIES:-oracle,heuristic} EVAL_JOBS=${EVAL_JOBS:-1} MPS=${MPS:-0} ${EVAL_ARGS:-}" \
+      | tee -a "$OUT/protocol.txt"
+    t0=$(date +%s)
     timeout ${LIMIT:-560} python3 -m topocut.run stage=eval scale=paper device=cuda sim.n_grid=${GRID:-64} \
-      reward=torch 'eval.policies=[oracle,heuristic]' eval.train_seeds=1 eval.gifs=0 logger=none progress=false \
-      outputs_root=/tmp/o 2>&1 | grep -v -i warn | tail -40 | tee -a "$OUT/protocol.txt"
-    find /tmp/o -name results.md -exec cp {} "$OUT/" \; ;;
+      reward=torch "eval.policies=[${POLICIES:-oracle,heuristic}]" eval.train_seeds=1 eval.jobs=${EVAL_JOBS:-1} \
+      eval.gifs=0 logger=none progress=false outputs_root=/tmp/o ${EVAL_ARGS:-} 2>&1 | grep -v -i warn | tail -40 \
+      | tee -a "$OUT/protocol.txt"
+    echo "wall $(( $(date +%s) - t0 )) s; episodes written: $(find /tmp/o/eval -name '*.json' -path '*episodes*' | wc -l)" \
+      | tee -a "$OUT/protocol.txt"
+    [ "${MPS:-0}" = 1 ] && mps_stop
+    find /tmp/o -name results.md -exec cp {} "$OUT/" \;
+    tar -czf "$OUT/protocol_eval.tgz" -C /tmp/o eval 2>/dev/null ;;
   demos)  # MPPI demonstrations through stage=mppi at 64^3, K=16, 2 iterations, horizon 1 (#31's per-cut figure)
     timeout ${LIMIT:-560} python3 -m topocut.run stage=mppi task=slice object=cake device=cuda sim.n_grid=64 \
       sim.batch_size=16 planner.num_samples=16 planner.iterations=2 planner.horizon=1 reward=torch \
