@@ -109,9 +109,14 @@ PY
     find /tmp/o -path "*mppi*" -name status.json -exec cat {} \; | tee -a "$OUT/demos.txt" ;;
   paper)  # `make paper` (stage=all scale=paper) with PAPER_ARGS on top; resumes where the last call stopped (same
     # /tmp/o on a warm machine). Leaves the eval artifact, the runs' status files and the pipeline's log in $OUT.
+    # MPS=1: under CUDA's Multi-Process Service, as `make paper` runs by default.
+    [ "${MPS:-0}" = 1 ] && mps_start
+    t0=$(date +%s)
     timeout "${LIMIT:-570}" python3 -m topocut.run stage=all scale=paper device=cuda reward=torch trainer=gpu \
       logger=csv progress=false outputs_root=/tmp/o ${PAPER_ARGS:-} 2>&1 | grep -v -i "warn" | tail -120 \
       | tee -a "$OUT/paper.txt"
+    echo "wall $(( $(date +%s) - t0 )) s" | tee -a "$OUT/paper.txt"
+    [ "${MPS:-0}" = 1 ] && mps_stop
     find /tmp/o/runs -name status.json | tar -czf "$OUT/runs.tgz" -T - 2>/dev/null
     [ -d /tmp/o/eval ] && tar -czf "$OUT/eval.tgz" -C /tmp/o eval
     for d in /tmp/o/dataset/*/v* /tmp/o/checkpoint/*/v*; do [ -f "$d/manifest.json" ] && echo "$d" \
