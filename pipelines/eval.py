@@ -7,7 +7,7 @@ Policies: ``oracle`` (the goal's ideal planes for the true pose: the R̂ referen
 run trained with seeds ``seed .. seed+k-1``, each evaluated as ``<policy>@s<seed>`` and pooled by the report),
 and ``module.path:ClassName`` entries: your own Policy class, imported (topocut.policies.registry.load_external).
 Episodes are committed one by one; an interrupted evaluation resumes.  ``eval.jobs=J`` runs them in J worker
-processes (batches dealt round-robin), then the report as usual.
+processes (topocut.eval.runner.eval_tasks: batches, MPPI's specs one by one), then the report as usual.
 """
 from __future__ import annotations
 

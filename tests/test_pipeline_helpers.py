@@ -193,23 +193,35 @@ def test_stage_all_refuses_an_unknown_cell():
             validate(cfg)
 
 
-def test_eval_jobs_deal_whole_batches_and_leave_the_artifact_key_alone():
-    """eval.jobs: batches of sim.batch_size specs dealt round-robin (each part regroups into exactly the batches one
-    process runs, every spec once); the number of processes does not key the evaluation artifact."""
+def test_eval_jobs_cut_the_work_into_tasks_and_leave_the_artifact_key_alone():
+    """eval.jobs: the work as (policy, specs) tasks: a batched policy's are run_evaluation's batches of
+    sim.batch_size consecutive specs (each episode keeps its batch-mates), MPPI's (uses_simulator) one spec each,
+    batch by batch with every policy on it; the number of processes does not key the evaluation artifact."""
     import dataclasses
 
     from pipelines.eval import artifact_config
     from topocut.eval.config import EvalConfig
-    from topocut.eval.runner import split_specs
+    from topocut.eval.runner import eval_tasks, runs_one_at_a_time
 
+    assert {n for n in ("oracle", "heuristic", "mppi", "pddp", "dp3", "mypkg.mod:Mine")
+            if runs_one_at_a_time(n)} == {"mppi"}
+    from topocut.planning import HeuristicPolicy, MPPIPolicy  # the registry's sim_state input = the engine's rule
+
+    assert MPPIPolicy.uses_simulator and not getattr(HeuristicPolicy, "uses_simulator", False)
+    specs = list(range(5))
+    tasks = eval_tasks(specs, ["oracle", "mppi"], 2, {"mppi"})
+    assert tasks == [("oracle", [0, 1]), ("mppi", [0]), ("mppi", [1]),
+                     ("oracle", [2, 3]), ("mppi", [2]), ("mppi", [3]),
+                     ("oracle", [4]), ("mppi", [4])]
+    assert [len(s) for n, s in tasks if n == "oracle"] == [2, 2, 1]
+    assert [len(s) for n, s in tasks if n == "mppi"] == [1] * 5
     specs = list(range(11))
-    parts = split_specs(specs, 3, 2)
-    assert parts == [[0, 1, 6, 7], [2, 3, 8, 9], [4, 5, 10]]
-    batches = {tuple(specs[i:i + 2]) for i in range(0, 11, 2)}
-    for part in parts:
-        assert {tuple(part[i:i + 2]) for i in range(0, len(part), 2)} <= batches
-    assert sorted(s for p in split_specs(specs, 4, 3) for s in p) == specs
-    assert split_specs(specs, 20, 4)[3:] == [[]] * 17  # more processes than batches: the rest idle (dropped)
+    tasks = eval_tasks(specs, ["oracle", "heuristic", "mppi"], 4, {"mppi"})
+    pairs = [(n, s) for n, part in tasks for s in part]
+    assert sorted(pairs) == sorted((n, s) for n in ("oracle", "heuristic", "mppi") for s in specs)  # each once
+    assert [s for n, s in tasks if n == "heuristic"] == [[0, 1, 2, 3], [4, 5, 6, 7], [8, 9, 10]]
+    assert [n for n, _ in tasks[:6]] == ["oracle", "heuristic", "mppi", "mppi", "mppi", "mppi"]
+    assert max(part[0] for _, part in tasks[:6]) < min(part[0] for _, part in tasks[6:])  # batch by batch
     ev = EvalConfig()
     keys = [artifact_config(dataclasses.replace(ev, jobs=j), None, None, None, None, None, None, {}, 0) for j in (1, 8)]
     assert keys[0] == keys[1] and "jobs" not in keys[0]["eval"]

@@ -283,7 +283,7 @@ def test_eval_in_two_processes_writes_the_episodes_of_one(tmp_path):
     counts, actions) as one process; the report counts them all."""
     ev = ["stage=eval", "scale=smoke", "eval.policies=[oracle,heuristic]", "eval.tasks=[slice]", "eval.max_cuts=1",
           "eval.bootstrap_resamples=100", *[o for o in FAST if not o.startswith(("stage.run", "task.max_cuts"))],
-          "sim.batch_size=1"]  # batches of one spec: the 2 specs are dealt to 2 workers
+          "sim.batch_size=1"]  # batches of one spec: 2 specs x 2 policies are 4 tasks for 2 workers
     runs = {}
     for jobs in (1, 2):
         proc = _ok(topocut(tmp_path / f"j{jobs}", *ev, f"eval.jobs={jobs}", timeout=400))
@@ -292,7 +292,8 @@ def test_eval_in_two_processes_writes_the_episodes_of_one(tmp_path):
         runs[jobs] = {f.parent.name + "/" + f.name: json.loads(f.read_text()) for f in files}
     assert len(runs[1]) == 4 and runs[1].keys() == runs[2].keys()
     assert "2 processes (eval.jobs=2)" in _output(proc)
-    assert "the workers wrote 4 new episodes (2 + 2)" in _output(proc)  # the stage itself then only reads them
+    assert "4 tasks" in _output(proc)  # a batch of one spec per policy each
+    assert "the workers wrote 4 new episodes (oracle 2, heuristic 2)" in _output(proc)  # the stage then only reads
     for key, one in runs[1].items():
         two = runs[2][key]
         assert (one["final_reward"], one["cut_counts"], one["actions"]) == \

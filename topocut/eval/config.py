@@ -51,9 +51,9 @@ class EvalConfig:
     bootstrap_seed: int = 0
     # Taichi CPU threads when the eval stage starts Taichi: 1 = reproducible CPU runs (docs/evaluation.md), 0 = all cores
     cpu_threads: int = 0
-    # processes evaluating at once (joblib's loky workers, each its own simulator and policies; batches of
-    # sim.batch_size episode specs dealt round-robin, so every batch is the one a single process runs).  Not part of
-    # the artifact's key: the episodes are the same however many processes run them
+    # processes evaluating at once (joblib's loky workers, each its own simulator and policies; tasks of one
+    # batch of sim.batch_size specs, the one a single process runs, or one spec for MPPI, handed out as workers
+    # free up).  Not part of the artifact's key: the episodes are the same however many processes run them
     jobs: int = 1
     observation: str = "particles"  # particles (FPS of particles) | depth (topocut.topology.observation)
     num_points: int = 2048  # observation points handed to the policy (matches data.points_per_step)

@@ -128,44 +128,90 @@ def _load_learned(ctx, name: str, path: Path, sim, sampler):
                                  board_z=getattr(sim, "board_z", 0.05), sampler=sampler)
 
 
-def split_specs(specs: list, jobs: int, batch: int) -> list[list]:
-    """specs in batches of ``batch`` (as run_evaluation groups them), dealt round-robin to ``jobs`` parts: each part
-    regroups into exactly those batches, so an episode runs beside the same others as in one process."""
-    groups = [specs[i:i + batch] for i in range(0, len(specs), batch)]
-    return [[s for g in groups[j::jobs] for s in g] for j in range(jobs)]
+def runs_one_at_a_time(name: str) -> bool:
+    """Whether the episode engine runs the episodes of eval.policies entry ``name`` one at a time: a policy that
+    plans with the simulator reads its state (the registry's ``sim_state`` input: MPPI) and takes every scene for
+    its rollouts (topocut.episode.run_episodes).  Decided from the registry, without building anything."""
+    if registry.is_import_path(name):  # your own class runs behind registry._ProtocolPolicy, which passes no
+        return False  # sim_state: batched
+    return "sim_state" in registry.get(name).inputs
+
+
+def eval_tasks(specs: list, policy_names, batch: int, one_at_a_time=frozenset()) -> list[tuple[str, list]]:
+    """[(policy, specs)]: the units evaluate_in_processes hands its workers.  A batched policy's unit is a batch
+    of ``batch`` consecutive specs as run_evaluation groups them (an episode keeps its batch-mates, so its
+    numbers are one process's); a policy in ``one_at_a_time`` gets one spec per unit (its episodes run alone
+    anyway, and small units keep the workers evenly busy).  Batch by batch, every policy on it before the
+    next, like run_evaluation: an interrupted evaluation holds comparable episodes for all policies."""
+    tasks, batch = [], max(1, int(batch))
+    for g0 in range(0, len(specs), batch):
+        group = specs[g0:g0 + batch]
+        for name in policy_names:
+            tasks += [(name, [s]) for s in group] if name in one_at_a_time else [(name, group)]
+    return tasks
 
 
 def evaluate_in_processes(specs, jobs: int, batch: int, ctx: RunContext, out_dir: Path, eval, sim, topology, reward,
                           planner, observation, sampler, task_cfgs) -> None:
     """The episodes of ``specs`` in ``jobs`` joblib worker processes (each its own Taichi/CUDA context), their JSONs
-    written under out_dir as run_evaluation writes them."""
+    written under out_dir as run_evaluation writes them.  The work is cut into eval_tasks, handed out one at a
+    time as workers free up (MPPI's episodes run one at a time at ~28 s each on a GPU: parts dealt up front left
+    most workers idle while a few ran their last batches); each worker sets up its simulator and policies once."""
+    import uuid
+
     from joblib import Parallel, delayed
 
-    parts = [p for p in split_specs(specs, jobs, batch) if p]
-    _log.info("eval: %d episode specs x %d policies in %d processes (eval.jobs=%d); their episodes resume like one "
-             "process's", len(specs), len(eval.policies), len(parts), jobs)
-    wrote = Parallel(n_jobs=len(parts), backend="loky")(
-        delayed(_evaluate_part)(part, str(ctx.store.root), str(out_dir), ctx.device, ctx.seed, eval, sim, topology,
-                                reward, planner, observation, sampler, task_cfgs) for part in parts)
-    _log.info("eval: the workers wrote %d new episodes (%s)", sum(wrote), " + ".join(map(str, wrote)))
+    names = list(eval.policies)
+    alone = {n for n in names if runs_one_at_a_time(n)}
+    tasks = eval_tasks(specs, names, batch, alone)
+    n_jobs = max(1, min(jobs, len(tasks)))
+    _log.info("eval: %d episode specs x %d policies as %d tasks (batches of %d specs%s) in %d processes "
+              "(eval.jobs=%d); their episodes resume like one process's", len(specs), len(names), len(tasks), batch,
+              f"; {', '.join(sorted(alone))} one spec each" if alone else "", n_jobs, jobs)
+    # loky keeps its workers between calls of one parent (a multirun, the tests): a key new to this call makes
+    # each worker set up once for it, never reuse another call's simulator or policies
+    key = uuid.uuid4().hex
+    setup_args = (str(ctx.store.root), str(out_dir), ctx.device, ctx.seed, eval, sim, topology, reward, planner,
+                  observation, sampler, task_cfgs)
+    # batch_size=1: one task per dispatch, so a worker that finishes early takes the next task instead of
+    # waiting behind a prefetched one
+    wrote = Parallel(n_jobs=n_jobs, backend="loky", batch_size=1)(
+        delayed(_evaluate_task)(name, part, key, *setup_args) for name, part in tasks)
+    per_policy = {n: 0 for n in names}
+    for (name, _), n in zip(tasks, wrote):
+        per_policy[name] += n
+    _log.info("eval: the workers wrote %d new episodes (%s)", sum(wrote),
+              ", ".join(f"{n} {k}" for n, k in per_policy.items()))
 
 
-def _evaluate_part(specs, store_root: str, out_dir: str, device: str, seed: int, eval, sim, topology, reward, planner,
-                   observation, sampler, task_cfgs) -> int:
-    """One worker of evaluate_in_processes: its own simulator and policies, then run_evaluation of its specs;
-    returns how many episodes it wrote (those already there are resumed, not rerun)."""
-    from topocut.data.store import ArtifactStore
+_WORKER: dict = {}  # in a worker process: {"key": the call's key, "setup": (env, policies, runs, observe_fn)}
+
+
+def _evaluate_task(name: str, specs, key: str, store_root: str, out_dir: str, device: str, seed: int, eval, sim,
+                   topology, reward, planner, observation, sampler, task_cfgs) -> int:
+    """One task of evaluate_in_processes in a worker: run_evaluation of eval.policies entry ``name`` (all its runs:
+    one per training seed) on ``specs``; returns how many episodes it wrote (those already there are resumed)."""
     from topocut.eval.protocol import episode_path, run_evaluation
     from topocut.utils.runtime import seed_everything_all
 
-    seed_everything_all(seed)
-    ctx = RunContext(store=ArtifactStore(Path(store_root)), run_dir=Path(out_dir), device=device, seed=seed,
-                     logger=None, progress=False)
-    env, policies, _, observe_fn = setup(ctx, eval, sim, topology, reward, planner, observation, task_cfgs, sampler)
-    before = sum(episode_path(out_dir, n, s).exists() for s in specs for n in policies)
-    run_evaluation(specs, policies, env, task_cfgs, out_dir, reward, topology, observe_fn, cfg=eval, progress=False,
+    if _WORKER.get("key") != key:  # this worker's first task of the call: Taichi and the policies, once
+        from topocut.data.store import ArtifactStore
+
+        _WORKER.clear()  # the previous call's simulator and policies go before new ones are built
+        seed_everything_all(seed)
+        ctx = RunContext(store=ArtifactStore(Path(store_root)), run_dir=Path(out_dir), device=device, seed=seed,
+                         logger=None, progress=False)
+        runs: dict = {}
+        env, policies, _, observe_fn = setup(ctx, eval, sim, topology, reward, planner, observation, task_cfgs,
+                                             sampler, runs=runs)
+        _WORKER.update(key=key, setup=(env, policies, runs, observe_fn))
+    env, policies, runs, observe_fn = _WORKER["setup"]
+    seed_everything_all(seed)  # every task from the same global RNG state, whatever ran before it here
+    mine = {r: p for r, p in policies.items() if runs[r]["policy"] == name}
+    before = sum(episode_path(out_dir, r, s).exists() for s in specs for r in mine)
+    run_evaluation(specs, mine, env, task_cfgs, out_dir, reward, topology, observe_fn, cfg=eval, progress=False,
                    spacing=sim.spacing)
-    return sum(episode_path(out_dir, n, s).exists() for s in specs for n in policies) - before
+    return sum(episode_path(out_dir, r, s).exists() for s in specs for r in mine) - before
 
 
 def setup(ctx: RunContext, eval, sim, topology, reward, planner, observation, task_cfgs, sampler=None,
