@@ -5,6 +5,34 @@
 # Usage: bash benchmarks/gpu.sh <phase>
 set -uo pipefail
 phase=${1:-wheels}
+# Carrying a run between machines (a lent machine goes back after 30 min; what comes back from a call is at most
+# 64 MiB in files of 16 MiB, and what travels to one is at most 64 MiB): `pack` tars the outputs root (ROOT) into
+# PART_MB pieces with their checksums; `fetch` leaves COUNT pieces from FROM in $OUT; on the next machine `unpack`
+# gathers the pieces carried so far (under CARRY, e.g. .carry/) and, once every checksum matches, untars them.
+case "$phase" in
+  pack|fetch|unpack)
+    ROOT=${ROOT:-/tmp/o}; P=${PACK_DIR:-/tmp/pack}; OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"
+    case "$phase" in
+      pack)
+        rm -rf "$P" && mkdir -p "$P"
+        tar -czf - -C "$ROOT" . | split -b "${PART_MB:-15}M" -d -a 3 - "$P/o.tgz." || exit 1
+        (cd "$P" && sha256sum o.tgz.* > SHA256SUMS) && cp "$P/SHA256SUMS" "$OUT/"
+        echo "packed $ROOT: $(ls "$P"/o.tgz.* | wc -l) pieces of ${PART_MB:-15} MiB at most, $(du -sh "$P" | cut -f1)" ;;
+      fetch)
+        cp "$P/SHA256SUMS" "$OUT/"
+        ls "$P"/o.tgz.* | tail -n +$(( ${FROM:-0} + 1 )) | head -n "${COUNT:-3}" | xargs -r cp -t "$OUT/"
+        echo "fetched: $(cd "$OUT" && ls o.tgz.* 2>/dev/null | tr '\n' ' ')" ;;
+      unpack)
+        mkdir -p "$P"
+        for f in ${CARRY:-.carry}/*/o.tgz.* ${CARRY:-.carry}/*/SHA256SUMS; do [ -f "$f" ] && { [ -f "$P/${f##*/}" ] || cp "$f" "$P/"; }; done
+        [ -f "$P/SHA256SUMS" ] || { echo "unpack: no SHA256SUMS carried under ${CARRY:-.carry}/" >&2; exit 2; }
+        missing=$(cd "$P" && awk '{print $2}' SHA256SUMS | while read -r f; do [ -f "$f" ] || echo "$f"; done)
+        if [ -n "$missing" ]; then echo "unpack: still missing $(echo $missing)"; exit 3; fi
+        (cd "$P" && sha256sum --quiet -c SHA256SUMS) || { echo "unpack: a piece does not match its checksum" >&2; exit 2; }
+        mkdir -p "$ROOT" && cat "$P"/o.tgz.* | tar -xzf - -C "$ROOT" && echo "unpacked into $ROOT" ;;
+    esac
+    exit $? ;;
+esac
 W=/tmp/w
 mkdir -p "$W" /tmp/site
 for f in .whl/*/*; do [ -f "$f" ] && cp --update=none "$f" "$W/"; done
