@@ -32,13 +32,16 @@ from pathlib import Path
 def stage_args(args, root: Path) -> list[str]:
     return [f"task={args.task}", f"device={args.device}", f"sim.n_grid={args.n_grid}", f"sim.batch_size={args.K}",
             f"planner.num_samples={args.K}", f"planner.iterations={args.iters}", "planner.horizon=1",
-            "reward=torch", f"data.episodes={args.episodes}", "task.max_cuts=5", "stage.run.compare_heuristic=false",
+            "reward=torch", f"data.episodes={args.episodes}", "task.max_cuts=5",
+            f"stage.run.compare_heuristic={str(args.compare_heuristic).lower()}",
             "logger=none", "progress=false", f"outputs_root={root}", *args.set]
 
 
-def run(cmd: list[str], root: Path) -> tuple[float, int, int]:
-    """Wall seconds of ``cmd``, and the cuts and episodes its mppi runs wrote (their status.json files)."""
-    t0 = time.perf_counter()
+def run(cmd: list[str], root: Path) -> tuple[float, int, int, float, float, dict]:
+    """Wall seconds of ``cmd``; the cuts and episodes its mppi runs wrote (their status.json files); their
+    in-episode and steady rates; and where a process's wall time went, averaged over the processes (start-up: from
+    the launch to its first episode; the first episode; the later episodes; their heuristic comparisons; the rest)."""
+    launched, t0 = time.time(), time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "WANDB_MODE": "disabled"})
     wall = time.perf_counter() - t0
     if proc.returncode:
@@ -46,6 +49,9 @@ def run(cmd: list[str], root: Path) -> tuple[float, int, int]:
     cuts = episodes = 0
     inside = 0.0  # cuts per second inside the episodes (their time_s: planning and cutting, no start-up), summed
     steady = 0.0  # the same without each process's first episode (where Taichi and Warp compile at first use)
+    # start-up: launch to the first episode; first episode: its heuristic comparison and itself (first-use
+    # compilation lands there); then the later episodes and their comparisons; the rest: writes, the end
+    split = {"start-up": [], "first episode": [], "episodes": [], "heuristic": [], "rest": []}
     for f in root.rglob("status.json"):
         s = json.loads(f.read_text())
         if s.get("stage") == "mppi" and s.get("status") == "ok":
@@ -56,7 +62,14 @@ def run(cmd: list[str], root: Path) -> tuple[float, int, int]:
             inside += sum(r["num_cuts"] for r in recs) / max(sum(r.get("time_s", 0.0) for r in recs), 1e-9)
             later = recs[1:] or recs
             steady += sum(r["num_cuts"] for r in later) / max(sum(r.get("time_s", 0.0) for r in later), 1e-9)
-    return wall, cuts, episodes, inside, steady
+            if all("started" in r for r in recs):
+                first = min(recs, key=lambda r: r["started"])
+                others = [r for r in recs if r is not first]
+                parts = (first["started"] - launched, first.get("time_s", 0.0) + first.get("heuristic_time_s", 0.0),
+                         sum(r.get("time_s", 0.0) for r in others), sum(r.get("heuristic_time_s", 0.0) for r in others))
+                for k, v in zip(split, (*parts, wall - sum(parts))):
+                    split[k].append(v)
+    return wall, cuts, episodes, inside, steady, {k: sum(v) / len(v) for k, v in split.items() if v}
 
 
 def main():
@@ -69,6 +82,8 @@ def main():
     ap.add_argument("--n-grid", type=int, default=64)
     ap.add_argument("--K", type=int, default=16)
     ap.add_argument("--iters", type=int, default=2)
+    ap.add_argument("--compare-heuristic", action="store_true",
+                    help="run the stage's heuristic comparison beside every episode, as make paper does")
     ap.add_argument("--set", nargs="*", default=[], help="more overrides for every run")
     args = ap.parse_args()
     py = [sys.executable, "-m", "topocut.run"]
@@ -77,10 +92,10 @@ def main():
         warm = tmp / "warm"  # compile once: every later process loads Taichi's and Warp's caches
         run([*py, "stage=mppi", "object=cube", *stage_args(args, warm), "data.episodes=1"], warm)
         one = tmp / "one"
-        w1, c1, e1, i1, s1 = run([*py, "stage=mppi", f"object={args.object}", *stage_args(args, one)], one)
+        w1, c1, e1, i1, s1, p1 = run([*py, "stage=mppi", f"object={args.object}", *stage_args(args, one)], one)
         many = tmp / "many"
         seeds = ",".join(str(i) for i in range(1, args.jobs + 1))  # one shard per seed: every job cuts the same object
-        wj, cj, ej, ij, sj = run([*py, "-m", "stage=mppi", f"object={args.object}", f"seed={seeds}", "hydra/launcher=joblib",
+        wj, cj, ej, ij, sj, pj = run([*py, "-m", "stage=mppi", f"object={args.object}", f"seed={seeds}", "hydra/launcher=joblib",
                               f"hydra.launcher.n_jobs={args.jobs}", *stage_args(args, many)], many)
     r1, rj = c1 / w1, cj / wj
     print(f"{args.device}, {args.n_grid}^3, K={args.K}, {args.iters} iterations, task {args.task}, "
@@ -91,6 +106,10 @@ def main():
     print(f"  {args.jobs} processes (joblib): {ej:3d} episodes, {cj:4d} cuts in {wj:7.1f} s: {rj:6.3f} cuts/s wall "
           f"({rj / r1:.2f}x the one process), {ij:6.3f} in episodes ({ij / i1:.2f}x), {sj:6.3f} steady "
           f"({sj / s1:.2f}x; {args.jobs / sj:.2f} s a cut in each process)")
+    for name, parts in (("1 process", p1), (f"{args.jobs} processes", pj)):
+        if parts:
+            print(f"  where a process's wall time went ({name}, mean): "
+                  + ", ".join(f"{k} {v:.1f} s" for k, v in parts.items()))
     per_ep = cj / max(ej, 1)
     for name, r in (("1 process", s1), (f"{args.jobs} processes", sj)):
         print(f"  1,000 episodes ({per_ep:.2f} cuts each) at the steady rate of {name}: "

@@ -14,6 +14,7 @@ import functools
 import json
 import logging
 import os
+import time
 
 import numpy as np
 
@@ -119,12 +120,13 @@ def run_knife(ctx: RunContext, sim, object, task, topology, reward, planner, dat
                 advance(task.max_cuts, info=f"episode {e} already committed")
                 continue
             pose, goal = episode_scene(object, task, sim, seed, planner)
-            record = {"episode": e, "seed": seed}
+            record = {"episode": e, "seed": seed, "started": time.time()}  # wall clock: start-up = first - launch
             if compare_heuristic:  # the same episode under the heuristic, for docs/data.md's comparison
                 env.reset(object.name, pose, seed=seed)
                 _, hs = run_episode(env, goal, HeuristicPolicy(goal), reward, topology, task.max_cuts, task.push,
                                     success_threshold=task.success_threshold, success_fn=success)
                 record["heuristic_final_reward"] = hs["final_reward"]
+                record["heuristic_time_s"] = hs["time_s"]
             env.reset(object.name, pose, seed=seed)
             steps, summary = run_episode(env, goal, expert, reward, topology, task.max_cuts, task.push,
                                          progress=advance, success_threshold=task.success_threshold, seed=seed,
