@@ -96,10 +96,12 @@ def resumed(tmp_path_factory):
     assert first_x is not None, f"no episode committed to a partial dir before the kill/timeout:\n{out[-3000:]}"
     versions_after_kill = store.versions("dataset", "demos")
     partials_after_kill = sorted(p.name for p in (root / "dataset" / "demos").glob(".partial-*"))
+    committed_at_kill = EpisodeDataset(next((root / "dataset" / "demos").glob(".partial-*/data.zarr"))).num_episodes
     t0 = time.time()
     second = _ok(topocut(root, *MPPI_ONE))
     return {"root": root, "store": store, "first_x": first_x, "killed_rc": killed_rc, "versions_after_kill": versions_after_kill,
-            "partials_after_kill": partials_after_kill, "second": second, "second_seconds": time.time() - t0}
+            "partials_after_kill": partials_after_kill, "second": second, "second_seconds": time.time() - t0,
+            "second_launched": t0, "committed_at_kill": committed_at_kill}
 
 
 def test_multirun_shards_merge_into_one_dataset(tmp_path):
@@ -155,6 +157,15 @@ def test_killed_mppi_resumes_without_redoing_episodes(resumed):
     assert x0.dtype == resumed["first_x"].dtype and x0.shape == resumed["first_x"].shape
     assert x0.tobytes() == resumed["first_x"].tobytes()
     assert len(ds) == sum(ds.meta(e)["num_steps"] for e in range(ds.num_episodes))
+    # the episode log's wall-clock starts (benchmarks/demo_processes.py splits a process's time with them): the
+    # episodes the killed run committed started before the re-run was launched, the others in the re-run, in order
+    from pipelines.mppi import read_records
+
+    records = read_records(path / "episodes.jsonl")
+    starts = [r["started"] for r in sorted(records, key=lambda r: r["episode"])]
+    assert starts == sorted(starts) and 1 <= resumed["committed_at_kill"] < RESUME_EPISODES
+    assert sum(s < resumed["second_launched"] for s in starts) == resumed["committed_at_kill"]
+    assert all(r["time_s"] > 0 for r in records)
 
 
 def test_rerun_with_same_config_reuses_the_version(resumed):
