@@ -106,17 +106,17 @@ PY
     timeout 300 python3 benchmarks/reward.py --device cuda 2>&1 | tee -a "$OUT/bench_reward.txt" ;;
   demo-procs)  # MPPI demonstrations from JOBS processes sharing the GPU (joblib launcher) vs one process (#31);
     # MPS=1: under CUDA's Multi-Process Service (its daemon started here, stopped after), processes' kernels overlap
-    [ "${MPS:-0}" = 1 ] && mps_start
+    if [ "${MPS:-0}" = 1 ]; then mps_start; fi
     echo "== JOBS=${JOBS:-4} EPISODES=${EPISODES:-4} MPS=${MPS:-0} ${DEMO_ARGS:-}" | tee -a "$OUT/demo_procs.txt"
     timeout ${LIMIT:-560} python3 benchmarks/demo_processes.py --device cuda --jobs ${JOBS:-4} \
       --episodes ${EPISODES:-4} ${DEMO_ARGS:-} 2>&1 | grep -v -i warn | tee -a "$OUT/demo_procs.txt"
-    [ "${MPS:-0}" = 1 ] && mps_stop ;;
+    if [ "${MPS:-0}" = 1 ]; then mps_stop; fi ;;
   train-sweep)  # perception training samples/s over batch sizes, fp32 and bf16 (#31)
     timeout ${LIMIT:-400} python3 benchmarks/train.py --device cuda --batches 16 64 256 512 --amp --steps 10 2>&1 \
       | grep -v -i warn | tee "$OUT/bench_train.txt" ;;
   protocol)  # the 405-episode protocol through stage=eval (resumes: run it again); POLICIES (default: the scripted
     # ones), EVAL_JOBS processes (MPS=1: under CUDA's Multi-Process Service), EVAL_ARGS more overrides
-    [ "${MPS:-0}" = 1 ] && mps_start
+    if [ "${MPS:-0}" = 1 ]; then mps_start; fi
     echo "== POLICIES=${POLICIES:-oracle,heuristic} EVAL_JOBS=${EVAL_JOBS:-1} MPS=${MPS:-0} ${EVAL_ARGS:-}" \
       | tee -a "$OUT/protocol.txt"
     t0=$(date +%s)
@@ -126,7 +126,7 @@ PY
       | tee -a "$OUT/protocol.txt"
     echo "wall $(( $(date +%s) - t0 )) s; episodes written: $(find /tmp/o/eval -name '*.json' -path '*episodes*' | wc -l)" \
       | tee -a "$OUT/protocol.txt"
-    [ "${MPS:-0}" = 1 ] && mps_stop
+    if [ "${MPS:-0}" = 1 ]; then mps_stop; fi
     find /tmp/o -name results.md -exec cp {} "$OUT/" \;
     tar -czf "$OUT/protocol_eval.tgz" -C /tmp/o eval 2>/dev/null ;;
   demos)  # MPPI demonstrations through stage=mppi at 64^3, K=16, 2 iterations, horizon 1 (#31's per-cut figure)
@@ -138,13 +138,13 @@ PY
   paper)  # `make paper` (stage=all scale=paper) with PAPER_ARGS on top; resumes where the last call stopped (same
     # /tmp/o on a warm machine). Leaves the eval artifact, the runs' status files and the pipeline's log in $OUT.
     # MPS=1: under CUDA's Multi-Process Service, as `make paper` runs by default.
-    [ "${MPS:-0}" = 1 ] && mps_start
+    if [ "${MPS:-0}" = 1 ]; then mps_start; fi
     t0=$(date +%s)
     timeout "${LIMIT:-570}" python3 -m topocut.run stage=all scale=paper device=cuda reward=torch trainer=gpu \
       logger=csv progress=false outputs_root=/tmp/o ${PAPER_ARGS:-} 2>&1 | grep -v -i "warn" | tail -120 \
       | tee -a "$OUT/paper.txt"
     echo "wall $(( $(date +%s) - t0 )) s" | tee -a "$OUT/paper.txt"
-    [ "${MPS:-0}" = 1 ] && mps_stop
+    if [ "${MPS:-0}" = 1 ]; then mps_stop; fi
     find /tmp/o/runs -name status.json | tar -czf "$OUT/runs.tgz" -T - 2>/dev/null
     [ -d /tmp/o/eval ] && tar -czf "$OUT/eval.tgz" -C /tmp/o eval
     for d in /tmp/o/dataset/*/v* /tmp/o/checkpoint/*/v*; do [ -f "$d/manifest.json" ] && echo "$d" \
