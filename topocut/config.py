@@ -82,8 +82,9 @@ class DataConfig:
     objects: list[str] = field(default_factory=list)
     shard: bool = False  # stage=mppi writes a shard of ``dataset`` (set by stage=all's cells; multiruns always do)
     # stage=all: demonstration cells made at once, each in its own process (joblib's loky workers).  One process
-    # leaves a GPU mostly idle (its host work), so on one H100 8 processes made 5.5x the demonstrations per hour
-    # of one by wall time (docs/benchmarks.md#demonstrations-from-several-processes); 1: one cell after another, in-process
+    # leaves a GPU mostly idle (its host work): on one H100, steady rates of 2.4 cuts/s with 8 processes, 3.9 with
+    # 16, 6.2 with 16 under CUDA MPS (docs/benchmarks.md, "Demonstrations from several processes"); 1: one cell after
+    # another, in-process
     jobs: int = 1
 
 
