@@ -58,6 +58,14 @@ class Scorer:
                        cfg=self.topo_cfg, device=self.device)
         return np.asarray(res.labels, np.int32)
 
+    def labels_batch(self, xs, damages, sweeps, previous) -> list[np.ndarray]:  # B x (N_b,)
+        """``labels`` of several scenes in one discovery (topology.batch.discover_batch: one grid, one pass)."""
+        from topocut.topology.batch import discover_batch
+
+        res = discover_batch([np.asarray(x) for x in xs], [np.asarray(d, bool) for d in damages], list(sweeps),
+                             list(previous), cfg=self.topo_cfg, device=self.device)
+        return [np.asarray(r.labels, np.int32) for r in res]
+
     def fragments(self, x, labels) -> list[np.ndarray]:
         return fragments(x, labels, self.min_fragment_points)  # the engine's rule: -1 is no piece
 
@@ -100,6 +108,17 @@ def turns_after(goal, k: int) -> list:
     return after(goal, k)
 
 
+def discover_scenes(scorer, xs: list, damages: list, sweeps: list, previous: list) -> list[np.ndarray]:
+    """Labels of several scenes: one batched discovery where the scorer offers it (``labels_batch``) and its
+    topology config allows it (``batch_scenes``, default on), else one ``labels`` call per scene."""
+    if not xs:
+        return []
+    cfg = getattr(scorer, "topo_cfg", None)
+    if getattr(scorer, "labels_batch", None) is not None and getattr(cfg, "batch_scenes", True):
+        return list(scorer.labels_batch(xs, damages, sweeps, previous))
+    return [scorer.labels(x, d, s, p) for x, d, s, p in zip(xs, damages, sweeps, previous)]
+
+
 class TurnFailed(RuntimeError):
     """CuttingEnv.turn refused a turn (e.g. the turned pieces would leave the simulation box)."""
 
@@ -116,8 +135,10 @@ def execute_turns(env, turns: list, scorer: Scorer, labels: list, xs: list) -> i
             raise TurnFailed(str(e)) from e
     if turns:
         st = env.state()
-        for b in range(len(labels)):
-            labels[b] = scorer.labels(st.x[b], st.damage[b], st.sweeps[b], labels[b])
+        scenes = range(len(labels))
+        labels[:] = discover_scenes(scorer, [st.x[b] for b in scenes], [st.damage[b] for b in scenes],
+                                    [st.sweeps[b] for b in scenes], [labels[b] for b in scenes])
+        for b in scenes:
             xs[b] = np.asarray(st.x[b])
     return len(turns)
 
@@ -157,11 +178,17 @@ def make_sim_rollout(env, state_dict: dict, goal, reward_cfg=None, topo_cfg=None
                     if push:
                         env.push()
                     st = env.state()
+                    todo = []  # the scenes to discover, all in one call where the scorer batches them
                     for b in range(n):
                         # a plane that misses every particle cannot change the topology: skip discovery
                         m = cut_mask(xs[b], acts[b], board_z)
                         if 0 < m.sum() < len(m):
-                            labs[b] = scorer.labels(st.x[b], st.damage[b], st.sweeps[b], labs[b])
+                            todo.append(b)
+                    found = discover_scenes(scorer, [st.x[b] for b in todo], [st.damage[b] for b in todo],
+                                            [st.sweeps[b] for b in todo], [labs[b] for b in todo])
+                    for b, lab in zip(todo, found):
+                        labs[b] = lab
+                    for b in range(n):
                         xs[b] = np.asarray(st.x[b])
                     if h + 1 < H:  # the goal's turn between this cut and the next
                         execute_turns(env, turns_after(goal, cuts_done + h + 1), scorer, labs, xs)

@@ -7,6 +7,10 @@ piece that came from its own previous cluster.  Pieces of fewer than
 ``min_piece_particles`` particles are chips: their particles join the piece of
 the nearest particle in a larger piece.  All per-particle work is a kernel;
 only per-piece counts (K values) come back to the host.
+
+discover_batch passes each particle's scene (and per-scene tau and particle ranges): a particle's surface
+fallback uses its own scene's tau, and a chip joins a piece of its own scene.  Without them (None), as in
+discover(), every particle is in scene 0.
 """
 # ruff: noqa: UP018  (int(0), float(...) declare mutable Warp kernel variables; a bare literal is a constant)
 from __future__ import annotations
@@ -14,6 +18,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from topocut.topology.carve import scene_of
 from topocut.topology.sdf import Grid, hash_grid
 
 
@@ -55,8 +60,10 @@ def _origin_argmax(hist: wp.array(dtype=wp.int32), num_old: int, origin: wp.arra
 @wp.kernel
 def _nearest_surface_piece(x: wp.array(dtype=wp.vec3), raw: wp.array(dtype=wp.int32), hg: wp.uint64,
                            verts: wp.array(dtype=wp.vec3), vpiece: wp.array(dtype=wp.int32), tau: float,
+                           scene: wp.array(dtype=wp.int32), scene_tau: wp.array(dtype=float),
                            use_origin: int, owner: wp.array(dtype=wp.int32), origin: wp.array(dtype=wp.int32),
                            out: wp.array(dtype=wp.int32)):
+    # tau: the query radius; scene_tau (None: tau for all) the threshold of each scene, at most tau
     p = wp.tid()
     r = raw[p]
     out[p] = r
@@ -66,10 +73,13 @@ def _nearest_surface_piece(x: wp.array(dtype=wp.vec3), raw: wp.array(dtype=wp.in
     o = int(-1)
     if use_origin == 1:
         o = owner[p]
+    near = tau
+    if scene_tau.shape[0] > 0:
+        near = scene_tau[scene_of(scene, p)]
     best = int(-1)
-    best_d = tau
+    best_d = near
     same = int(-1)
-    same_d = tau
+    same_d = near
     query = wp.hash_grid_query(hg, xp, tau)
     q = int(0)
     while wp.hash_grid_query_next(query, q):
@@ -107,8 +117,9 @@ def _piece_stats(x: wp.array(dtype=wp.vec3), raw: wp.array(dtype=wp.int32), prev
 
 @wp.kernel
 def _absorb_chips(x: wp.array(dtype=wp.vec3), raw: wp.array(dtype=wp.int32), small: wp.array(dtype=wp.int32),
-                  out: wp.array(dtype=wp.int32)):
-    # brute force over all particles, but only for the few particles of chips (< min_piece_particles each)
+                  scene: wp.array(dtype=wp.int32), start: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.int32)):
+    # brute force over the particles of the chip's scene (start[s]..start[s+1]; None: all particles), but only
+    # for the few particles of chips (< min_piece_particles each)
     p = wp.tid()
     r = raw[p]
     out[p] = r
@@ -117,8 +128,14 @@ def _absorb_chips(x: wp.array(dtype=wp.vec3), raw: wp.array(dtype=wp.int32), sma
     if small[r] == 0:
         return
     xp = x[p]
+    first = int(0)
+    last = x.shape[0]
+    if start.shape[0] > 0:
+        s = scene_of(scene, p)
+        first = start[s]
+        last = start[s + 1]
     best = float(1.0e30)
-    for q in range(x.shape[0]):
+    for q in range(first, last):
         rq = raw[q]
         if rq >= 0:
             if small[rq] == 0:
@@ -146,10 +163,18 @@ def node_pieces(x, grid: Grid, piece_labels, device: str = "cpu"):
 
 
 def surface_fallback(x, raw, verts, vpiece, num_pieces: int, tau: float, extent, owner=None, num_old: int = 0,
-                     device: str = "cpu"):
-    """Particles with raw < 0 take the piece of the nearest vertex within tau (own earlier cluster first)."""
+                     device: str = "cpu", scene=None, scene_tau=None):
+    """Particles with raw < 0 take the piece of the nearest vertex within tau (own earlier cluster first).
+
+    scene (warp int32 (N,)) and scene_tau ((B,) floats): each particle's scene and each scene's tau instead
+    (discover_batch; ``tau`` is then their maximum).  A particle whose owner is below -1 has no earlier
+    cluster to prefer (a scene without splits in a batch where others have them)."""
     if num_pieces == 0 or verts.shape[0] == 0:
         return raw
+    taus = None
+    if scene_tau is not None:
+        taus = wp.array(np.asarray(scene_tau, np.float32), dtype=float, device=device)
+        tau = float(np.max(scene_tau))
     origin = wp.full(num_pieces, -1, dtype=wp.int32, device=device)
     use_origin = owner is not None and num_old > 0
     if use_origin:
@@ -159,7 +184,8 @@ def surface_fallback(x, raw, verts, vpiece, num_pieces: int, tau: float, extent,
     hg = hash_grid(verts, tau, extent, device)
     out = wp.empty_like(raw)
     wp.launch(_nearest_surface_piece, dim=x.shape[0], device=device,
-              inputs=[x, raw, hg.id, verts, vpiece, float(tau), int(use_origin),
+              inputs=[x, raw, hg.id, verts, vpiece, float(tau), scene if taus is not None else None, taus,
+                      int(use_origin),
                       owner if use_origin else raw, origin, out])
     wp.synchronize_device(device)  # the hash grid is freed when this returns
     return out
@@ -178,11 +204,16 @@ def piece_stats(x, raw, num_pieces: int, prev=None, num_old: int = 0, device: st
     return count.numpy()[:num_pieces], sum_x.numpy()[:num_pieces].astype(np.float64), ov
 
 
-def absorb_chips(x, raw, small: np.ndarray, device: str = "cpu"):
-    """Particles of the pieces flagged in ``small`` (K,) join the piece of their nearest particle elsewhere."""
+def absorb_chips(x, raw, small: np.ndarray, device: str = "cpu", scene=None, start=None):
+    """Particles of the pieces flagged in ``small`` (K,) join the piece of their nearest particle elsewhere.
+
+    scene (warp int32 (N,)) and start ((B + 1,) ints, scene s holds particles start[s]..start[s+1]): the
+    nearest particle is sought in the chip's own scene only (discover_batch)."""
     flags = wp.array(np.asarray(small, np.int32), dtype=wp.int32, device=device)
+    starts = None if start is None else wp.array(np.asarray(start, np.int32), dtype=wp.int32, device=device)
     out = wp.empty_like(raw)
-    wp.launch(_absorb_chips, dim=x.shape[0], inputs=[x, raw, flags, out], device=device)
+    wp.launch(_absorb_chips, dim=x.shape[0], inputs=[x, raw, flags, scene if starts is not None else None, starts,
+                                                     out], device=device)
     return out
 
 

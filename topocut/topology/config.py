@@ -38,6 +38,10 @@ class TopologyConfig:
     # wait for the device after every step so that each gets its own time; off, the host queues the next
     # step's launches while the GPU runs (the total is shorter; per-step figures are then enqueue times)
     step_timings: bool = False
+    # --- planning -------------------------------------------------------------
+    # MPPI's rollouts discover all scenes of a simulated cut in one call (topology.batch.discover_batch: one
+    # grid, one pass of every step); False: one discover() call per scene (to compare the two)
+    batch_scenes: bool = True
 
     def validate(self) -> TopologyConfig:
         if self.resolution < 8:

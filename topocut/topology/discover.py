@@ -130,8 +130,25 @@ def _wall_owners(x, prev_idx: np.ndarray) -> np.ndarray:
     return owners
 
 
-def _previous(previous_labels, n: int, preserve_splits: bool):
-    """-> (prev (N,) int64 or None, column index per particle (N,) int32, old ids (L,) or None, used, split)."""
+def scene_grid(lo, hi, r: float, cfg: TopologyConfig):
+    """The grid (sdf.Grid) of a scene whose particles span [lo, hi], of radius r: padded by r and
+    padding + band voxels (discover; discover_batch places each scene's own grid on its shared lattice)."""
+    from topocut.topology.sdf import make_grid
+
+    pad = cfg.padding_voxels + cfg.band_voxels
+    extent = float((np.asarray(hi) - np.asarray(lo)).max()) + 2 * r
+    if cfg.voxel_size is None:
+        h_est = extent / max(cfg.resolution - 1 - 2 * pad, 1)
+    else:
+        h_est = max(cfg.voxel_size, extent / max(cfg.max_resolution - 1 - 2 * pad, 1))
+    return make_grid(lo, hi, r + pad * h_est, cfg.resolution, cfg.voxel_size, cfg.max_resolution)
+
+
+def _previous(previous_labels, n: int, preserve_splits: bool, max_direct: int = MAX_DIRECT_IDS):
+    """-> (prev (N,) int64 or None, column index per particle (N,) int32, old ids (L,) or None, used, split).
+
+    Ids up to ``max_direct`` index the overlap matrix's columns directly, larger ones are compacted (the
+    same pieces and ids either way: only columns that no particle holds drop out)."""
     if previous_labels is None:
         return None, None, None, 0, False
     prev = np.asarray(previous_labels).reshape(-1).astype(np.int64)
@@ -140,7 +157,7 @@ def _previous(previous_labels, n: int, preserve_splits: bool):
     used = int(prev.max()) + 1 if n else 0
     old = prev[prev >= 0]
     split = preserve_splits and old.size > 0 and old.min() != old.max()  # several earlier pieces
-    if used <= MAX_DIRECT_IDS:
+    if used <= max_direct:
         return prev, prev.astype(np.int32), None, used, split
     old_ids, col = np.unique(old, return_inverse=True)  # huge ids: compact them for the overlap matrix
     idx = np.full(n, -1, np.int32)
@@ -195,13 +212,7 @@ def discover(positions, damage, knife_sweep, previous_labels=None, cfg: Topology
         r = float(cfg.particle_radius)
     else:
         r = cfg.radius_factor * max(S.particle_spacing(xd, lo, hi, device), 1e-6)
-    pad = cfg.padding_voxels + cfg.band_voxels
-    extent = float((hi - lo).max()) + 2 * r
-    if cfg.voxel_size is None:
-        h_est = extent / max(cfg.resolution - 1 - 2 * pad, 1)
-    else:
-        h_est = max(cfg.voxel_size, extent / max(cfg.max_resolution - 1 - 2 * pad, 1))
-    grid = S.make_grid(lo, hi, r + pad * h_est, cfg.resolution, cfg.voxel_size, cfg.max_resolution)
+    grid = scene_grid(lo, hi, r, cfg)
     h = grid.h
     walls = None
     if split:  # wall owners: an unlabelled particle (-1) between two earlier pieces must not bridge their wall
