@@ -1,8 +1,9 @@
 """stage=all: run the stages in order with the same overrides, each as its own run.
 
-``make paper`` is this stage at scale=paper on one GPU: MPPI demonstrations over data.tasks x data.objects (one
-shard each, merged), perception pretraining, every learned policy trained with eval.train_seeds seeds, and the
-405-episode evaluation of every policy (docs/results.md).  ``make run`` is the same command at smoke scale.
+``make paper`` is this stage at scale=paper on one GPU: MPPI demonstrations over data.tasks x data.objects (shards
+of at most data.episodes_per_job episodes each, merged), perception pretraining, every learned policy trained with
+eval.train_seeds seeds, and the 405-episode evaluation of every policy (docs/results.md).  ``make run`` is the same
+command at smoke scale.
 """
 from __future__ import annotations
 
@@ -57,6 +58,42 @@ def cells(config: dict) -> list[tuple[str, str]]:
             for o in (data["objects"] or [config["object"]["name"]])]
 
 
+# Relative cost of an episode by task, for the order of the demonstration runs only: one process's seconds a cut on
+# an H100 (15 processes under MPS, docs/benchmarks.md "The paper's demonstrations for real": slice 4.3, stick 6.2,
+# dice 6.4) times the cuts an episode made there (slice ~3.2, ending on success; stick and dice all 5).  A task not
+# listed counts as the costliest, so that it never lands in the tail.
+EPISODE_COST = {"slice": 14.0, "stick": 31.0, "dice": 32.0}
+
+
+def demo_runs(config: dict) -> list[tuple[str, dict, tuple[int, int]]]:
+    """stage=all's stage=mppi runs as (label, own keys, (cell, part)), in the order they are handed out.
+
+    data.episodes_per_job=null: one run per cell, as a cell always was.  Set: each cell's episodes first_episode ..
+    first_episode + episodes - 1 cut into consecutive parts of at most that many (data.first_episode, data.episodes
+    per part), whose union is what the one run writes (same seeds, stage=mppi's episode_seed).  Order: part index
+    first, so every cell advances and the short last parts end the queue; within one index the costliest parts
+    first (EPISODE_COST x episodes: dice, stick, slice), so the cheap ones fill the gaps the long ones leave."""
+    from topocut.config import ConfigError
+
+    data = config["data"]
+    per_job, first = data.get("episodes_per_job"), int(data.get("first_episode") or 0)
+    if per_job is not None and per_job < 1:
+        raise ConfigError(f"data.episodes_per_job: {per_job} is not valid; must be >= 1 (or null: one run per cell)")
+    runs = []
+    for i, (t, o) in enumerate(cells(config)):
+        if per_job is None:
+            runs.append(((0, 0, i), f"mppi-{t}-{o}", {"task": t, "object": o, "data.shard": "true"}, (i, 0)))
+            continue
+        end = first + data["episodes"]
+        for j, start in enumerate(range(first, end, per_job)):
+            n = min(per_job, end - start)
+            cost = n * EPISODE_COST.get(t, max(EPISODE_COST.values()))
+            runs.append(((j, -cost, i), f"mppi-{t}-{o}-e{start}-{start + n - 1}",
+                         {"task": t, "object": o, "data.shard": "true", "data.first_episode": start,
+                          "data.episodes": n}, (i, j)))
+    return [run[1:] for run in sorted(runs, key=lambda run: run[0])]
+
+
 def train_seeds(config: dict) -> list[int]:
     """The seeds stage=bc trains with: seed .. seed + eval.train_seeds - 1, the ones stage=eval pools."""
     return [config["seed"] + i for i in range(config["eval"]["train_seeds"])]
@@ -72,8 +109,9 @@ def _timed_stage(cfg, run_dir: Path, overrides: list[str]) -> tuple[dict, float]
 
 def run(ctx: RunContext, sequence: list[str], trainer=None) -> dict:
     """Each stage of ``sequence`` as its own run under ``<run dir>/<label>``, later ones pinned to what earlier ones
-    wrote.  mppi runs once per cell (several cells: shards, data.jobs of them at once in worker processes, then one
-    merge of exactly those); bc once per training seed (trainer.jobs of them at once).
+    wrote.  mppi runs once per cell, or per part of a cell (data.episodes_per_job; several runs: shards, data.jobs of
+    them at once in worker processes, then one merge of exactly those); bc once per training seed (trainer.jobs of
+    them at once).
     Every run reuses a committed artifact of the same config, so a killed pipeline resumes where it stopped;
     the summary ends with each run's wall time."""
     from topocut.run import run_stage
@@ -88,6 +126,7 @@ def run(ctx: RunContext, sequence: list[str], trainer=None) -> dict:
     def key(o: str) -> str:
         return o.split("=")[0].lstrip("+~")
 
+    demos = demo_runs(ctx.config) if "mppi" in sequence else []  # a bad data.episodes_per_job fails before any run
     base = [o for o in ctx.overrides if not _under(key(o), ("stage",))]  # stage.run.*: stage=all's own keys
     summaries, pins, wall = {}, {}, {}
 
@@ -110,7 +149,9 @@ def run(ctx: RunContext, sequence: list[str], trainer=None) -> dict:
 
     def at_once(name: str, todo: list[tuple[str, dict]], jobs: int) -> list[dict]:
         """Runs of stage ``name`` for ``todo`` [(label, own keys)], ``jobs`` at a time in joblib's worker processes
-        (each its own Taichi/CUDA context; composed here, run there); their summaries in order."""
+        (each its own Taichi/CUDA context; composed here, run there), handed out one by one in ``todo``'s order as
+        workers free up (batch_size=1: joblib's "auto" may group runs it sees end quickly, e.g. reused ones);
+        their summaries in ``todo``'s order."""
         from joblib import Parallel, delayed
 
         if jobs <= 1:
@@ -120,7 +161,7 @@ def run(ctx: RunContext, sequence: list[str], trainer=None) -> dict:
             overrides = overrides_of(name, own)
             runs.append((label, _compose(overrides), overrides))
         started = time.time()
-        out = Parallel(n_jobs=min(jobs, len(runs)), backend="loky")(
+        out = Parallel(n_jobs=min(jobs, len(runs)), backend="loky", batch_size=1)(
             delayed(_timed_stage)(cfg, ctx.run_dir / label, overrides) for label, cfg, overrides in runs)
         for (label, cfg, _), (summary, seconds) in zip(runs, out):
             summaries[label], wall[label] = summary, seconds
@@ -129,10 +170,13 @@ def run(ctx: RunContext, sequence: list[str], trainer=None) -> dict:
         return [summaries[label] for label, _, _ in runs]
 
     for name in sequence:
-        if name == "mppi" and len(cells(ctx.config)) > 1:
-            todo = [(f"mppi-{t}-{o}", {"task": t, "object": o, "data.shard": "true"}) for t, o in cells(ctx.config)]
-            shards = [Path(s["dataset"]) for s in at_once("mppi", todo, int(ctx.config["data"]["jobs"]))]
-            one("merge", "merge", {"stage.run.only": "[" + ",".join(f"'{p.parent.name}'" for p in shards) + "]"})
+        if name == "mppi" and len(demos) > 1:
+            out = at_once("mppi", [(label, own) for label, own, _ in demos], int(ctx.config["data"]["jobs"]))
+            # the merge takes the shards cell by cell, each cell's parts in episode order: the episodes in the
+            # order one run per cell would give them
+            by_part = {at: Path(s["dataset"]).parent.name for (*_, at), s in zip(demos, out)}
+            only = ",".join(f"'{by_part[at]}'" for at in sorted(by_part))
+            one("merge", "merge", {"stage.run.only": f"[{only}]"})
         elif name == "mppi":
             (t, o), = cells(ctx.config)
             data = ctx.config["data"]

@@ -1,14 +1,18 @@
 """stage=mppi: MPPI demonstrations guided by the spectral reward -> a versioned zarr dataset.
 
-One run writes ``data.episodes`` episodes of one task and object (seeds derived from
-``seed``).  In a Hydra multirun (or with ``data.shard=true``, as stage=all's cells) each job writes its own shard
+One run writes ``data.episodes`` episodes of one task and object, episode indices e = ``data.first_episode`` ..
+``data.first_episode + data.episodes - 1`` with seeds ``episode_seed(seed, e)``: runs over consecutive ranges
+(stage=all's parts of a cell, ``data.episodes_per_job``) together write exactly the episodes of one run over their
+union.  In a Hydra multirun (or with ``data.shard=true``, as stage=all's cells) each job writes its own shard
 ``dataset/<data.dataset>-<task>-<object>-s<seed>-<config key>`` marked ``shard_of: <data.dataset>`` in its
 manifest (the key keeps jobs of a sweep over any other setting apart); ``stage=merge`` joins them.
 Episodes are committed one by one: a killed run resumes where it stopped, and each episode draws its MPPI
-samples from its own seed, so a resumed run writes what an uninterrupted one would.
+samples from its own seed, so a resumed run writes what an uninterrupted one would.  The simulator is kept per
+process (``cached_env``): a stage=all worker running part after part builds it once.
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
 import functools
 import json
@@ -48,6 +52,33 @@ def episode_seed(run_seed: int, e: int) -> int:
     return mix_seed(run_seed, e)
 
 
+_ENV: dict = {}  # this process's stage=mppi simulator: {"key": (sim config, batch size), "env": CuttingEnv}
+
+
+def cached_env(sim, batch_size: int, make=None):
+    """The process's CuttingEnv for ``sim`` (a SimConfig on the run's device) and ``batch_size``, built by ``make``
+    (CuttingEnv) on first use.  A stage=all worker runs part after part of the same config: a new env each time
+    would allocate its fields and build its kernel graphs again.  Every episode starts from env.reset, as the
+    episodes of one run always did.  Another config releases the held env before building its own."""
+    key = (copy.deepcopy(sim), int(batch_size))  # a copy: the caller's dataclass may be changed later
+    if _ENV.get("key") != key:
+        release_env()
+        if make is None:
+            from topocut.sim import CuttingEnv as make
+        _ENV.update(key=key, env=make(sim, batch_size=int(batch_size)))
+    return _ENV["env"]
+
+
+def release_env() -> None:
+    """Free the cached env's simulator fields: Taichi keeps a field tree until it is destroyed, not when its env
+    is collected (as Scenes._ensure frees a solver it outgrows)."""
+    env = _ENV.pop("env", None)
+    _ENV.clear()
+    if getattr(env, "solver", None) is not None:
+        env.solver.destroy()
+        env.solver = None
+
+
 def planner_for_task(planner, task):
     """The MPPI config a task runs with: a task whose goal plane is tilted (task.sample_tilt, the pyramid's
     35 deg) samples tilt, and |tilt| may reach SAMPLED_TILT_MAX; clipping at the default planner.tilt_max
@@ -74,9 +105,11 @@ def episode_scene(object, task, sim, seed: int, planner=None):
 
 def run(ctx: RunContext, sim, object, task, topology, reward, planner, data, compare_heuristic: bool = True) -> dict:
     """The task says what runs (``tool``); a task without an mppi stage (scooping) is refused, naming it."""
-    from topocut.config import task_for_stage
+    from topocut.config import ConfigError, task_for_stage
 
     tool = task_for_stage(task, "mppi").tool
+    if data.first_episode < 0:
+        raise ConfigError(f"data.first_episode: {data.first_episode} is not valid; must be >= 0")
     if tool == "pen":  # MPPI over the strokes of the pen's tasks
         return run_writing(ctx, sim, task, topology, reward, planner, compare_heuristic)
     return run_knife(ctx, sim, object, task, topology, reward, planner, data, compare_heuristic)
@@ -87,7 +120,7 @@ def run_knife(ctx: RunContext, sim, object, task, topology, reward, planner, dat
     planner = planner_for_task(planner, task)  # pyramid: the goal plane is tilted
     from topocut.data.episodes import EpisodeDataset, EpisodeWriter
     from topocut.planning import HeuristicPolicy, MPPIPolicy, run_episode, sim_rollout_factory
-    from topocut.sim import CuttingEnv, init_taichi
+    from topocut.sim import init_taichi
     from topocut.tasks import get_task
 
     success = functools.partial(get_task(task.name).success, cfg=task)  # RewardResult -> the task's success
@@ -95,6 +128,9 @@ def run_knife(ctx: RunContext, sim, object, task, topology, reward, planner, dat
     config = as_dict(("sim", sim), ("object", object), ("task", task), ("topology", topology),
                      ("reward", reward), ("planner", planner), ("episodes", data.episodes),
                      ("points_per_step", data.points_per_step), ("seed", ctx.seed))
+    first = data.first_episode
+    if first:  # keyed only when nonzero: the artifacts of runs from episode 0 keep the keys they had
+        config["first_episode"] = first
     name, extra = data.dataset, {"seed": ctx.seed, "device": ctx.device}
     if data.shard or _is_multirun():
         name = f"{data.dataset}-{task.name}-{object.name}-s{ctx.seed}-{config_key(config)[:8]}"
@@ -108,13 +144,14 @@ def run_knife(ctx: RunContext, sim, object, task, topology, reward, planner, dat
     zpath = writer.path / "data.zarr"
     ew = EpisodeWriter(zpath, points_per_step=data.points_per_step, board_z=sim.board_z)
     done = ew.committed_keys()
-    env = CuttingEnv(sim, batch_size=max(1, sim.batch_size))
+    env = cached_env(sim, max(1, sim.batch_size))
     factory = sim_rollout_factory(env, reward, topology, board_z=sim.board_z, push=task.push)
     expert = MPPIPolicy(planner, factory, seed=ctx.seed)
     log_path = writer.path / "episodes.jsonl"
     read_records(log_path, repair=True)  # a run killed while logging left a torn last line: drop it
-    with progress_bar(f"mppi {task.name}/{object.name}", data.episodes * task.max_cuts, ctx.progress) as advance:
-        for e in range(data.episodes):
+    label = f"mppi {task.name}/{object.name}" + (f" e{first}-{first + data.episodes - 1}" if first else "")
+    with progress_bar(label, data.episodes * task.max_cuts, ctx.progress) as advance:
+        for e in range(first, first + data.episodes):
             seed = episode_seed(ctx.seed, e)
             if ew.episode_key({"task": task.name, "object": object.name, "seed": seed}) in done:
                 advance(task.max_cuts, info=f"episode {e} already committed")
@@ -149,7 +186,7 @@ def run_knife(ctx: RunContext, sim, object, task, topology, reward, planner, dat
                     info=f"episode {e}: " + (f"reward {summary['final_reward']:.3f}" if summary["status"] == "ok"
                                              else f"failed ({record['error']})"))
     ds = EpisodeDataset(zpath)
-    if ds.num_episodes != data.episodes:
+    if ds.num_episodes != data.episodes:  # this run's episodes only, whatever its first_episode
         raise RuntimeError(f"{zpath} holds {ds.num_episodes} episodes, expected data.episodes={data.episodes}")
     records = read_records(log_path)
     failures = [{"episode": r["episode"], "seed": r.get("seed"), "error": r.get("error", "unknown")}
@@ -167,6 +204,8 @@ def run_knife(ctx: RunContext, sim, object, task, topology, reward, planner, dat
                "success_rate": float(np.mean([r["success"] for r in records])) if records else 0.0,
                "mean_final_reward": float(np.mean(finals)) if finals else float("nan"),
                "failed_episodes": len(failures)}
+    if first:
+        summary["first_episode"] = first
     if failures:
         summary["failures"] = failures
     if heur:

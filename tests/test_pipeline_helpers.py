@@ -123,9 +123,9 @@ def test_stage_all_at_paper_shape_runs_a_shard_per_cell_one_merge_and_a_bc_per_s
     backends = []
     real = joblib.Parallel
 
-    def parallel(n_jobs, backend):
-        backends.append((n_jobs, backend))
-        return real(n_jobs=n_jobs, backend="threading")
+    def parallel(n_jobs, backend, batch_size="auto"):
+        backends.append((n_jobs, backend, batch_size))
+        return real(n_jobs=n_jobs, backend="threading", batch_size=batch_size)
 
     monkeypatch.setattr(joblib, "Parallel", parallel)
 
@@ -157,7 +157,7 @@ def test_stage_all_at_paper_shape_runs_a_shard_per_cell_one_merge_and_a_bc_per_s
     in_order = (lambda x: sorted(x)) if jobs > 1 else (lambda x: x)  # several at once: any order
     assert in_order(labels[:4]) == in_order(cells) and labels[4:6] == ["merge", "pretrain"]
     assert in_order(labels[6:9]) == in_order(seeds) and labels[9:] == ["eval"]
-    assert backends == ([(2, "loky"), (2, "loky")] if jobs > 1 else [])
+    assert backends == ([(2, "loky", 1), (2, "loky", 1)] if jobs > 1 else [])  # runs handed out one by one
     labels = cells + labels[4:6] + seeds + labels[9:]
     cfgs = {c[0]: c[1] for c in calls}
     assert [(cfgs[k].task.name, cfgs[k].object.name, cfgs[k].data.shard) for k in labels[:4]] == \
@@ -227,3 +227,130 @@ def test_eval_jobs_cut_the_work_into_tasks_and_leave_the_artifact_key_alone():
     assert keys[0] == keys[1] and "jobs" not in keys[0]["eval"]
     with pytest.raises(ValueError, match="eval.jobs=0"):
         dataclasses.replace(ev, jobs=0).validate()
+
+
+@pytest.mark.parametrize("jobs", [1, 3])
+def test_stage_all_cuts_cells_into_parts_costliest_first_and_merges_them_all(tmp_path, monkeypatch, jobs):
+    """data.episodes_per_job=2 over 5 episodes: each cell runs as parts e0-1, e2-3, e4 (data.first_episode,
+    data.episodes), handed to the workers one by one (batch_size=1) part index first, the dice cells before the slice
+    ones within an index; one merge takes exactly every part's shard, cell by cell in episode order."""
+    import joblib
+
+    import topocut.run
+    from pipelines.all import demo_runs, run
+
+    calls, backends, handed = [], [], []
+    real = joblib.Parallel
+
+    def parallel(n_jobs, backend, batch_size="auto"):
+        backends.append((n_jobs, backend, batch_size))
+        inner = real(n_jobs=n_jobs, backend="threading", batch_size=batch_size)
+
+        def call(tasks):
+            tasks = list(tasks)
+            handed.append([args[1].name for _, args, _ in tasks])  # _timed_stage(cfg, run_dir, overrides)
+            return inner(tasks)
+        return call
+
+    monkeypatch.setattr(joblib, "Parallel", parallel)
+
+    def fake(cfg, run_dir, overrides):
+        calls.append((run_dir.name, cfg, overrides))
+        if cfg.stage.name == "mppi":
+            return {"dataset": f"/o/dataset/demos-{cfg.task.name}-{cfg.object.name}-e{cfg.data.first_episode}/v001"}
+        return {"dataset": "/o/dataset/demos/v005"} if cfg.stage.name == "merge" else {}
+
+    monkeypatch.setattr(topocut.run, "run_stage", fake)
+    user = ["data.tasks=[slice,dice]", "data.objects=[cake,cube]", "data.episodes=5", "data.episodes_per_job=2",
+            "stage=all", "stage.run.sequence=[mppi,pretrain]"]
+    config = {"data": {"tasks": ["slice", "dice"], "objects": ["cake", "cube"], "jobs": jobs, "episodes": 5,
+                       "episodes_per_job": 2, "first_episode": 0},
+              "task": {"name": "slice"}, "object": {"name": "cake"}, "seed": 0, "eval": {"policies": ["oracle"]}}
+    order = [f"mppi-{t}-{o}-{e}" for e in ("e0-1", "e2-3", "e4-4") for t in ("dice", "slice") for o in ("cake", "cube")]
+    assert [label for label, _, _ in demo_runs(config)] == order
+    out = run(SimpleNamespace(overrides=user, config=config, run_dir=tmp_path), ["mppi", "pretrain"])
+    labels = [c[0] for c in calls]
+    assert sorted(labels[:12]) == sorted(order) and labels[12:] == ["merge", "pretrain"]
+    if jobs > 1:  # handed out in that order, one run at a time, to 3 workers
+        assert backends == [(3, "loky", 1)] and handed == [order]
+    else:
+        assert backends == [] and labels[:12] == order
+    cfgs = {c[0]: c[1] for c in calls}
+    for t in ("slice", "dice"):
+        for o in ("cake", "cube"):  # every episode of the cell exactly once, in shards of its own name
+            parts = sorted((c.data.first_episode, c.data.episodes) for c in cfgs.values()
+                           if c.stage.name == "mppi" and (c.task.name, c.object.name) == (t, o))
+            assert parts == [(0, 2), (2, 2), (4, 1)]
+            assert [e for f, n in parts for e in range(f, f + n)] == list(range(5))
+    assert all(c.data.shard for c in cfgs.values() if c.stage.name == "mppi")
+    assert cfgs["mppi-dice-cube-e4-4"].task.max_cuts >= 3  # a dice part composes dice's own config
+    assert list(cfgs["merge"].stage.run.only) == [f"demos-{t}-{o}-e{f}" for t in ("slice", "dice")
+                                                  for o in ("cake", "cube") for f in (0, 2, 4)]
+    assert cfgs["pretrain"].data.version == "v005"
+    assert set(out["wall_s"]) == set(labels) | ({"mppi-at-once"} if jobs > 1 else set())
+
+
+def test_stage_all_parts_keep_the_unsplit_plan_by_default_and_refuse_a_bad_size():
+    from hydra import compose, initialize_config_dir
+
+    from pipelines.all import CONF_DIR, EPISODE_COST, demo_runs
+    from topocut.config import ConfigError
+
+    config = {"data": {"tasks": ["slice", "dice"], "objects": ["cake"], "episodes": 67}, "task": {"name": "slice"},
+              "object": {"name": "cake"}}
+    assert demo_runs(config) == [("mppi-slice-cake", {"task": "slice", "object": "cake", "data.shard": "true"}, (0, 0)),
+                                 ("mppi-dice-cake", {"task": "dice", "object": "cake", "data.shard": "true"}, (1, 0))]
+    # a user's data.first_episode: the parts cut the cell's range from there
+    config["data"].update(episodes=3, episodes_per_job=2, first_episode=10, tasks=["pyramid", "slice"])
+    runs = demo_runs(config)
+    assert [(label, own["data.first_episode"], own["data.episodes"]) for label, own, _ in runs] == \
+        [("mppi-pyramid-cake-e10-11", 10, 2), ("mppi-slice-cake-e10-11", 10, 2),  # unmeasured pyramid: costliest
+         ("mppi-pyramid-cake-e12-12", 12, 1), ("mppi-slice-cake-e12-12", 12, 1)]
+    assert max(EPISODE_COST, key=EPISODE_COST.get) == "dice"
+    with pytest.raises(ConfigError, match="data.episodes_per_job: 0 is not valid"):
+        demo_runs({**config, "data": {**config["data"], "episodes_per_job": 0}})
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        paper = compose(config_name="config", overrides=["stage=all", "scale=paper"])
+    from omegaconf import OmegaConf
+
+    runs = demo_runs(OmegaConf.to_container(paper, resolve=True))  # make paper: 15 cells x 7 parts
+    assert paper.data.episodes_per_job == 10 and len(runs) == 105
+    assert [own["data.episodes"] for _, own, _ in runs] == [10] * 90 + [7] * 15
+    assert [own["task"] for _, own, _ in runs[:15]] == ["dice"] * 5 + ["stick"] * 5 + ["slice"] * 5
+
+
+def test_mppi_keeps_one_simulator_per_process_for_equal_configs():
+    """stage=mppi's env cache: parts of the same sim config (and batch size) reuse the env; another config
+    destroys the held env's solver before building its own."""
+    import dataclasses
+
+    from pipelines import mppi
+    from topocut.sim.config import SimConfig
+
+    built, destroyed = [], []
+
+    class Solver:
+        def destroy(self):
+            destroyed.append(self)
+
+    class Env:
+        def __init__(self, sim, batch_size):
+            self.sim, self.batch_size, self.solver = sim, batch_size, Solver()
+            built.append(self)
+
+    mppi.release_env()
+    try:
+        sim = SimConfig(n_grid=32)
+        a = mppi.cached_env(sim, 4, make=Env)
+        assert mppi.cached_env(SimConfig(n_grid=32), 4, make=Env) is a and len(built) == 1  # equal, not the same
+        held = a.solver
+        sim.n_grid = 40  # the caller's object changed after the fact: the key kept its own copy
+        b = mppi.cached_env(sim, 4, make=Env)
+        assert b is not a and destroyed == [held] and a.solver is None
+        c = mppi.cached_env(sim, 2, make=Env)  # another batch size
+        d = mppi.cached_env(dataclasses.replace(sim, tuning={"warp_scatter": "off"}), 2, make=Env)
+        assert len({id(x) for x in (a, b, c, d)}) == 4 and len(destroyed) == 3
+        assert mppi.cached_env(dataclasses.replace(sim, tuning={"warp_scatter": "off"}), 2, make=Env) is d
+    finally:
+        mppi.release_env()
+    assert len(destroyed) == 4 and all(x.solver is None for x in built)

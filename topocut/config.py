@@ -73,6 +73,9 @@ class DataConfig:
     dataset: str = "demos"  # name written by mppi/merge and read by pretrain/bc/eval
     version: str = "latest"
     episodes: int = 2  # episodes per mppi run (job)
+    # stage=mppi writes episodes first_episode .. first_episode + episodes - 1 (seeds episode_seed(seed, e)): a part
+    # of a larger run (stage=all's data.episodes_per_job); keys an artifact only when nonzero
+    first_episode: int = 0
     points_per_step: int = 2048
     encoder: str = "perception"  # checkpoint name of the pretrained encoder Φ
     encoder_version: str = "latest"
@@ -86,6 +89,10 @@ class DataConfig:
     # 16, 6.2 with 16 under CUDA MPS (docs/benchmarks.md, "Demonstrations from several processes"); 1: one cell after
     # another, in-process
     jobs: int = 1
+    # stage=all: cut each cell into stage=mppi runs of at most this many episodes (data.first_episode / episodes),
+    # handed to the data.jobs processes as they free up, so that the costly cells (dice) do not run long after the
+    # others; null: one run per cell.  scale=paper: 10 (docs/data.md)
+    episodes_per_job: int | None = None
 
 
 @dataclass
