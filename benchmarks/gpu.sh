@@ -100,7 +100,7 @@ PY
       --no-ref --repeats 5 --set $cases 2>&1 | tee -a "$OUT/block_dim.txt" ;;
   episodes)  # the episode engine: a demonstration cut vs its simulation, batched evaluation, PDDP act (#31)
     timeout ${LIMIT:-560} python3 benchmarks/episodes.py --device cuda --n-grid 64 --K 16 --iters 2 \
-      --batch ${BATCH:-16} --eval-episodes ${EPISODES:-32} --only ${PARTS:-demo eval policy} 2>&1 \
+      --batch ${BATCH:-16} --eval-episodes ${EPISODES:-32} --only ${PARTS:-demo eval policy} ${BENCH_ARGS:-} 2>&1 \
       | grep -v -i warn | tee -a "$OUT/bench_episodes.txt" ;;
   reward)  # the reward's eigensolvers batched on the GPU: whole-spectrum eigh (reference), subspace, host (#31)
     timeout 300 python3 benchmarks/reward.py --device cuda 2>&1 | tee -a "$OUT/bench_reward.txt" ;;

@@ -103,19 +103,24 @@ def episode_scene(object, task, sim, seed: int, planner=None):
     return pose, goal
 
 
-def run(ctx: RunContext, sim, object, task, topology, reward, planner, data, compare_heuristic: bool = True) -> dict:
-    """The task says what runs (``tool``); a task without an mppi stage (scooping) is refused, naming it."""
+def run(ctx: RunContext, sim, object, task, topology, reward, planner, data, compare_heuristic: int | bool = 1) -> dict:
+    """The task says what runs (``tool``); a task without an mppi stage (scooping) is refused, naming it.
+
+    ``compare_heuristic`` (conf/stage/mppi.yaml: data.heuristic_every): the heuristic also runs the episodes whose
+    index is a multiple of it, for docs/data.md's comparison (true / 1: every episode; false / 0: none)."""
     from topocut.config import ConfigError, task_for_stage
 
     tool = task_for_stage(task, "mppi").tool
     if data.first_episode < 0:
         raise ConfigError(f"data.first_episode: {data.first_episode} is not valid; must be >= 0")
+    if int(compare_heuristic) < 0:
+        raise ConfigError(f"data.heuristic_every: {compare_heuristic} is not valid; must be >= 0 (0: never)")
     if tool == "pen":  # MPPI over the strokes of the pen's tasks
-        return run_writing(ctx, sim, task, topology, reward, planner, compare_heuristic)
-    return run_knife(ctx, sim, object, task, topology, reward, planner, data, compare_heuristic)
+        return run_writing(ctx, sim, task, topology, reward, planner, bool(compare_heuristic))
+    return run_knife(ctx, sim, object, task, topology, reward, planner, data, int(compare_heuristic))
 
 
-def run_knife(ctx: RunContext, sim, object, task, topology, reward, planner, data, compare_heuristic: bool) -> dict:
+def run_knife(ctx: RunContext, sim, object, task, topology, reward, planner, data, compare_heuristic: int) -> dict:
     """MPPI demonstrations of a knife task: the planner plans the cuts, the goal's turns run between them."""
     planner = planner_for_task(planner, task)  # pyramid: the goal plane is tilted
     from topocut.data.episodes import EpisodeDataset, EpisodeWriter
@@ -158,7 +163,9 @@ def run_knife(ctx: RunContext, sim, object, task, topology, reward, planner, dat
                 continue
             pose, goal = episode_scene(object, task, sim, seed, planner)
             record = {"episode": e, "seed": seed, "started": time.time()}  # wall clock: start-up = first - launch
-            if compare_heuristic:  # the same episode under the heuristic, for docs/data.md's comparison
+            # the same episode under the heuristic, for docs/data.md's comparison: every n-th episode by its index,
+            # so that the parts of a cell compare the episodes one run over the cell would
+            if compare_heuristic and e % compare_heuristic == 0:
                 env.reset(object.name, pose, seed=seed)
                 _, hs = run_episode(env, goal, HeuristicPolicy(goal), reward, topology, task.max_cuts, task.push,
                                     success_threshold=task.success_threshold, success_fn=success)

@@ -12,12 +12,12 @@ from hydra import compose, initialize_config_dir
 from topocut.data.episodes import EpisodeDataset
 
 # as tests/test_stages.py's FAST (a coarse grid, 2 MPPI samples, short knife / push / settle phases), with the
-# heuristic comparison stage=mppi runs by default: stage=all passes no stage.run.* key on to its stages
+# heuristic comparison on every 2nd episode (data.heuristic_every: stage=all passes no stage.run.* key on)
 FAST = ["logger=none", "progress=false", "device=cpu", "sim.n_grid=20", "sim.cut_substeps=40",
         "sim.dwell_time=0.0005", "sim.push_time=0.002", "sim.settle_time=0.002", "sim.batch_size=2",
         "planner.num_samples=2", "planner.horizon=1", "planner.iterations=1", "task.max_cuts=2",
         "data.points_per_step=128", "topology.resolution=32",
-        "task=slice", "object=cube", "seed=3", "data.episodes=3"]
+        "task=slice", "object=cube", "seed=3", "data.episodes=3", "data.heuristic_every=2"]
 
 
 def _run(root, *overrides):
@@ -74,5 +74,8 @@ def test_a_cell_in_parts_merges_into_the_episodes_of_one_run(tmp_path, monkeypat
                for i in range(len(a)))
     # the parts' logs number the episodes as the whole run's does
     records = [r for s in shards for r in read_records(Path(s) / "episodes.jsonl")]
-    assert [(r["episode"], r["seed"]) for r in records] == \
-        [(r["episode"], r["seed"]) for r in read_records(Path(whole["dataset"]) / "episodes.jsonl")]
+    whole_records = read_records(Path(whole["dataset"]) / "episodes.jsonl")
+    assert [(r["episode"], r["seed"]) for r in records] == [(r["episode"], r["seed"]) for r in whole_records]
+    # the heuristic ran beside episodes 0 and 2 (every 2nd by index), in the parts as in the whole run
+    for recs in (records, whole_records):
+        assert [r["episode"] for r in recs if "heuristic_final_reward" in r] == [0, 2]

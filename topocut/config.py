@@ -93,6 +93,10 @@ class DataConfig:
     # handed to the data.jobs processes as they free up, so that the costly cells (dice) do not run long after the
     # others; null: one run per cell.  scale=paper: 10 (docs/data.md)
     episodes_per_job: int | None = None
+    # stage=mppi also runs the heuristic on every n-th episode (index multiple of n) from the same state, for
+    # docs/data.md's comparison; 0: never.  scale=paper: 10 (H100, 16 processes: a comparison cost 5-12 s beside
+    # a 15-40 s MPPI episode, a quarter of the demonstrations' time; the 405-episode protocol compares the two anyway)
+    heuristic_every: int = 1
 
 
 @dataclass
