@@ -37,12 +37,15 @@ import warp as wp
 from topocut.topology.config import TopologyConfig
 from topocut.topology.discover import (
     MAX_DIRECT_IDS,
+    StepClock,
     TopologyResult,
     _previous,
     _wall_owners,
     as_sweeps,
+    particles,
     scene_grid,
     snap_to_board,
+    surface_and_pieces,
 )
 from topocut.topology.sdf import Grid
 from topocut.topology.tracking import assign_ids
@@ -88,12 +91,8 @@ class _Scene:
 
 
 def _scene(positions, damage, knife_sweep, previous, next_id, cfg: TopologyConfig, max_direct: int) -> _Scene:
-    x = np.asarray(positions)
-    x = (x if x.dtype in (np.float32, np.float64) else x.astype(np.float64)).reshape(-1, 3)  # N,3
+    x, dmg = particles(positions, damage)  # N,3 and N,
     n = len(x)
-    dmg = np.zeros(n, bool) if damage is None else np.asarray(damage, bool).reshape(-1)
-    if dmg.shape[0] != n:
-        raise ValueError(f"damage has {dmg.shape[0]} entries, positions has {n}")
     prev, col, old_ids, used, split = _previous(previous, n, cfg.preserve_splits, max_direct)
     # per column, as discover() (numpy's axis-0 min of an (N, 3) array is slow): the same bounds, the same grid
     lo = np.array([x[:, i].min() for i in range(3)], np.float64) if n else np.zeros(3)
@@ -181,8 +180,6 @@ def discover_batch(positions: list, damages: list, sweeps: list, previous_labels
     sweeps (anything discover takes), previous labels (N_b,) or None, next ids or None.  See module docstring."""
     from topocut.topology import assign as A
     from topocut.topology import carve as C
-    from topocut.topology import components as CC
-    from topocut.topology import mesh as M
     from topocut.topology import sdf as S
 
     cfg = (cfg or TopologyConfig()).validate()
@@ -192,16 +189,8 @@ def discover_batch(positions: list, damages: list, sweeps: list, previous_labels
     if not len(damages) == len(sweeps) == len(previous_labels) == len(next_ids) == nb:
         raise ValueError(f"discover_batch: {nb} positions but {len(damages)} damages, {len(sweeps)} sweeps, "
                          f"{len(previous_labels)} previous labels and {len(next_ids)} next ids")
-    timings: dict[str, float] = {}
-    t_all = t = time.perf_counter()
-
-    def lap(name):  # as discover(): step_timings waits for the device so that each step gets its own time
-        nonlocal t
-        if cfg.step_timings:
-            wp.synchronize_device(device)
-        now = time.perf_counter()
-        timings[name] = timings.get(name, 0.0) + now - t
-        t = now
+    lap = StepClock(device, cfg.step_timings)  # as discover()
+    timings, t_all = lap.timings, lap.started
 
     # overlap columns: each scene's ids index them directly up to its share of MAX_DIRECT_IDS
     every = [_scene(positions[b], damages[b], sweeps[b], previous_labels[b], next_ids[b], cfg,
@@ -270,27 +259,13 @@ def discover_batch(positions: list, damages: list, sweeps: list, previous_labels
     # (the carvers' hash grid is kept until this function returns: kernels may still be queued)
     _, carvers_grid = C.carve_and_clip(sdf, grid, xd, dmg_d, licence, carved, carve_radius, min_half, cfg.board_z,
                                        device, tiles)
-    CC.fill_voids(sdf, cfg.max_void_voxels, -0.5 * h, device)
-    lap("carve")
-
-    # --- surface ----------------------------------------------------------------------------------
-    verts, faces = M.extract_surface(sdf, grid, device)
-    nv = verts.shape[0]
-    lap("marching_cubes")
-    verts_s = M.smooth(verts, M.vertex_adjacency(faces, nv, device), cfg.smoothing_iterations,
-                       cfg.smoothing_alpha, device) if nv else verts
-    lap("smoothing")
-
-    # --- pieces: no piece crosses a tile (empty nodes between), so each has one scene --------------
-    vnode = M.vertex_inside_nodes(verts, sdf, grid, device)
-    pieces = CC.label_pieces(sdf, faces, vnode, nv, cfg.min_component_voxels, device)
+    # --- surface and pieces: no piece crosses a tile (empty nodes between), so each has one scene -----
+    verts_s, faces, pieces, vpiece = surface_and_pieces(sdf, grid, cfg, device, lap)
     k = pieces.count
-    vpiece = wp.clone(pieces.labels[pieces.num_nodes:]) if nv else wp.zeros(0, dtype=wp.int32, device=device)
     tile_d = wp.zeros(max(k, 1), dtype=wp.int32, device=device)
     wp.launch(_tile_of_pieces, dim=grid.size, inputs=[pieces.labels, tile_nodes * grid.shape[1] * grid.shape[2],
                                                       tile_d], device=device)
-    tile = tile_d.numpy()[:k]  # K, scene of each piece
-    lap("components")
+    tile = tile_d.numpy()[:k]  # K, scene of each piece (booked with the assignment)
 
     # --- particles -> pieces (the gap exceeds every tau: a particle finds no other scene's surface) ----
     raw = A.node_pieces(xd, grid, pieces.labels, device)

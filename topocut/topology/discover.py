@@ -165,6 +165,59 @@ def _previous(previous_labels, n: int, preserve_splits: bool, max_direct: int = 
     return prev, idx, old_ids, used, split
 
 
+class StepClock:
+    """``lap(step)`` books the time since the last lap under ``step`` in ``timings``.  The device runs ahead of
+    Python: with ``sync`` (topology.step_timings) each lap waits for it, so each step gets its own time."""
+
+    def __init__(self, device: str, sync: bool):
+        self.device, self.sync = device, sync
+        self.timings: dict[str, float] = {}
+        self.started = self.t = time.perf_counter()
+
+    def __call__(self, name: str) -> None:
+        if self.sync:
+            import warp as wp
+
+            wp.synchronize_device(self.device)
+        now = time.perf_counter()
+        self.timings[name] = self.timings.get(name, 0.0) + now - self.t
+        self.t = now
+
+
+def particles(positions, damage) -> tuple[np.ndarray, np.ndarray]:
+    """(positions (N,3) float32/64, damage (N,) bool; None: undamaged), checked against each other."""
+    x = np.asarray(positions)
+    x = (x if x.dtype in (np.float32, np.float64) else x.astype(np.float64)).reshape(-1, 3)  # N,3
+    dmg = np.zeros(len(x), bool) if damage is None else np.asarray(damage, bool).reshape(-1)
+    if dmg.shape[0] != len(x):
+        raise ValueError(f"damage has {dmg.shape[0]} entries, positions has {len(x)}")
+    return x, dmg
+
+
+def surface_and_pieces(sdf, grid, cfg: TopologyConfig, device: str, lap):
+    """The carved SDF -> (smoothed vertices, faces, pieces, raw piece of each vertex): tiny voids filled,
+    marching cubes, Laplacian smoothing, pieces = inside-node components united with mesh components.
+    ``lap(step)`` books each step's time (discover and discover_batch share this middle)."""
+    import warp as wp
+
+    from topocut.topology import components as CC
+    from topocut.topology import mesh as M
+
+    CC.fill_voids(sdf, cfg.max_void_voxels, -0.5 * grid.h, device)
+    lap("carve")
+    verts, faces = M.extract_surface(sdf, grid, device)
+    nv = verts.shape[0]
+    lap("marching_cubes")
+    verts_s = M.smooth(verts, M.vertex_adjacency(faces, nv, device), cfg.smoothing_iterations,
+                       cfg.smoothing_alpha, device) if nv else verts
+    lap("smoothing")
+    vnode = M.vertex_inside_nodes(verts, sdf, grid, device)
+    pieces = CC.label_pieces(sdf, faces, vnode, nv, cfg.min_component_voxels, device)
+    vpiece = wp.clone(pieces.labels[pieces.num_nodes:]) if nv else wp.zeros(0, dtype=wp.int32, device=device)
+    lap("components")
+    return verts_s, faces, pieces, vpiece
+
+
 def discover(positions, damage, knife_sweep, previous_labels=None, cfg: TopologyConfig | None = None,
              device: str = "cpu", next_id: int | None = None) -> TopologyResult:
     """Cluster id per particle after a cut.  positions (N,3), damage (N,) bool; see module docstring."""
@@ -172,29 +225,15 @@ def discover(positions, damage, knife_sweep, previous_labels=None, cfg: Topology
 
     from topocut.topology import assign as A
     from topocut.topology import carve as C
-    from topocut.topology import components as CC
-    from topocut.topology import mesh as M
     from topocut.topology import sdf as S
 
     cfg = (cfg or TopologyConfig()).validate()
     device = S.resolve_device(device)
-    timings: dict[str, float] = {}
-    t_all = t = time.perf_counter()
+    lap = StepClock(device, cfg.step_timings)
+    timings, t_all = lap.timings, lap.started
 
-    def lap(name):  # the device runs ahead of Python: wait for it (step_timings) so each step gets its own time
-        nonlocal t
-        if cfg.step_timings:
-            wp.synchronize_device(device)
-        now = time.perf_counter()
-        timings[name] = timings.get(name, 0.0) + now - t
-        t = now
-
-    x = np.asarray(positions)
-    x = (x if x.dtype in (np.float32, np.float64) else x.astype(np.float64)).reshape(-1, 3)  # N,3
+    x, dmg = particles(positions, damage)  # N,3 and N,
     n = len(x)
-    dmg = np.zeros(n, bool) if damage is None else np.asarray(damage, bool).reshape(-1)
-    if dmg.shape[0] != n:
-        raise ValueError(f"damage has {dmg.shape[0]} entries, positions has {n}")
     prev, prev_idx, old_ids, used, split = _previous(previous_labels, n, cfg.preserve_splits)
     if n == 0:
         return TopologyResult(np.zeros(0, np.int32), 0, {"total": 0.0}, int(max(next_id or 0, used)))
@@ -231,23 +270,8 @@ def discover(positions, damage, knife_sweep, previous_labels=None, cfg: Topology
     # (the carvers' hash grid is kept until this function returns: kernels may still be queued)
     _, carvers_grid = C.carve_and_clip(sdf, grid, xd, dmg_d, sweeps if carving else [],
                                        snapped if carving else [], carve_radius, min_half, cfg.board_z, device)
-    CC.fill_voids(sdf, cfg.max_void_voxels, -0.5 * h, device)
-    lap("carve")
-
-    # --- surface ----------------------------------------------------------------------------------
-    verts, faces = M.extract_surface(sdf, grid, device)
-    nv = verts.shape[0]
-    lap("marching_cubes")
-    verts_s = M.smooth(verts, M.vertex_adjacency(faces, nv, device), cfg.smoothing_iterations,
-                       cfg.smoothing_alpha, device) if nv else verts
-    lap("smoothing")
-
-    # --- pieces = inside-node components united with mesh components ------------------------------
-    vnode = M.vertex_inside_nodes(verts, sdf, grid, device)
-    pieces = CC.label_pieces(sdf, faces, vnode, nv, cfg.min_component_voxels, device)
-    k = pieces.count
-    vpiece = wp.clone(pieces.labels[pieces.num_nodes:]) if nv else wp.zeros(0, dtype=wp.int32, device=device)
-    lap("components")
+    verts_s, faces, pieces, vpiece = surface_and_pieces(sdf, grid, cfg, device, lap)
+    nv, k = verts_s.shape[0], pieces.count
 
     # --- particles -> pieces ----------------------------------------------------------------------
     tau = cfg.tau if cfg.tau is not None else 2.0 * r + gap_half
