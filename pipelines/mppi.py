@@ -8,11 +8,10 @@ union.  In a Hydra multirun (or with ``data.shard=true``, as stage=all's cells) 
 manifest (the key keeps jobs of a sweep over any other setting apart); ``stage=merge`` joins them.
 Episodes are committed one by one: a killed run resumes where it stopped, and each episode draws its MPPI
 samples from its own seed, so a resumed run writes what an uninterrupted one would.  The simulator is kept per
-process (``cached_env``): a stage=all worker running part after part builds it once.
+process (``topocut.sim.env.cached_env``): a stage=all worker running part after part builds it once.
 """
 from __future__ import annotations
 
-import copy
 import dataclasses
 import functools
 import json
@@ -50,33 +49,6 @@ def episode_seed(run_seed: int, e: int) -> int:
     from topocut.policies.base import mix_seed
 
     return mix_seed(run_seed, e)
-
-
-_ENV: dict = {}  # this process's stage=mppi simulator: {"key": (sim config, batch size), "env": CuttingEnv}
-
-
-def cached_env(sim, batch_size: int, make=None):
-    """The process's CuttingEnv for ``sim`` (a SimConfig on the run's device) and ``batch_size``, built by ``make``
-    (CuttingEnv) on first use.  A stage=all worker runs part after part of the same config: a new env each time
-    would allocate its fields and build its kernel graphs again.  Every episode starts from env.reset, as the
-    episodes of one run always did.  Another config releases the held env before building its own."""
-    key = (copy.deepcopy(sim), int(batch_size))  # a copy: the caller's dataclass may be changed later
-    if _ENV.get("key") != key:
-        release_env()
-        if make is None:
-            from topocut.sim import CuttingEnv as make
-        _ENV.update(key=key, env=make(sim, batch_size=int(batch_size)))
-    return _ENV["env"]
-
-
-def release_env() -> None:
-    """Free the cached env's simulator fields: Taichi keeps a field tree until it is destroyed, not when its env
-    is collected (as Scenes._ensure frees a solver it outgrows)."""
-    env = _ENV.pop("env", None)
-    _ENV.clear()
-    if getattr(env, "solver", None) is not None:
-        env.solver.destroy()
-        env.solver = None
 
 
 def planner_for_task(planner, task):
@@ -126,6 +98,7 @@ def run_knife(ctx: RunContext, sim, object, task, topology, reward, planner, dat
     from topocut.data.episodes import EpisodeDataset, EpisodeWriter
     from topocut.planning import HeuristicPolicy, MPPIPolicy, run_episode, sim_rollout_factory
     from topocut.sim import init_taichi
+    from topocut.sim.env import cached_env
     from topocut.tasks import get_task
 
     success = functools.partial(get_task(task.name).success, cfg=task)  # RewardResult -> the task's success
@@ -149,7 +122,7 @@ def run_knife(ctx: RunContext, sim, object, task, topology, reward, planner, dat
     zpath = writer.path / "data.zarr"
     ew = EpisodeWriter(zpath, points_per_step=data.points_per_step, board_z=sim.board_z)
     done = ew.committed_keys()
-    env = cached_env(sim, max(1, sim.batch_size))
+    env = cached_env(sim, max(1, sim.batch_size))  # a worker's later parts reuse its simulator
     factory = sim_rollout_factory(env, reward, topology, board_z=sim.board_z, push=task.push)
     expert = MPPIPolicy(planner, factory, seed=ctx.seed)
     log_path = writer.path / "episodes.jsonl"

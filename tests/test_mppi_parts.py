@@ -40,8 +40,8 @@ def _episodes(path):
 
 def test_a_cell_in_parts_merges_into_the_episodes_of_one_run(tmp_path, monkeypatch):
     import topocut.sim
-    from pipelines import mppi
     from pipelines.mppi import episode_seed, read_records
+    from topocut.sim import env as simenv
 
     built = []
 
@@ -51,13 +51,13 @@ def test_a_cell_in_parts_merges_into_the_episodes_of_one_run(tmp_path, monkeypat
             super().__init__(*args, **kwargs)
 
     monkeypatch.setattr(topocut.sim, "CuttingEnv", Counted)
-    mppi.release_env()  # whatever an earlier test of this process left
+    simenv.release_env()  # whatever an earlier test of this process left
     try:
         parts = _run(tmp_path, "stage=all", "stage.run.sequence=[mppi]", "data.episodes_per_job=2",
                      "data.dataset=parts")
         whole = _run(tmp_path, "stage=mppi", "data.dataset=whole")
     finally:
-        mppi.release_env()
+        simenv.release_env()
     assert len(built) == 1  # the second part and the unsplit run reused the first part's simulator
     labels = list(parts["wall_s"])
     assert labels == ["mppi-slice-cube-e0-1", "mppi-slice-cube-e2-2", "merge"]

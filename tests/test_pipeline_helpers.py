@@ -320,11 +320,11 @@ def test_stage_all_parts_keep_the_unsplit_plan_by_default_and_refuse_a_bad_size(
 
 
 def test_mppi_keeps_one_simulator_per_process_for_equal_configs():
-    """stage=mppi's env cache: parts of the same sim config (and batch size) reuse the env; another config
+    """The process's env cache (topocut.sim.env.cached_env, stage=mppi's): parts of the same sim config (and batch size) reuse the env; another config
     destroys the held env's solver before building its own."""
     import dataclasses
 
-    from pipelines import mppi
+    from topocut.sim import env as simenv
     from topocut.sim.config import SimConfig
 
     built, destroyed = [], []
@@ -338,19 +338,19 @@ def test_mppi_keeps_one_simulator_per_process_for_equal_configs():
             self.sim, self.batch_size, self.solver = sim, batch_size, Solver()
             built.append(self)
 
-    mppi.release_env()
+    simenv.release_env()
     try:
         sim = SimConfig(n_grid=32)
-        a = mppi.cached_env(sim, 4, make=Env)
-        assert mppi.cached_env(SimConfig(n_grid=32), 4, make=Env) is a and len(built) == 1  # equal, not the same
+        a = simenv.cached_env(sim, 4, make=Env)
+        assert simenv.cached_env(SimConfig(n_grid=32), 4, make=Env) is a and len(built) == 1  # equal, not the same
         held = a.solver
         sim.n_grid = 40  # the caller's object changed after the fact: the key kept its own copy
-        b = mppi.cached_env(sim, 4, make=Env)
+        b = simenv.cached_env(sim, 4, make=Env)
         assert b is not a and destroyed == [held] and a.solver is None
-        c = mppi.cached_env(sim, 2, make=Env)  # another batch size
-        d = mppi.cached_env(dataclasses.replace(sim, tuning={"warp_scatter": "off"}), 2, make=Env)
+        c = simenv.cached_env(sim, 2, make=Env)  # another batch size
+        d = simenv.cached_env(dataclasses.replace(sim, tuning={"warp_scatter": "off"}), 2, make=Env)
         assert len({id(x) for x in (a, b, c, d)}) == 4 and len(destroyed) == 3
-        assert mppi.cached_env(dataclasses.replace(sim, tuning={"warp_scatter": "off"}), 2, make=Env) is d
+        assert simenv.cached_env(dataclasses.replace(sim, tuning={"warp_scatter": "off"}), 2, make=Env) is d
     finally:
-        mppi.release_env()
+        simenv.release_env()
     assert len(destroyed) == 4 and all(x.solver is None for x in built)

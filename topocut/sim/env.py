@@ -12,6 +12,7 @@ blade's flat, and the pieces settle; ``turn`` lays pieces down turned (both in p
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 import time
@@ -266,3 +267,30 @@ class CuttingEnv(Scenes, Primitives):
                        work=s.k_work.to_numpy().astype(np.float64), knife_end=np.asarray(ends),
                        newly_damaged=s.damage.to_numpy()[:, :self.n].sum(1) - dmg0, substeps=total,
                        wall_time=time.perf_counter() - t_wall, substeps_per_scene=totals, split_time=t_split)
+
+
+_ENV: dict = {}  # this process's shared simulator (stage=mppi's parts): {"key": (sim config, batch size), "env": CuttingEnv}
+
+
+def cached_env(sim, batch_size: int, make=None):
+    """The process's CuttingEnv for ``sim`` (a SimConfig on the run's device) and ``batch_size``, built by ``make``
+    (CuttingEnv) on first use.  A stage=all worker runs part after part of the same config: a new env each time
+    would allocate its fields and build its kernel graphs again.  Every episode starts from env.reset, as the
+    episodes of one run always did.  Another config releases the held env before building its own."""
+    key = (copy.deepcopy(sim), int(batch_size))  # a copy: the caller's dataclass may be changed later
+    if _ENV.get("key") != key:
+        release_env()
+        if make is None:  # looked up at call time (tests count the envs built through topocut.sim)
+            from topocut.sim import CuttingEnv as make
+        _ENV.update(key=key, env=make(sim, batch_size=int(batch_size)))
+    return _ENV["env"]
+
+
+def release_env() -> None:
+    """Free the cached env's simulator fields: Taichi keeps a field tree until it is destroyed, not when its env
+    is collected (as Scenes._ensure frees a solver it outgrows)."""
+    env = _ENV.pop("env", None)
+    _ENV.clear()
+    if getattr(env, "solver", None) is not None:
+        env.solver.destroy()
+        env.solver = None
