@@ -199,6 +199,17 @@ def _small_sim_cfg(SimConfig, batch_size):
     return cfg
 
 
+def _cube_slice(batch_size):
+    """(env of batch_size scenes holding the cube at the nominal pose, its slice goal, scene 0's state)."""
+    CuttingEnv, SimConfig, ObjectPose, make_goal, TaskConfig = _sim_modules()
+    pose = ObjectPose()
+    sim = _small_sim_cfg(SimConfig, batch_size)
+    goal = make_goal(TaskConfig(name="slice"), "cube", pose, sim.spacing)
+    env = CuttingEnv(sim, batch_size=batch_size)
+    env.reset("cube", pose, seed=0)
+    return env, goal, env.get_state(0)
+
+
 def test_sim_rollout_batched_matches_sequential_and_restores_state():
     CuttingEnv, SimConfig, ObjectPose, make_goal, TaskConfig = _sim_modules()
     from topocut.planning.rollout import make_sim_rollout
@@ -238,21 +249,15 @@ def test_plane_scorer_matches_the_rollout_and_survives_divergence(monkeypatch):
     +inf instead of ending the search."""
     import dataclasses
 
-    CuttingEnv, SimConfig, ObjectPose, make_goal, TaskConfig = _sim_modules()
     from topocut.planning.experiments import PlaneScorer
     from topocut.planning.rollout import make_sim_rollout
     from topocut.reward import RewardConfig
     from topocut.sim import SimulationDiverged
 
-    pose = ObjectPose()
-    sim = _small_sim_cfg(SimConfig, 2)
-    goal = make_goal(TaskConfig(name="slice"), "cube", pose, sim.spacing)
-    env = CuttingEnv(sim, batch_size=2)
-    env.reset("cube", pose, seed=0)
-    state = env.get_state(0)
+    env, goal, state = _cube_slice(2)
     seqs = np.array([[goal.planes[0].to_vector()], [[0.95, 0.5, 0.0, 0.0]], [[0.5, 0.5, 0.0, 0.0]]], np.float32)
     cfg = RewardConfig()
-    costs = make_sim_rollout(env, state, goal, reward_cfg=cfg, board_z=sim.board_z)(seqs)
+    costs = make_sim_rollout(env, state, goal, reward_cfg=cfg, board_z=env.cfg.board_z)(seqs)
     scorer = PlaneScorer(env, state, goal, cfg, dataclasses.replace(cfg, delta=1.1), None)
     res = scorer.run(seqs[:, 0])
     np.testing.assert_allclose([r["reward"] for r in res], -costs, atol=1e-9)

@@ -123,17 +123,11 @@ def test_a_chip_at_a_tile_boundary_joins_its_own_scene():
 # ---- MPPI's rollouts: one batched discovery per simulated cut ------------------------------------------------
 
 def test_sim_rollout_costs_are_the_same_batched_or_scene_by_scene(monkeypatch):
-    from test_mppi import _sim_modules, _small_sim_cfg
+    from test_mppi import _cube_slice
 
-    CuttingEnv, SimConfig, ObjectPose, make_goal, TaskConfig = _sim_modules()
     from topocut.planning import rollout as R
 
-    pose = ObjectPose()
-    sim = _small_sim_cfg(SimConfig, 3)
-    goal = make_goal(TaskConfig(name="slice"), "cube", pose, sim.spacing)
-    env = CuttingEnv(sim, batch_size=3)
-    env.reset("cube", pose, seed=0)
-    state = env.get_state(0)
+    env, goal, state = _cube_slice(3)
     p0, p1 = goal.planes[0].to_vector(), goal.planes[1].to_vector()
     # two cuts each (the second discovers with the first's labels: walls); the last sequence misses twice
     seqs = np.array([[p0, p1], [[0.46, 0.5, 0.0, 0.0], p0], [p1, [0.50, 0.5, 0.3, 0.0]],
@@ -144,7 +138,7 @@ def test_sim_rollout_costs_are_the_same_batched_or_scene_by_scene(monkeypatch):
     costs = {}
     for batched in (True, False):
         topo = TopologyConfig(resolution=48, batch_scenes=batched)
-        costs[batched] = R.make_sim_rollout(env, state, goal, topo_cfg=topo, board_z=sim.board_z)(seqs)
+        costs[batched] = R.make_sim_rollout(env, state, goal, topo_cfg=topo, board_z=env.cfg.board_z)(seqs)
     assert calls == [3, 3]  # chunk 1: its three scenes in one call per cut; chunk 2 (a miss) none
     assert np.isfinite(costs[True]).all() and costs[True][0] < costs[True][3]  # the goal's planes beat two misses
     # the batch shares one voxel size and radius where each scene alone picks its own: the pieces here are the
