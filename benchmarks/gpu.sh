@@ -9,13 +9,15 @@ phase=${1:-wheels}
 # 64 MiB in files of 16 MiB, and what travels to one is at most 64 MiB): `pack` tars the outputs root (ROOT) into
 # PART_MB pieces with their checksums; `fetch` leaves COUNT pieces from FROM in $OUT; on the next machine `unpack`
 # gathers the pieces carried so far (under CARRY, e.g. .carry/) and, once every checksum matches, untars them.
+# PACK_PATHS: only these paths under ROOT (shell globs, e.g. "dataset/demos-*"), default all of it.
 case "$phase" in
   pack|fetch|unpack)
     ROOT=${ROOT:-/tmp/o}; P=${PACK_DIR:-/tmp/pack}; OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"
     case "$phase" in
       pack)
         rm -rf "$P" && mkdir -p "$P"
-        tar -czf - -C "$ROOT" . | split -b "${PART_MB:-15}M" -d -a 3 - "$P/o.tgz." || exit 1
+        # shellcheck disable=SC2086 # PACK_PATHS is a list of globs, expanded inside ROOT
+        (cd "$ROOT" && tar -czf - ${PACK_PATHS:-.}) | split -b "${PART_MB:-15}M" -d -a 3 - "$P/o.tgz." || exit 1
         (cd "$P" && sha256sum o.tgz.* > SHA256SUMS) && cp "$P/SHA256SUMS" "$OUT/"
         echo "packed $ROOT: $(ls "$P"/o.tgz.* | wc -l) pieces of ${PART_MB:-15} MiB at most, $(du -sh "$P" | cut -f1)" ;;
       fetch)
@@ -149,6 +151,27 @@ PY
     [ -d /tmp/o/eval ] && tar -czf "$OUT/eval.tgz" -C /tmp/o eval
     for d in /tmp/o/dataset/*/v* /tmp/o/checkpoint/*/v*; do [ -f "$d/manifest.json" ] && echo "$d" \
       && cat "$d/manifest.json" | head -c 1500; done > "$OUT/manifests.txt" 2>/dev/null ;;
+  bg)  # `make paper` with PAPER_ARGS started in its own process session, so that it outlives this call and runs on
+    # until it ends or the machine goes back (30 min held); `watch` follows it. Its code is a copy of this call's tree
+    # (/tmp/bg), which later calls' fresh /tmp/head cannot pull from under it. MPS=1: under CUDA's MPS daemon.
+    if pgrep -f "topocut.run stage=all" >/dev/null; then echo "bg: a run is already going"; exit 0; fi
+    rm -rf /tmp/bg && cp -r "$PWD" /tmp/bg && cd /tmp/bg && export PYTHONPATH=/tmp/site:/tmp/bg
+    if [ "${MPS:-0}" = 1 ]; then mps_start; fi
+    rm -f /tmp/paper.log
+    # shellcheck disable=SC2086
+    setsid nohup bash -c "t0=\$(date +%s); timeout ${LIMIT:-3000} python3 -m topocut.run stage=all scale=paper \
+      device=cuda reward=torch trainer=gpu logger=csv progress=false outputs_root=/tmp/o ${PAPER_ARGS:-}; \
+      echo \"exit \$? after \$(( \$(date +%s) - t0 )) s\"" </dev/null >/tmp/paper.log 2>&1 &
+    sleep 5; echo "bg: started (pid $!)"; tail -5 /tmp/paper.log ;;
+  watch)  # wait up to WAIT s for the background run to end; its log's tail, the demonstration parts committed
+    end=$(( $(date +%s) + ${WAIT:-540} ))
+    while [ "$(date +%s)" -lt $end ] && ! grep -q "^exit " /tmp/paper.log 2>/dev/null; do sleep 10; done
+    grep -v -i warn /tmp/paper.log | tail -${LINES_SHOWN:-30} | tee "$OUT/paper_tail.txt"
+    cp /tmp/paper.log "$OUT/paper.log" 2>/dev/null
+    echo "parts committed: $(ls -d /tmp/o/dataset/demos-*/v* 2>/dev/null | wc -l); episodes in them:" \
+      "$(cat /tmp/o/dataset/demos-*/v*/episodes.jsonl 2>/dev/null | wc -l); in partial parts:" \
+      "$(cat /tmp/o/dataset/demos-*/.partial-*/episodes.jsonl 2>/dev/null | wc -l)"
+    nvidia-smi --query-gpu=utilization.gpu,memory.used --format=csv,noheader ;;
   bench-rest)
     for b in topology reward train train_policy; do
       [ -f benchmarks/$b.py ] && timeout 150 python3 benchmarks/$b.py --device cuda 2>&1 | tee "$OUT/bench_$b.txt"

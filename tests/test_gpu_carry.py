@@ -72,3 +72,22 @@ def test_a_run_moves_between_machines_in_pieces_and_arrives_whole(tmp_path):
     done = _gpu_sh("unpack", work, ROOT=dst, PACK_DIR=pack2, CARRY=work / ".carry")
     assert done.returncode == 0, done.stdout + done.stderr
     assert _tree(dst) == want
+
+
+def test_pack_paths_carries_only_the_named_globs(tmp_path):
+    """PACK_PATHS: a machine's demonstration shards without its own merge of them (dataset/demos)."""
+    src = tmp_path / "o"
+    for name in ("demos", "demos-slice-cake-e0-9", "demos-dice-ham-e0-9", "other"):
+        (src / "dataset" / name / "v001").mkdir(parents=True)
+        (src / "dataset" / name / "v001" / "manifest.json").write_text(f'{{"name": "{name}"}}')
+    (src / "runs").mkdir()
+    (src / "runs" / "log.txt").write_text("x")
+    work = tmp_path / "work"
+    work.mkdir()
+    out = _gpu_sh("pack", work, ROOT=src, PACK_DIR=tmp_path / "pack", OUT=tmp_path / "out", PACK_PATHS="dataset/demos-*")
+    assert out.returncode == 0, out.stderr
+    shutil.copytree(tmp_path / "pack", work / ".carry" / "a")
+    done = _gpu_sh("unpack", work, ROOT=tmp_path / "o2", PACK_DIR=tmp_path / "pack2", CARRY=work / ".carry")
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert sorted(_tree(tmp_path / "o2")) == ["dataset/demos-dice-ham-e0-9/v001/manifest.json",
+                                              "dataset/demos-slice-cake-e0-9/v001/manifest.json"]
