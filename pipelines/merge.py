@@ -1,7 +1,9 @@
 """stage=merge: merge the dataset shards of ``data.dataset`` (written by stage=mppi multiruns) into one version.
 
 A shard is any committed dataset whose manifest says ``shard_of: <data.dataset>``; the latest version of
-each shard is merged.  Shards of every sweep that wrote to this name are included (a sweep that repeats a job's
+each shard is merged, in the order one stage=all run would give them (``cell_order``): cell by cell
+(data.tasks x data.objects), each cell's parts by their first episode.  So the shards of a paper run made on
+several machines (each its own range of episodes, carried here) merge into the episodes of one run.  Shards of every sweep that wrote to this name are included (a sweep that repeats a job's
 config reuses its shard): start a new collection under another ``data.dataset``.
 """
 from __future__ import annotations
@@ -22,6 +24,19 @@ def shards_of(store, dataset: str) -> dict:
     return out
 
 
+def cell_order(store, shards: dict, data) -> list[str]:
+    """Shard names sorted by (task in data.tasks, object in data.objects, first episode, name); a task or object
+    not listed sorts after the listed ones."""
+    tasks, objects = list(data.tasks or []), list(data.objects or [])
+
+    def key(name):
+        config = store.manifest(shards[name])["config"]
+        task, obj = config.get("task", {}).get("name"), config.get("object", {}).get("name")
+        return (tasks.index(task) if task in tasks else len(tasks), objects.index(obj) if obj in objects
+                else len(objects), int(config.get("first_episode", 0)), name)
+    return sorted(shards, key=key)
+
+
 def run(ctx: RunContext, data, only: list[str] | None = None) -> dict:
     """``only``: merge just these shards (stage=all passes the ones its cells wrote); [] = every shard."""
     from topocut.data.episodes import EpisodeDataset, merge
@@ -33,6 +48,8 @@ def run(ctx: RunContext, data, only: list[str] | None = None) -> dict:
             raise MissingArtifact(f"stage.run.only: {missing[0]!r} is no shard of {data.dataset!r}; valid: "
                                   f"{', '.join(sorted(shards)) or '(none)'}")
         shards = {n: shards[n] for n in only}
+    else:
+        shards = {n: shards[n] for n in cell_order(ctx.store, shards, data)}
     if not shards:
         raise MissingArtifact(f"no dataset shards of {data.dataset!r} (manifest shard_of: {data.dataset}) under "
                               f"{ctx.store.root / 'dataset'}; run a multirun first, e.g. "

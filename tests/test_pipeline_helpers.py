@@ -106,6 +106,30 @@ def test_merge_takes_shards_by_manifest_not_by_name_prefix(tmp_path):
     assert list(shards_of(store, "demos-paper")) == ["demos-paper-dice-ham-s1-cccccccc"]
 
 
+def test_merge_of_every_shard_takes_them_cell_by_cell_then_by_first_episode(tmp_path):
+    """Shards carried from two machines (each its own episode range of every cell) sort as one run's parts."""
+    from types import SimpleNamespace
+
+    from pipelines.merge import cell_order, shards_of
+
+    store = ArtifactStore(tmp_path)
+    made = []
+    for task, obj, first in (("slice", "cube", 33), ("dice", "cake", 0), ("slice", "cube", 0), ("slice", "cake", 10),
+                             ("dice", "cake", 33), ("scoop", "cake", 0), ("slice", "cake", 0), ("dice", "cake", 10)):
+        config = {"task": {"name": task}, "object": {"name": obj}, **({"first_episode": first} if first else {})}
+        name = f"demos-{task}-{obj}-s0-{len(made):08d}"  # names in no useful order
+        w, _ = store.begin("dataset", name, config, extra={"shard_of": "demos"})
+        w.commit()
+        made.append((task, obj, first))
+    data = SimpleNamespace(tasks=["slice", "dice"], objects=["cake", "cube"])
+    order = cell_order(store, shards_of(store, "demos"), data)
+    got = [(store.manifest(store.resolve("dataset", n, verify=False))["config"]["task"]["name"],
+            store.manifest(store.resolve("dataset", n, verify=False))["config"]["object"]["name"],
+            store.manifest(store.resolve("dataset", n, verify=False))["config"].get("first_episode", 0)) for n in order]
+    assert got == [("slice", "cake", 0), ("slice", "cake", 10), ("slice", "cube", 0), ("slice", "cube", 33),
+                   ("dice", "cake", 0), ("dice", "cake", 10), ("dice", "cake", 33), ("scoop", "cake", 0)]
+
+
 @pytest.mark.parametrize("jobs", [1, 2])
 def test_stage_all_at_paper_shape_runs_a_shard_per_cell_one_merge_and_a_bc_per_seed(tmp_path, monkeypatch, jobs):
     """make paper's plan, with the stages replaced by recorders: every (task, object) cell writes its own shard,
