@@ -151,18 +151,20 @@ PY
     [ -d /tmp/o/eval ] && tar -czf "$OUT/eval.tgz" -C /tmp/o eval
     for d in /tmp/o/dataset/*/v* /tmp/o/checkpoint/*/v*; do [ -f "$d/manifest.json" ] && echo "$d" \
       && cat "$d/manifest.json" | head -c 1500; done > "$OUT/manifests.txt" 2>/dev/null ;;
-  bg)  # `make paper` with PAPER_ARGS started in its own process session, so that it outlives this call and runs on
-    # until it ends or the machine goes back (30 min held); `watch` follows it. Its code is a copy of this call's tree
-    # (/tmp/bg), which later calls' fresh /tmp/head cannot pull from under it. MPS=1: under CUDA's MPS daemon.
-    if pgrep -f "topocut.run stage=all" >/dev/null; then echo "bg: a run is already going"; exit 0; fi
+  bg)  # `make paper` with PAPER_ARGS (or BG_CMD, any command line, e.g. "python3 -m topocut.run stage=merge ...;
+    # python3 -m topocut.run stage=all ...") started in its own process session, so that it outlives this call and
+    # runs on until it ends or the machine goes back (30 min held); `watch` follows it. Its code is a copy of this
+    # call's tree (/tmp/bg), which later calls' fresh /tmp/head cannot pull from under it. MPS=1: under CUDA's MPS.
+    if pgrep -f "topocut.run" >/dev/null; then echo "bg: a run is already going"; exit 0; fi
     rm -rf /tmp/bg && cp -r "$PWD" /tmp/bg && cd /tmp/bg && export PYTHONPATH=/tmp/site:/tmp/bg
     if [ "${MPS:-0}" = 1 ]; then mps_start; fi
     rm -f /tmp/paper.log
-    # shellcheck disable=SC2086
-    setsid nohup bash -c "t0=\$(date +%s); timeout ${LIMIT:-3000} python3 -m topocut.run stage=all scale=paper \
-      device=cuda reward=torch trainer=gpu logger=csv progress=false outputs_root=/tmp/o ${PAPER_ARGS:-}; \
+    cmd=${BG_CMD:-"python3 -m topocut.run stage=all scale=paper device=cuda reward=torch trainer=gpu logger=csv \
+      progress=false outputs_root=/tmp/o ${PAPER_ARGS:-}"}
+    echo "bg: $cmd" > /tmp/paper.cmd
+    setsid nohup bash -c "t0=\$(date +%s); timeout ${LIMIT:-3000} bash -c '$cmd'; \
       echo \"exit \$? after \$(( \$(date +%s) - t0 )) s\"" </dev/null >/tmp/paper.log 2>&1 &
-    sleep 5; echo "bg: started (pid $!)"; tail -5 /tmp/paper.log ;;
+    sleep 5; echo "bg: started (pid $!): $cmd"; tail -5 /tmp/paper.log ;;
   watch)  # wait up to WAIT s for the background run to end; its log's tail, the demonstration parts committed
     end=$(( $(date +%s) + ${WAIT:-540} ))
     while [ "$(date +%s)" -lt $end ] && ! grep -q "^exit " /tmp/paper.log 2>/dev/null; do sleep 10; done
