@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from topocut.sim.action import KnifeAction, signed_distance_to_plane
-from topocut.sim.render import blade_corners, render_sequences
+from topocut.sim.render import blade_corners, render_sequences, row_limits
 
 
 @pytest.mark.parametrize("yaw,tilt", [(0.0, 0.0), (0.7, 0.0), (-1.2, 0.5), (0.3, -0.6)])
@@ -49,3 +49,13 @@ def test_the_sequence_figure_has_a_panel_per_state_and_draws_the_knife(tmp_path)
     bluish = lambda p: ((p[..., 2] > p[..., 0] + 30) & (p[..., 2] > 120)).sum()  # noqa: E731
     assert bluish(with_knife) > bluish(without) + 20
     assert (panel(img, 0, 1) == panel(img2, 0, 1)).all()  # the other panels are the same
+
+
+def test_a_row_spans_every_panel_so_pieces_pushed_away_stay_in_view():
+    initial = np.array([[0.45, 0.45, 0.06], [0.55, 0.55, 0.12]])
+    pushed = np.array([[0.50, 0.50, 0.06], [0.68, 0.52, 0.09]])  # a piece slid 0.13 past the object's edge
+    lo, hi = row_limits([initial, pushed], board_z=0.05, pad=0.02)
+    np.testing.assert_allclose(lo, [0.43, 0.43, 0.04])  # the board (0.05) is above lo - pad: lo z = 0.06 - 0.02
+    np.testing.assert_allclose(hi, [0.70, 0.57, 0.14])
+    lo, _ = row_limits([initial + [0, 0, 0.2]], board_z=0.05)
+    assert lo[2] == 0.05  # a scene floating above the board still shows the board

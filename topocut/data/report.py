@@ -7,7 +7,6 @@ interval (``topocut.eval.stats``), the success rate, and MPPI minus the heuristi
 """
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
@@ -18,14 +17,16 @@ def episodes_of(store, dataset: str) -> list[dict]:
     """Every committed episode of ``dataset``'s shards (their latest versions), with the shard's task and object;
     in stage=merge's order (pipelines.merge.cell_order needs data.tasks / objects: here by name)."""
     from pipelines.merge import shards_of
+    from pipelines.mppi import read_records
 
     out = []
     for name, path in sorted(shards_of(store, dataset).items()):
         config = store.manifest(path)["config"]
         task, obj = config["task"]["name"], config["object"]["name"]
-        for line in (Path(path) / "episodes.jsonl").read_text().splitlines():
-            if line.strip():
-                out.append({"task": task, "object": obj, "shard": name, **json.loads(line)})
+        # one record per episode, the last written: an episode re-run after a crash between its log line and its
+        # commit (or a snapshot taken between the two) is logged twice
+        out.extend({"task": task, "object": obj, "shard": name, **r}
+                   for r in read_records(Path(path) / "episodes.jsonl"))
     return out
 
 

@@ -100,11 +100,19 @@ def render_particles(x, colors_or_labels, path, title: str | None = None, view=(
     return path
 
 
+def row_limits(scenes, board_z: float, pad: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) (3,) of every scene's points (each (N,3)) together, padded by ``pad``, reaching down to the board."""
+    x = np.concatenate([np.asarray(s, np.float64).reshape(-1, 3) for s in scenes])  # sum N,3
+    lo, hi = x.min(0) - pad, x.max(0) + pad
+    lo[2] = min(lo[2], board_z)
+    return lo, hi
+
+
 def render_sequences(rows, path, board_z: float, view=(25.0, -60.0), size: float = 1.2, panel: float = 1.3,
                      dpi: int = 220, pad: float = 0.02) -> Path:
     """The paper's cutting-sequence figure: one row per episode, one panel per state.  ``rows`` =
-    [(row title, [(x (N,3), labels (N,), knife action or None, caption)])]; every panel of a row shares that row's
-    first scene's extent (padded by ``pad``) and shows the board; a panel with an action shows the knife at the
+    [(row title, [(x (N,3), labels (N,), knife action or None, caption)])]; every panel of a row shares the row's
+    extent (``row_limits``: pieces pushed or laid down away from the object stay in view) and shows the board; a panel with an action shows the knife at the
     end of that cut.  ``panel`` inches a panel: 7 columns fit a page width (two-column papers: 3.5 in a column)."""
     import matplotlib
 
@@ -114,9 +122,7 @@ def render_sequences(rows, path, board_z: float, view=(25.0, -60.0), size: float
     cols = max(len(p) for _, p in rows)
     fig = plt.figure(figsize=(panel * cols, panel * len(rows) * 1.05), dpi=dpi)
     for r, (title, panels) in enumerate(rows):
-        x0 = np.asarray(panels[0][0]).reshape(-1, 3)
-        lo, hi = x0.min(0) - pad, x0.max(0) + pad
-        lo[2] = min(lo[2], board_z)
+        lo, hi = row_limits([p[0] for p in panels], board_z, pad)
         for c, (x, labels, knife, caption) in enumerate(panels):
             ax = fig.add_subplot(len(rows), cols, r * cols + c + 1, projection="3d")
             _draw(ax, x, _colors(labels, len(np.asarray(x).reshape(-1, 3))), view, size, (lo, hi), knife, board_z)
