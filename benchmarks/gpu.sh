@@ -17,7 +17,12 @@ case "$phase" in
       pack)
         rm -rf "$P" && mkdir -p "$P"
         # shellcheck disable=SC2086 # PACK_PATHS is a list of globs, expanded inside ROOT
-        (cd "$ROOT" && tar -czf - ${PACK_PATHS:-.}) | split -b "${PART_MB:-15}M" -d -a 3 - "$P/o.tgz." || exit 1
+        # A live run's tree (a `bg` run still writing) changes while tar reads it: tar's status 1. Its open parts
+        # still resume (an episode logged but not committed runs again), so that is a warning, not a failure.
+        (cd "$ROOT" && tar -czf - ${PACK_PATHS:-.}) | split -b "${PART_MB:-15}M" -d -a 3 - "$P/o.tgz."
+        st=("${PIPESTATUS[@]}")
+        if [ "${st[0]}" = 1 ]; then echo "pack: $ROOT changed while packing (a live run); its open parts resume"
+        elif [ "${st[0]}" != 0 ] || [ "${st[1]}" != 0 ]; then exit 1; fi
         (cd "$P" && sha256sum o.tgz.* > SHA256SUMS) && cp "$P/SHA256SUMS" "$OUT/"
         echo "packed $ROOT: $(ls "$P"/o.tgz.* | wc -l) pieces of ${PART_MB:-15} MiB at most, $(du -sh "$P" | cut -f1)" ;;
       fetch)
@@ -161,8 +166,8 @@ PY
     rm -f /tmp/paper.log
     cmd=${BG_CMD:-"python3 -m topocut.run stage=all scale=paper device=cuda reward=torch trainer=gpu logger=csv \
       progress=false outputs_root=/tmp/o ${PAPER_ARGS:-}"}
-    echo "bg: $cmd" > /tmp/paper.cmd
-    setsid nohup bash -c "t0=\$(date +%s); timeout ${LIMIT:-3000} bash -c '$cmd'; \
+    printf '%s\n' "$cmd" > /tmp/bg/cmd.sh  # a file: any quoting in BG_CMD survives
+    setsid nohup bash -c "t0=\$(date +%s); timeout ${LIMIT:-3000} bash /tmp/bg/cmd.sh; \
       echo \"exit \$? after \$(( \$(date +%s) - t0 )) s\"" </dev/null >/tmp/paper.log 2>&1 &
     sleep 5; echo "bg: started (pid $!): $cmd"; tail -5 /tmp/paper.log ;;
   watch)  # wait up to WAIT s for the background run to end; its log's tail, the demonstration parts committed

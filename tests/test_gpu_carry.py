@@ -91,3 +91,23 @@ def test_pack_paths_carries_only_the_named_globs(tmp_path):
     assert done.returncode == 0, done.stdout + done.stderr
     assert sorted(_tree(tmp_path / "o2")) == ["dataset/demos-dice-ham-e0-9/v001/manifest.json",
                                               "dataset/demos-slice-cake-e0-9/v001/manifest.json"]
+
+
+def test_pack_of_a_live_tree_warns_and_still_packs_but_a_failed_tar_fails(tmp_path):
+    """tar's status 1 (files changed while read: a run still writing) leaves usable pieces; 2 (fatal) fails."""
+    src = tmp_path / "o"
+    (src / "dataset").mkdir(parents=True)
+    (src / "dataset" / "f.txt").write_text("x")
+    fake = tmp_path / "bin"
+    fake.mkdir()
+    real = shutil.which("tar")
+    for status in (1, 2):
+        (fake / "tar").write_text(f"#!/bin/bash\n{real} \"$@\"\nexit {status}\n")
+        (fake / "tar").chmod(0o755)
+        out = _gpu_sh("pack", tmp_path, ROOT=src, PACK_DIR=tmp_path / f"pack{status}", OUT=tmp_path / "out",
+                      PATH=f"{fake}:{os.environ['PATH']}")
+        if status == 1:
+            assert out.returncode == 0 and "changed while packing" in out.stdout
+            assert (tmp_path / "pack1" / "SHA256SUMS").read_text().count("o.tgz.") == 1
+        else:
+            assert out.returncode == 1 and not (tmp_path / "pack2" / "SHA256SUMS").exists()
