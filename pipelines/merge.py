@@ -3,38 +3,15 @@
 A shard is any committed dataset whose manifest says ``shard_of: <data.dataset>``; the latest version of
 each shard is merged, in the order one stage=all run would give them (``cell_order``): cell by cell
 (data.tasks x data.objects), each cell's parts by their first episode.  So the shards of a paper run made on
-several machines (each its own range of episodes, carried here) merge into the episodes of one run.  Shards of every sweep that wrote to this name are included (a sweep that repeats a job's
-config reuses its shard): start a new collection under another ``data.dataset``.
+several machines (each its own range of episodes, carried here) merge into the episodes of one run.  Shards of
+every sweep that wrote to this name are included (a sweep that repeats a job's config reuses its shard): start a
+new collection under another ``data.dataset``.  The shards and their order: topocut.data.collection.
 """
 from __future__ import annotations
 
+from topocut.data.collection import cell_order, shards_of
 from topocut.data.store import MissingArtifact
 from topocut.utils.context import RunContext
-
-
-def shards_of(store, dataset: str) -> dict:
-    """{shard name: path of its latest version} for the shards of ``dataset``."""
-    out = {}
-    for name in store.names("dataset"):
-        if name == dataset:
-            continue
-        path = store.resolve("dataset", name, verify=False)
-        if store.manifest(path).get("shard_of") == dataset:
-            out[name] = path
-    return out
-
-
-def cell_order(store, shards: dict, data) -> list[str]:
-    """Shard names sorted by (task in data.tasks, object in data.objects, first episode, name); a task or object
-    not listed sorts after the listed ones."""
-    tasks, objects = list(data.tasks or []), list(data.objects or [])
-
-    def key(name):
-        config = store.manifest(shards[name])["config"]
-        task, obj = config.get("task", {}).get("name"), config.get("object", {}).get("name")
-        return (tasks.index(task) if task in tasks else len(tasks), objects.index(obj) if obj in objects
-                else len(objects), int(config.get("first_episode", 0)), name)
-    return sorted(shards, key=key)
 
 
 def run(ctx: RunContext, data, only: list[str] | None = None) -> dict:

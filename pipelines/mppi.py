@@ -16,12 +16,12 @@ import dataclasses
 import functools
 import json
 import logging
-import os
 import time
 
 import numpy as np
 
 from pipelines._common import as_dict, begin_sim, object_pose
+from topocut.data.collection import read_records
 from topocut.data.store import config_key
 from topocut.utils.context import RunContext
 from topocut.utils.errors import NothingUsable
@@ -245,39 +245,6 @@ def run_writing(ctx: RunContext, sim, task, topology, reward, planner, compare_s
     ctx.logger.log({f"mppi/{k}": v for k, v in summary.items() if isinstance(v, (int, float))})
     ctx.logger.log_image("mppi/writing", path / "frames" / "final.png")
     return {"artifact": str(path), **summary}
-
-
-def read_records(path, repair: bool = False) -> list[dict]:
-    """The episode log's records, one per episode (the last one written: a re-run episode logs twice).
-
-    A record is logged before its episode is committed, so a run killed while writing one leaves a torn last
-    line whose episode is not committed and runs again: that line is dropped (``repair``: from the file too,
-    so that the next record starts on a line of its own).  An unreadable line before the last raises,
-    naming the file and the line.
-    """
-    latest = {}
-    if not path.exists():
-        return []
-    text = path.read_text()
-    lines = text.splitlines()
-    last = max((i for i, line in enumerate(lines) if line.strip()), default=-1)
-    keep = len(lines)
-    for i, line in enumerate(lines):
-        if not line.strip():
-            continue
-        try:
-            r = json.loads(line)
-            latest[r["episode"]] = r
-        except (json.JSONDecodeError, KeyError, TypeError) as e:
-            if i != last:
-                raise ValueError(f"{path}, line {i + 1}: not an episode record ({e}); only the last line may be "
-                                 f"torn (a killed run): fix or delete this one") from e
-            keep = i
-    if repair and (keep < len(lines) or (text and not text.endswith("\n"))):
-        tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-        tmp.write_text("".join(line + "\n" for line in lines[:keep]))
-        os.replace(tmp, path)
-    return [latest[e] for e in sorted(latest)]
 
 
 def _plot_rewards(records: list[dict], path) -> None:

@@ -343,7 +343,7 @@ def test_mppi_stage_goal_sits_on_the_configured_board():
 def test_mppi_episode_log_drops_a_torn_last_line_and_names_a_corrupt_one(tmp_path):
     import json
 
-    from pipelines.mppi import read_records
+    from topocut.data.collection import read_records
 
     log = tmp_path / "episodes.jsonl"
     ep0, ep1, ep2 = ({"episode": e, "final_reward": r} for e, r in ((0, 0.9), (1, 0.8), (2, 0.7)))

@@ -40,7 +40,8 @@ def _episodes(path):
 
 def test_a_cell_in_parts_merges_into_the_episodes_of_one_run(tmp_path, monkeypatch):
     import topocut.sim
-    from pipelines.mppi import episode_seed, read_records
+    from pipelines.mppi import episode_seed
+    from topocut.data.collection import read_records
     from topocut.sim import env as simenv
 
     built = []

@@ -70,7 +70,7 @@ def test_stage_all_refuses_a_multi_process_trainer():
 
 
 def test_mppi_episode_log_keeps_the_last_record_of_each_episode(tmp_path):
-    from pipelines.mppi import read_records
+    from topocut.data.collection import read_records
 
     log = tmp_path / "episodes.jsonl"
     assert read_records(log) == []
@@ -88,7 +88,7 @@ def test_teleop_log_replays_only_under_its_task():
 
 
 def test_merge_takes_shards_by_manifest_not_by_name_prefix(tmp_path):
-    from pipelines.merge import shards_of
+    from topocut.data.collection import shards_of
 
     store = ArtifactStore(tmp_path)
 
@@ -110,7 +110,7 @@ def test_merge_of_every_shard_takes_them_cell_by_cell_then_by_first_episode(tmp_
     """Shards carried from two machines (each its own episode range of every cell) sort as one run's parts."""
     from types import SimpleNamespace
 
-    from pipelines.merge import cell_order, shards_of
+    from topocut.data.collection import cell_order, shards_of
 
     store = ArtifactStore(tmp_path)
     made = []

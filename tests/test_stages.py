@@ -159,7 +159,7 @@ def test_killed_mppi_resumes_without_redoing_episodes(resumed):
     assert len(ds) == sum(ds.meta(e)["num_steps"] for e in range(ds.num_episodes))
     # the episode log's wall-clock starts (benchmarks/demo_processes.py splits a process's time with them): the
     # episodes the killed run committed started before the re-run was launched, the others in the re-run, in order
-    from pipelines.mppi import read_records
+    from topocut.data.collection import read_records
 
     records = read_records(path / "episodes.jsonl")
     starts = [r["started"] for r in sorted(records, key=lambda r: r["episode"])]

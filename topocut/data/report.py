@@ -10,15 +10,13 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+from topocut.data.collection import read_records, shards_of
 from topocut.eval.stats import bootstrap_mean, paired_difference
 
 
 def episodes_of(store, dataset: str) -> list[dict]:
-    """Every committed episode of ``dataset``'s shards (their latest versions), with the shard's task and object;
-    in stage=merge's order (pipelines.merge.cell_order needs data.tasks / objects: here by name)."""
-    from pipelines.merge import shards_of
-    from pipelines.mppi import read_records
-
+    """Every committed episode of ``dataset``'s shards (their latest versions), with the shard's task and object,
+    shard by shard in name order."""
     out = []
     for name, path in sorted(shards_of(store, dataset).items()):
         config = store.manifest(path)["config"]

@@ -112,8 +112,8 @@ def render_sequences(rows, path, board_z: float, view=(25.0, -60.0), size: float
                      dpi: int = 220, pad: float = 0.02) -> Path:
     """The paper's cutting-sequence figure: one row per episode, one panel per state.  ``rows`` =
     [(row title, [(x (N,3), labels (N,), knife action or None, caption)])]; every panel of a row shares the row's
-    extent (``row_limits``: pieces pushed or laid down away from the object stay in view) and shows the board; a panel with an action shows the knife at the
-    end of that cut.  ``panel`` inches a panel: 7 columns fit a page width (two-column papers: 3.5 in a column)."""
+    extent (``row_limits``: pieces pushed or laid down away from the object stay in view) and shows the board; a
+    panel with an action shows the knife at the end of that cut.  ``panel`` inches a panel: 7 columns fit a page width (two-column papers: 3.5 in a column)."""
     import matplotlib
 
     matplotlib.use("Agg")
