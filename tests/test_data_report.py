@@ -43,7 +43,8 @@ def test_cells_count_every_committed_episode_and_pair_only_the_compared_ones(tmp
     lo, hi = (float(v) for v in slice_cake[2].split("[")[1].rstrip("]").split(","))
     assert 0.3 <= lo < mean < hi <= 0.99
     assert slice_cake[3] == f"{2 / 5:.2f}"  # 0.96 and 0.99 reach 0.95
-    # paired on the two episodes the heuristic ran beside: (0.96 - 0.9, 0.3 - 0.4)
-    assert slice_cake[4].startswith(f"{np.mean([0.06, -0.1]):.2f} [") and slice_cake[4].endswith("(2)")
-    assert rows[("dice", "ham")][4].startswith(f"{np.mean([-0.2, 0.2]):.2f}")
+    # paired on the two episodes the heuristic ran beside: (0.96 - 0.9, 0.3 - 0.4); Table 1's difference format,
+    # "≈" where the interval holds 0
+    assert slice_cake[4].startswith(f"≈ {np.mean([0.06, -0.1]):+.2f} [") and slice_cake[4].endswith("(2)")
+    assert rows[("dice", "ham")][4].startswith(f"≈ {np.mean([-0.2, 0.2]):+.2f}")
     assert rows[("all", "all")][:2] == ["7", str(totals["cuts"])]

@@ -7,10 +7,10 @@ interval (``topocut.eval.stats``), the success rate, and MPPI minus the heuristi
 """
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 from topocut.data.collection import read_records, shards_of
+from topocut.eval.report import format_difference, format_interval
 from topocut.eval.stats import bootstrap_mean, paired_difference
 
 
@@ -26,14 +26,6 @@ def episodes_of(store, dataset: str) -> list[dict]:
         out.extend({"task": task, "object": obj, "shard": name, **r}
                    for r in read_records(Path(path) / "episodes.jsonl"))
     return out
-
-
-def _fmt(iv, digits: int = 2) -> str:
-    if math.isnan(iv.mean):
-        return "-"
-    if math.isnan(iv.lo):
-        return f"{iv.mean:.{digits}f}"
-    return f"{iv.mean:.{digits}f} [{iv.lo:.{digits}f}, {iv.hi:.{digits}f}]"
 
 
 def cell_table(episodes: list[dict], tasks=None, objects=None) -> tuple[str, dict]:
@@ -53,8 +45,9 @@ def cell_table(episodes: list[dict], tasks=None, objects=None) -> tuple[str, dic
         diff = paired_difference({i: e["final_reward"] for i, e in enumerate(paired)},
                                  {i: e["heuristic_final_reward"] for i, e in enumerate(paired)}, label=label + "/h")
         success = sum(bool(e.get("success")) for e in eps) / len(eps)
-        rows.append(f"| {task} | {obj} | {len(eps)} | {sum(int(e['num_cuts']) for e in eps)} | {_fmt(reward)} | "
-                    f"{success:.2f} | {_fmt(diff)} ({len(paired)}) |")
+        rows.append(f"| {task} | {obj} | {len(eps)} | {sum(int(e['num_cuts']) for e in eps)} | "
+                    f"{format_interval((reward.mean, reward.lo, reward.hi))} | {success:.2f} | "
+                    f"{format_difference(diff.mean, diff.lo, diff.hi, diff.tie)} ({len(paired)}) |")
 
     for task in tasks:
         for obj in objects:

@@ -207,7 +207,7 @@ def _mean(v) -> float:
     return v[0] if isinstance(v, tuple) else v
 
 
-def _cell(v, digits: int = 2) -> str:
+def format_interval(v, digits: int = 2) -> str:
     """``mean [lo, hi]`` for a (mean, lo, hi) triple (the mean alone when the interval is undefined), or a number."""
     if not isinstance(v, tuple):
         return _fmt(v, digits)
@@ -217,7 +217,7 @@ def _cell(v, digits: int = 2) -> str:
     return f"{m:.{digits}f} [{lo:.{digits}f}, {hi:.{digits}f}]"
 
 
-def _diff(m, lo, hi, tie) -> str:
+def format_difference(m, lo, hi, tie) -> str:
     """``+0.12 [+0.02, +0.20]``; ties (the interval holds 0) start with ≈."""
     if m is None or not math.isfinite(m):
         return "-"
@@ -251,7 +251,7 @@ def table1_markdown(table: dict, reference: str | None = None, title: str = "", 
         for c in cols:
             for k in (0, 1):
                 v = table[p].get(c, (math.nan, math.nan))[k]
-                s = _cell(v)
+                s = format_interval(v)
                 m = _mean(v)
                 if p != reference and best[c, k] is not None and math.isfinite(m) and np.isclose(m, best[c, k]):
                     s = f"**{s}**"
@@ -294,7 +294,7 @@ def difference_markdown(rows: list[dict], compare_to: str, title: str = "", note
         for s, t in cols:
             r = cells.get((p, s, t))
             for m in DIFF_METRICS:
-                out.append(_diff(r[f"d{m}_mean"], r[f"d{m}_lo"], r[f"d{m}_hi"], r[f"d{m}_tie"]) if r else "-")
+                out.append(format_difference(r[f"d{m}_mean"], r[f"d{m}_lo"], r[f"d{m}_hi"], r[f"d{m}_tie"]) if r else "-")
         lines.append(f"| {_name(p, seeds)} | " + " | ".join(out) + " |")
     return "\n".join(lines) + "\n"
 
@@ -315,9 +315,9 @@ def aggregate_markdown(rows: list[dict], compare_to: str, title: str = "", note:
             if r is None:
                 out += ["-", "-"]
                 continue
-            out.append(_cell((r["R_hat_mean"], r["R_hat_lo"], r["R_hat_hi"])))
+            out.append(format_interval((r["R_hat_mean"], r["R_hat_lo"], r["R_hat_hi"])))
             out.append("-" if p == compare_to else
-                       _diff(r["dR_hat_mean"], r["dR_hat_lo"], r["dR_hat_hi"], r["dR_hat_tie"]))
+                       format_difference(r["dR_hat_mean"], r["dR_hat_lo"], r["dR_hat_hi"], r["dR_hat_tie"]))
         lines.append(f"| {_name(p, seeds)} | " + " | ".join(out) + " |")
     return "\n".join(lines) + "\n"
 
@@ -368,9 +368,9 @@ def print_table(rows: list[dict], title: str = "Evaluation") -> None:
         if r["object"] != ALL:
             continue
         table.add_row(DISPLAY.get(r["policy"], r["policy"]), r["split"], r["task"],
-                      _cell((r["R_hat_mean"], r["R_hat_lo"], r["R_hat_hi"])),
-                      _cell((r["N_C_mean"], r["N_C_lo"], r["N_C_hi"])), f"{_fmt(r['R_mean'], 3)}",
-                      _diff(r["dR_hat_mean"], r["dR_hat_lo"], r["dR_hat_hi"], r["dR_hat_tie"]),
+                      format_interval((r["R_hat_mean"], r["R_hat_lo"], r["R_hat_hi"])),
+                      format_interval((r["N_C_mean"], r["N_C_lo"], r["N_C_hi"])), f"{_fmt(r['R_mean'], 3)}",
+                      format_difference(r["dR_hat_mean"], r["dR_hat_lo"], r["dR_hat_hi"], r["dR_hat_tie"]),
                       str(r["train_seeds"] or "-"), str(r["episodes"]), str(r["failures"]))
     Console().print(table)
 
