@@ -378,3 +378,32 @@ def test_mppi_keeps_one_simulator_per_process_for_equal_configs():
     finally:
         simenv.release_env()
     assert len(destroyed) == 4 and all(x.solver is None for x in built)
+
+
+def test_stage_merge_of_every_shard_gives_the_episodes_in_one_runs_order(tmp_path):
+    """stage=merge with no stage.run.only, for real: shards committed in scrambled order (as two machines' carried
+    episode ranges arrive) merge cell by cell (data.tasks x data.objects), each cell's parts by first episode."""
+    import subprocess
+    import sys
+
+    from test_contracts import REPO, _env
+    from test_episodes import make_episode
+
+    from topocut.data.episodes import EpisodeDataset, EpisodeWriter
+
+    store = ArtifactStore(tmp_path)
+    # (task, object, first episode); each shard one episode whose seed is its place in one run's order
+    want = [("slice", "cake", 0), ("slice", "cake", 33), ("slice", "cube", 0), ("dice", "cake", 0), ("dice", "cake", 33)]
+    for i in (4, 1, 3, 0, 2):
+        task, obj, first = want[i]
+        config = {"task": {"name": task}, "object": {"name": obj}, **({"first_episode": first} if first else {})}
+        w, _ = store.begin("dataset", f"demos-{chr(ord('a') + (7 * i) % 5)}", config, extra={"shard_of": "demos"})
+        EpisodeWriter(w.path / "data.zarr", points_per_step=32).add_episode(*make_episode(1, 20, seed=i, task=task,
+                                                                                            obj=obj))
+        w.commit()
+    proc = subprocess.run([sys.executable, "-m", "topocut.run", "stage=merge", "logger=none", "progress=false",
+                           "data.tasks=[slice,dice]", "data.objects=[cake,cube]", f"outputs_root={tmp_path}"],
+                          cwd=REPO, env=_env(tmp_path), capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    ds = EpisodeDataset(store.resolve("dataset", "demos") / "data.zarr")
+    assert [ds.meta(e)["seed"] for e in range(ds.num_episodes)] == [0, 1, 2, 3, 4]
