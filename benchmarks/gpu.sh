@@ -160,7 +160,9 @@ PY
     # python3 -m topocut.run stage=all ...") started in its own process session, so that it outlives this call and
     # runs on until it ends or the machine goes back (30 min held); `watch` follows it. Its code is a copy of this
     # call's tree (/tmp/bg), which later calls' fresh /tmp/head cannot pull from under it. MPS=1: under CUDA's MPS.
-    if pgrep -f "topocut.run" >/dev/null; then echo "bg: a run is already going"; exit 0; fi
+    # Anchored at the start of a process's command line: the calling shell's own line ("bash -c ... BG_CMD=...
+    # topocut.run ...") holds the words too, and an unanchored match refused every BG_CMD that named the module.
+    if pgrep -f '^([^ ]*/)?python[0-9.]* -m topocut\.run' >/dev/null; then echo "bg: a run is already going"; exit 0; fi
     rm -rf /tmp/bg && cp -r "$PWD" /tmp/bg && cd /tmp/bg && export PYTHONPATH=/tmp/site:/tmp/bg
     if [ "${MPS:-0}" = 1 ]; then mps_start; fi
     rm -f /tmp/paper.log
