@@ -53,6 +53,7 @@ def run(ctx: RunContext, policy, trainer, data, policies: list[str]) -> dict:
             encoder_ckpt = str(enc_path / "model.ckpt")
         config = as_dict(("policy", policy), ("trainer", trainer), ("kind", name), ("seed", ctx.seed))
         config["trainer"].pop("jobs", None)  # how many trainings run at once, not what is trained
+        config["policy"]["train"].pop("val_sample_every", None)  # how often val/mask_acc is measured, likewise
         writer, existing = ctx.store.begin("checkpoint", name, config, inputs, extra={"seed": ctx.seed})
         if existing is not None:
             results[name] = {"checkpoint": str(existing), "seed": ctx.seed, "reused": True}

@@ -214,6 +214,24 @@ def test_trainer_logs_metrics(tmp_path, one_thread):
     assert policy.module.cfg.graph == "absorbing" and policy.module.cfg.goal_mode == "cross"
 
 
+def test_val_mask_accuracy_is_sampled_every_kth_epoch_and_the_last(tmp_path, one_thread):
+    import lightning as L
+
+    steps, _ = synthetic_steps(8, n_points=32)
+    tr = PolicyTrainConfig(num_points=32, num_goal_points=16, warmup_steps=1, val_sample_steps=2, val_sample_every=3)
+    module = PDDPModule(PDDPConfig(**TINY), "none", train=tr)
+    sampled, real = [], module.sample_masks
+    module.sample_masks = lambda batch, **kw: sampled.append(module.current_epoch) or real(batch, **kw)
+    dl = torch.utils.data.DataLoader(PolicyDataset(steps, 32, 16), batch_size=8)
+    trainer = L.Trainer(max_epochs=7, limit_train_batches=1, limit_val_batches=1, num_sanity_val_steps=0,
+                        logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                        enable_model_summary=False, accelerator="cpu", default_root_dir=tmp_path)
+    trainer.fit(module, dl, dl)
+    assert sampled == [2, 5, 6]  # epochs 3 and 6 (every 3rd) and 7 (the last), 1-based
+    assert "val/mask_acc" in trainer.callback_metrics and "val/loss" in trainer.callback_metrics
+    assert PDDPModule(PDDPConfig(**TINY), "none", train=tr).sample_due()  # a module outside a fit: always
+
+
 def test_config_errors():
     with pytest.raises(ValueError, match="absorbing"):
         PDDPConfig(graph="masked").validate()

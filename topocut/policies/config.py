@@ -85,6 +85,10 @@ class PolicyTrainConfig:
     max_epochs: int = 100
     val_fraction: float = 0.1
     val_sample_steps: int = 16  # sampler steps for val/mask_acc
+    # val/mask_acc every k-th epoch and the last (val/loss and the floors every epoch): its sampler runs
+    # val_sample_steps forward passes a batch, ~5 training steps' time, ~40% of a PDDP epoch when run every
+    # epoch (docs/benchmarks.md). How often it is measured, not what is trained: kept out of the artifact key
+    val_sample_every: int = 5
     num_workers: int = 0
     seed: int = 0
 

@@ -207,21 +207,32 @@ class PDDPModule(L.LightningModule):
         before a first cut)."""
         B = len(batch["mask"])
         loss = self.loss(batch, model=self.ema.module)
-        masks = self.sample_masks(batch, steps=self.train_cfg.val_sample_steps)
         self.val_means.update("val/loss", loss, weight=B)
-        target = batch["mask"].to(masks.device)
-        valid = batch.get("valid", torch.ones_like(masks, dtype=torch.bool)).to(masks.device)  # B,N
+        target = batch["mask"].to(loss.device)  # B,N
+        valid = batch.get("valid", torch.ones_like(target, dtype=torch.bool)).to(loss.device)  # B,N
         n = valid.sum(1).clamp(min=1)
 
         def acc(pred):  # B
-            return ((pred == target) & valid).sum(1) / n
+            return ((pred.to(target.device) == target) & valid).sum(1) / n
 
-        self.val_means.update("val/mask_acc", acc(masks))
+        sampled = self.sample_masks(batch, steps=self.train_cfg.val_sample_steps) if self.sample_due() else None
+        self.val_means.update("val/mask_acc", acc(sampled) if sampled is not None else torch.empty(0))
         ones = (target.bool() & valid).sum(1) / n
         self.val_means.update("val/mask_acc_majority", torch.maximum(ones, 1 - ones))
         prev = batch.get("prev_mask")
-        self.val_means.update("val/mask_acc_prev_plane", acc(prev.to(masks.device)) if prev is not None
-                              else torch.empty(0))
+        self.val_means.update("val/mask_acc_prev_plane", acc(prev) if prev is not None else torch.empty(0))
+
+    def sample_due(self) -> bool:
+        """Whether this validation samples masks (val/mask_acc): every ``val_sample_every``-th epoch, the last one,
+        and outside a fit (a bare module, the sanity check)."""
+        k = self.train_cfg.val_sample_every
+        trainer = self._trainer
+        if k <= 1 or trainer is None or trainer.sanity_checking:
+            return True
+        epoch, last = self.current_epoch + 1, trainer.max_epochs
+        if last is None or last < 0:  # a fit bounded by steps: its last epoch is not known ahead, sample each
+            return True
+        return epoch % k == 0 or epoch >= last
 
     def on_validation_epoch_end(self) -> None:
         self.val_means.log(self, prog_bar=("val/loss", "val/mask_acc", "val/mask_acc_majority"))
