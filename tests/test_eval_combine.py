@@ -86,3 +86,11 @@ def test_cli_exits_2_naming_the_problem(tmp_path, monkeypatch, capsys):
     with pytest.raises(SystemExit) as e:
         runpy.run_path(str(Path(__file__).parents[1] / "experiments" / "table1.py"), run_name="__main__")
     assert e.value.code == 2 and "empty: no manifest.json" in capsys.readouterr().err
+
+
+def test_flatten_joins_nested_keys():
+    from topocut.utils.progress import flatten
+
+    nested = {"a": {"b": 1, "c": {"d": [2]}, "e": {}}, "f": 3}
+    assert flatten(nested) == {"a/b": 1, "a/c/d": [2], "a/e": {}, "f": 3}
+    assert flatten(nested, sep=".")["a.c.d"] == [2]

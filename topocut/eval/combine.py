@@ -23,6 +23,7 @@ from topocut.eval.report import (
     table1_markdown,
     write_report,
 )
+from topocut.utils.progress import flatten
 
 # Keys that say which policies ran and how the run was spread, not what an episode is
 NOT_PROTOCOL = ("eval.policies", "eval.checkpoints", "eval.train_seeds", "eval.gifs", "eval.name", "eval.jobs",
@@ -30,20 +31,9 @@ NOT_PROTOCOL = ("eval.policies", "eval.checkpoints", "eval.train_seeds", "eval.g
 SOURCES_FILE = "sources.json"
 
 
-def _flat(d: dict, prefix: str = "") -> dict:
-    out = {}
-    for k, v in d.items():
-        key = f"{prefix}{k}"
-        if isinstance(v, dict) and v:
-            out.update(_flat(v, key + "."))
-        else:
-            out[key] = v
-    return out
-
-
 def protocol(manifest: dict) -> dict:
     """The manifest's config, flattened, without the keys of NOT_PROTOCOL (and anything under them)."""
-    flat = _flat(manifest.get("config", {}))
+    flat = flatten(manifest.get("config", {}), sep=".")
     return {k: v for k, v in flat.items() if not any(k == n or k.startswith(n + ".") for n in NOT_PROTOCOL)}
 
 
@@ -96,8 +86,8 @@ def combine(sources: list, out_dir, console: bool = False) -> dict:
     write_seed_table(tmp)
     shutil.rmtree(out_dir, ignore_errors=True)
     tmp.rename(out_dir)  # the finished directory appears at once; an interrupted combine leaves only .partial
-    return {**{k: out_dir / Path(v).name for k, v in report.items() if k in ("csv", "objects_csv", "md", "png")},
-            "seeds_md": out_dir / "results_seeds.md", "rows": report["rows"], "runs": sorted(origin)}
+    files = {k: out_dir / report[k].name for k in ("csv", "objects_csv", "md", "png")}  # report wrote them in tmp
+    return {**files, "seeds_md": out_dir / "results_seeds.md", "rows": report["rows"], "runs": sorted(origin)}
 
 
 def write_seed_table(out_dir, reference: str = "oracle", normalize_by: str = "task") -> Path:

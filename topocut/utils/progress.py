@@ -37,21 +37,26 @@ def progress_bar(description: str, total: int, enabled: bool = True):
         yield advance
 
 
+def flatten(d: dict, sep: str = "/", prefix: str = "") -> dict:
+    """Nested dicts as one level, keys joined with ``sep`` ({"a": {"b": 1}} -> {"a/b": 1}); empty dicts stay
+    values."""
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict) and v:
+            out.update(flatten(v, sep, f"{prefix}{k}{sep}"))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
 def print_summary(title: str, summary: dict) -> None:
     """A two-column rich table of a stage's summary (nested dicts flattened with '/')."""
     from rich.console import Console
     from rich.table import Table
 
-    def flat(d, prefix=""):
-        for k, v in d.items():
-            if isinstance(v, dict):
-                yield from flat(v, f"{prefix}{k}/")
-            else:
-                yield f"{prefix}{k}", v
-
     table = Table(title=title, show_header=True, header_style="bold")
     table.add_column("key")
     table.add_column("value", overflow="fold")
-    for k, v in flat(summary):
+    for k, v in flatten(summary).items():
         table.add_row(k, f"{v:.4g}" if isinstance(v, float) else str(v))
     Console().print(table)
