@@ -41,6 +41,15 @@ def _writer(tmp_path):
     return writer
 
 
+def _last_ckpt(work):
+    """A Lightning-shaped last.ckpt: the model, its hyper-parameters, and the training state to resume from."""
+    import torch
+
+    torch.save({"state_dict": {"w": torch.arange(3.0)}, "hyper_parameters": {"k": 1}, "epoch": 7,
+                "optimizer_states": [{"state": {0: {"exp_avg": torch.ones(3)}}}], "lr_schedulers": [{}]},
+               work / "last.ckpt")
+
+
 def test_finish_fit_writes_on_rank_zero_only(tmp_path):
     from topocut.utils.training import MetricHistory, finish_fit, work_dir
 
@@ -48,13 +57,17 @@ def test_finish_fit_writes_on_rank_zero_only(tmp_path):
     work = work_dir(writer)
     assert work.parent == writer.path.parent and not str(work).startswith(str(writer.path))
     work.mkdir()
-    (work / "last.ckpt").write_text("weights")
+    _last_ckpt(work)
     history = MetricHistory(work / "history.json")
     assert finish_fit(_Fit(rank=1, metrics={"val/loss": 0.5}), writer, work, history) is None
     assert list(writer.path.iterdir()) == []  # rank 1 touches nothing: rank 0 commits
     metrics = finish_fit(_Fit(rank=0, metrics={"val/loss": 0.5}), writer, work, history)
     assert metrics == {"val/loss": 0.5}
-    assert (writer.path / "model.ckpt").read_text() == "weights"
+    import torch
+
+    model = torch.load(writer.path / "model.ckpt", weights_only=False)
+    assert set(model) == {"state_dict", "hyper_parameters", "epoch"}  # the optimiser's and scheduler's state left out
+    assert torch.equal(model["state_dict"]["w"], torch.arange(3.0)) and model["epoch"] == 7
     assert {p.name for p in writer.path.iterdir()} == {"model.ckpt", "loss.png", "history.json"}
 
 
@@ -64,7 +77,7 @@ def test_history_survives_a_resume_and_gives_the_metrics_of_a_finished_fit(tmp_p
     writer = _writer(tmp_path)
     work = work_dir(writer)
     work.mkdir()
-    (work / "last.ckpt").write_text("weights")
+    _last_ckpt(work)
     first = MetricHistory(work / "history.json")
     for epoch, loss in enumerate([0.9, 0.7, 0.6]):
         first.on_train_epoch_end(_Fit(metrics={"train/loss": loss}, epoch=epoch), None)
@@ -84,7 +97,7 @@ def test_forked_step_and_epoch_names_are_left_out_of_history_and_metrics(tmp_pat
     writer = _writer(tmp_path)
     work = work_dir(writer)
     work.mkdir()
-    (work / "last.ckpt").write_text("weights")
+    _last_ckpt(work)
     logged = {"train/loss": 4.0, "train/loss_step": 6.0, "train/loss_epoch": 4.0, "val/loss": 1.0, "lr_step": 0.1}
     history = MetricHistory(work / "history.json")
     history.on_train_epoch_end(_Fit(metrics=logged), None)

@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import json
 import logging
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -161,18 +160,33 @@ def work_dir(writer) -> Path:
     return writer.path.parent / f".work-{writer.key}"
 
 
+# What a committed model leaves out of Lightning's checkpoint: it is loaded (load_from_checkpoint), never resumed
+# (an interrupted fit resumes from the work area's last.ckpt). Adam's two moments are 2/3 of a checkpoint's bytes,
+# and committed checkpoints travel between machines in pieces (docs/results.md)
+TRAINING_STATE = ("optimizer_states", "lr_schedulers")
+
+
+def model_checkpoint(src: Path, dst: Path) -> None:
+    """``src`` (a Lightning checkpoint) without TRAINING_STATE, saved at ``dst``."""
+    ckpt = torch.load(src, map_location="cpu", weights_only=False)
+    for key in TRAINING_STATE:
+        ckpt.pop(key, None)
+    torch.save(ckpt, dst)
+
+
 def finish_fit(fit, writer, work: Path, history: MetricHistory) -> dict | None:
-    """After ``fit.fit``: on global rank 0, copy the last checkpoint to ``model.ckpt`` in the version and write
-    ``loss.png`` and ``history.json``; returns the final metrics (the last epoch's row of ``history``
-    when the fit was resumed from a checkpoint that had already finished).  Other DDP ranks return None and
-    touch no file: under Lightning's DDP launcher every rank runs the stage's code, and only rank 0 commits.
+    """After ``fit.fit``: on global rank 0, write the last checkpoint's model to ``model.ckpt`` in the version
+    (``model_checkpoint``) and ``loss.png`` and ``history.json``; returns the final metrics (the last epoch's row
+    of ``history`` when the fit was resumed from a checkpoint that had already finished).  Other DDP ranks return
+    None and touch no file: under Lightning's DDP launcher every rank runs the stage's code, and only rank 0
+    commits.
     """
     if not fit.is_global_zero:
         return None
     metrics = epoch_metrics(fit.callback_metrics)
     if not metrics:  # resumed after its last epoch: this process trained and logged nothing
         metrics = {k: v for k, v in history.last().items() if k != "epoch"}
-    shutil.copyfile(Path(work) / "last.ckpt", writer.path / "model.ckpt")
+    model_checkpoint(Path(work) / "last.ckpt", writer.path / "model.ckpt")
     history.plot(writer.path / "loss.png")
     history.dump(writer.path / "history.json")
     return metrics
