@@ -64,6 +64,15 @@ def test_two_artifacts_make_one_table_with_pooled_and_per_seed_rows(tmp_path):
     assert not (tmp_path / "t1.partial").exists()
 
 
+def test_per_seed_rows_use_the_artifacts_reference(tmp_path):
+    cfg = json.loads(json.dumps(CONFIG))
+    cfg["eval"]["reference"] = "heuristic"
+    a = _artifact(tmp_path, "a", {"heuristic": [0.5] * 6, "pddp@s0": SEED0}, cfg, seeds={"pddp@s0": 0})
+    text = combine([a], tmp_path / "t1")["seeds_md"].read_text()
+    line = next(ln for ln in text.splitlines() if "seed 0" in ln)
+    assert f"{np.mean([SEED0[i] for i in (0, 2, 4)]) / 0.5:.2f}" in line.split("|")[2]  # R̂ / the heuristic's 0.5
+
+
 def test_a_different_protocol_or_a_run_in_two_artifacts_is_refused(tmp_path):
     a = _artifact(tmp_path, "a", {"oracle": ORACLE})
     cfg = json.loads(json.dumps(CONFIG))

@@ -79,11 +79,11 @@ def combine(sources: list, out_dir, console: bool = False) -> dict:
         shutil.copytree(src / "episodes" / run, tmp / "episodes" / run)
     write_json_atomic(tmp / RUNS_FILE, runs)
     write_json_atomic(tmp / SOURCES_FILE, {str(s): sorted(r for r, o in origin.items() if o == s) for s in sources})
-    eval_cfg = first[1]
-    report = write_report(tmp, reference=eval_cfg.get("eval.reference", "oracle"),
-                          normalize_by=eval_cfg.get("eval.normalize_by", "task"), console=console,
-                          compare_to=eval_cfg.get("eval.compare_to") or None)
-    write_seed_table(tmp)
+    proto = first[1]
+    reference, normalize_by = proto.get("eval.reference", "oracle"), proto.get("eval.normalize_by", "task")
+    report = write_report(tmp, reference=reference, normalize_by=normalize_by, console=console,
+                          compare_to=proto.get("eval.compare_to") or None)
+    write_seed_table(tmp, reference, normalize_by)
     shutil.rmtree(out_dir, ignore_errors=True)
     tmp.rename(out_dir)  # the finished directory appears at once; an interrupted combine leaves only .partial
     files = {k: out_dir / report[k].name for k in ("csv", "objects_csv", "md", "png")}  # report wrote them in tmp
