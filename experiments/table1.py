@@ -15,9 +15,13 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("sources", nargs="+", help="evaluation artifact directories (eval/<name>/vNNN)")
     ap.add_argument("--out", required=True, help="directory to write the combined table into (replaced)")
+    ap.add_argument("--reference", help="policy normalising R̂ (default: the reference of a piece that ran it)")
+    ap.add_argument("--normalize-by", choices=("task", "task_split"), help="one reference mean per task or per split")
+    ap.add_argument("--compare-to", help="policy of the paired-difference columns (default: the reference)")
     args = ap.parse_args(argv)
     try:
-        out = combine(args.sources, args.out, console=True)
+        out = combine(args.sources, args.out, console=True, reference=args.reference,
+                      normalize_by=args.normalize_by, compare_to=args.compare_to)
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

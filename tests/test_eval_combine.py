@@ -88,6 +88,30 @@ def test_a_different_protocol_or_a_run_in_two_artifacts_is_refused(tmp_path):
         {"config": CONFIG})
 
 
+def test_a_piece_without_the_reference_takes_it_from_the_piece_that_ran_it(tmp_path):
+    # The eval stage refuses a reference outside eval.policies, so a piece of learned policies is its own reference
+    a = _artifact(tmp_path, "a", {"oracle": ORACLE, "heuristic": [0.2] * 6})
+    cfg = json.loads(json.dumps(CONFIG))
+    cfg["eval"].update(policies=["pddp"], reference="pddp", compare_to="pddp")
+    b = _artifact(tmp_path, "b", {"pddp@s0": SEED0}, cfg, seeds={"pddp@s0": 0})
+    with pytest.raises(ValueError, match=r"differ in eval.reference \(oracle, pddp\); pass reference="):
+        combine([a, b], tmp_path / "t1")
+    for order in ([a, b], [b, a]):  # whichever comes first, the named reference normalises and is compared with
+        rows = {(r["policy"], r["split"]): r for r in _rows(combine(order, tmp_path / "t1", reference="oracle")["csv"])
+                if r["object"] == "all" and r["task"] == "slice"}
+        assert float(rows["pddp", "in"]["R_hat_mean"]) == pytest.approx(np.mean(SEED0[0::2]) / np.mean(ORACLE))
+        assert rows["pddp", "in"]["compared_to"] == "oracle"
+    rows = {(r["policy"], r["split"]): r for r in _rows(combine([a, b], tmp_path / "t2", reference="heuristic")["csv"])
+            if r["object"] == "all" and r["task"] == "slice"}
+    assert float(rows["pddp", "out"]["R_hat_mean"]) == pytest.approx(np.mean(SEED0[1::2]) / 0.2)
+    with pytest.raises(ValueError, match="'dp3' is not among the combined policies"):
+        combine([a, b], tmp_path / "t3", reference="dp3")
+    with pytest.raises(ValueError, match="'oracle' is not among the combined policies"):
+        c = _artifact(tmp_path, "c", {"dp3@s0": SEED1}, json.loads(json.dumps(CONFIG)), seeds={"dp3@s0": 0})
+        combine([c], tmp_path / "t4")
+    assert "eval.reference" not in protocol({"config": cfg})
+
+
 def test_cli_exits_2_naming_the_problem(tmp_path, monkeypatch, capsys):
     a = _artifact(tmp_path, "a", {"oracle": ORACLE})
     (tmp_path / "empty").mkdir()

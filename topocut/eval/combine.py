@@ -3,9 +3,13 @@
 A paper-scale evaluation is ~6,000 episodes; on a lent GPU it is run in pieces (the scripted policies and the
 policies trained so far on one machine, the rest later), each piece an ``eval/<name>/vNNN`` artifact.  The pieces
 form one table only if they ran the same episodes: the same scenes, simulator, reward, planner and observation.
-``combine`` checks that from the manifests (every config key but the ones that say *which* policies ran), refuses
-a run present in two pieces, copies the episodes into one directory and writes the report there, with the
-per-seed rows of the learned policies beside the pooled ones (``results_seeds.md``).
+``combine`` checks that from the manifests (every config key but the ones that say *which* policies ran and how
+the table is reported), refuses a run present in two pieces, copies the episodes into one directory and writes the
+report there, with the per-seed rows of the learned policies beside the pooled ones (``results_seeds.md``).
+
+A piece need not hold its table's reference: the evaluation stage refuses ``eval.reference`` outside
+``eval.policies``, so a piece of learned policies only is run with one of them as its reference; pieces that differ
+in the reference are combined with ``reference=`` (checked against the combined runs).
 """
 from __future__ import annotations
 
@@ -19,6 +23,7 @@ from topocut.eval.report import (
     RUNS_FILE,
     load_episodes,
     rows_to_table,
+    split_run,
     summarize,
     table1_markdown,
     write_report,
@@ -28,13 +33,17 @@ from topocut.utils.progress import flatten
 # Keys that say which policies ran and how the run was spread, not what an episode is
 NOT_PROTOCOL = ("eval.policies", "eval.checkpoints", "eval.train_seeds", "eval.gifs", "eval.name", "eval.jobs",
                 "eval.policy_kwargs")
+# Keys that say how the table is reported (which run normalises R̂, per task or per split, the Δ columns' baseline):
+# they change no episode, so pieces may differ in them; the combined table takes them from the reference's piece
+REPORTING = ("eval.reference", "eval.normalize_by", "eval.compare_to")
 SOURCES_FILE = "sources.json"
 
 
 def protocol(manifest: dict) -> dict:
-    """The manifest's config, flattened, without the keys of NOT_PROTOCOL (and anything under them)."""
+    """The manifest's config, flattened, without the keys of NOT_PROTOCOL and REPORTING (and anything under them)."""
     flat = flatten(manifest.get("config", {}), sep=".")
-    return {k: v for k, v in flat.items() if not any(k == n or k.startswith(n + ".") for n in NOT_PROTOCOL)}
+    skip = NOT_PROTOCOL + REPORTING
+    return {k: v for k, v in flat.items() if not any(k == n or k.startswith(n + ".") for n in skip)}
 
 
 def _read(source: Path) -> tuple[dict, dict]:
@@ -47,18 +56,29 @@ def _read(source: Path) -> tuple[dict, dict]:
     return json.loads(mpath.read_text()), runs
 
 
-def combine(sources: list, out_dir, console: bool = False) -> dict:
+def _reporting(manifest: dict) -> dict:
+    flat = flatten(manifest.get("config", {}), sep=".")
+    return {"reference": flat.get("eval.reference", "oracle"), "normalize_by": flat.get("eval.normalize_by", "task"),
+            "compare_to": flat.get("eval.compare_to") or None}
+
+
+def combine(sources: list, out_dir, console: bool = False, reference: str | None = None,
+            normalize_by: str | None = None, compare_to: str | None = None) -> dict:
     """Episodes of ``sources`` (evaluation artifact directories) into ``out_dir`` and its report.
 
-    Raises ValueError naming the first protocol key on which two sources differ, or a run both hold.
+    ``reference`` / ``normalize_by`` / ``compare_to``: how the table is reported; by default the pieces' own
+    (which must then agree; a piece of learned policies only is run with one of them as its reference).
+    Raises ValueError naming the first protocol key on which two sources differ, a run both hold, or a reference
+    no piece ran.
     """
     sources = [Path(s) for s in sources]
     if len(sources) < 1:
         raise ValueError("no evaluation artifacts given")
     out_dir = Path(out_dir)
-    first, runs, origin = None, {}, {}
+    first, runs, origin, reports = None, {}, {}, []
     for src in sources:
         manifest, src_runs = _read(src)
+        reports.append(_reporting(manifest))
         proto = protocol(manifest)
         if first is None:
             first = (src, proto)
@@ -73,16 +93,29 @@ def combine(sources: list, out_dir, console: bool = False) -> dict:
                 raise ValueError(f"run {run_dir.name!r} is in both {origin[run_dir.name]} and {src}; pass one of them")
             origin[run_dir.name] = src
             runs[run_dir.name] = src_runs.get(run_dir.name, {})
+    policies = {m.get("policy") or split_run(r)[0] for r, m in runs.items()}  # runs: every run in origin
+    def pick(key, given):
+        if given is not None:
+            return given
+        values = {r[key] for r in reports}
+        if len(values) > 1:
+            raise ValueError(f"the pieces differ in eval.{key} ({', '.join(sorted(map(str, values)))}); "
+                             f"pass {key}= one of them")
+        return values.pop()
+
+    reference, normalize_by = pick("reference", reference), pick("normalize_by", normalize_by)
+    if reference not in policies:
+        raise ValueError(f"reference {reference!r} is not among the combined policies ({', '.join(sorted(policies))})")
+    if compare_to is None and len({r["compare_to"] for r in reports}) == 1:
+        compare_to = reports[0]["compare_to"]
+    compare_to = compare_to if compare_to in policies else None  # None: the reference
     tmp = out_dir.with_name(out_dir.name + ".partial")
     shutil.rmtree(tmp, ignore_errors=True)
     for run, src in origin.items():
         shutil.copytree(src / "episodes" / run, tmp / "episodes" / run)
     write_json_atomic(tmp / RUNS_FILE, runs)
     write_json_atomic(tmp / SOURCES_FILE, {str(s): sorted(r for r, o in origin.items() if o == s) for s in sources})
-    proto = first[1]
-    reference, normalize_by = proto.get("eval.reference", "oracle"), proto.get("eval.normalize_by", "task")
-    report = write_report(tmp, reference=reference, normalize_by=normalize_by, console=console,
-                          compare_to=proto.get("eval.compare_to") or None)
+    report = write_report(tmp, reference=reference, normalize_by=normalize_by, console=console, compare_to=compare_to)
     write_seed_table(tmp, reference, normalize_by)
     shutil.rmtree(out_dir, ignore_errors=True)
     tmp.rename(out_dir)  # the finished directory appears at once; an interrupted combine leaves only .partial
