@@ -141,6 +141,9 @@ def test_bad_eval_config_names_key():
     EvalConfig(policies=["oracle", "pddp"], checkpoints={"pddp": "v001"}).validate()
     with pytest.raises(ValueError, match="eval.reference='heuristic'"):
         EvalConfig(reference="heuristic").validate()
+    with pytest.raises(ValueError, match="runs with eval.reference=dp3 and joins .*table1.py --reference"):
+        EvalConfig(policies=["dp3"]).validate()  # a piece of learned policies only: the message says what to do
+    EvalConfig(policies=["dp3"], reference="dp3").validate()
 
 
 # -- one episode ---------------------------------------------------------------------------------------------

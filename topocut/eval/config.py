@@ -101,7 +101,9 @@ class EvalConfig:
                              f"({', '.join(p for p in self.policies if p in LEARNED) or 'none here'})")
         if self.reference not in self.policies and self.reference != "teleop":
             raise ValueError(f"eval.reference={self.reference!r} must be one of eval.policies "
-                             f"({', '.join(self.policies)}) or 'teleop' (replayed human logs)")
+                             f"({', '.join(self.policies)}) or 'teleop' (replayed human logs); a piece of a larger "
+                             f"table runs with eval.reference={self.policies[0]} and joins the reference's piece "
+                             "through experiments/table1.py --reference")
         if self.compare_to and self.compare_to not in self.policies and self.compare_to != self.reference:
             raise ValueError(f"eval.compare_to={self.compare_to!r} must be one of eval.policies "
                              f"({', '.join(self.policies)}), eval.reference, or empty (= eval.reference)")
