@@ -10,6 +10,7 @@ partition error as a floor; mean [95% bootstrap interval over episodes]) and ope
 import argparse
 import json
 import sys
+import time
 from pathlib import Path
 
 from rich.progress import Progress
@@ -63,8 +64,11 @@ def main(argv=None) -> int:
                 steps = [ds[i] for e in val for i in range(*ds.episode_range(e))]
                 policy = registry.load_learned(name, ckpt / "model.ckpt", device=args.device, board_z=args.board_z)
                 task = bar.add_task(f"{name} {ckpt.name}", total=len(steps))
+                t0 = time.perf_counter()
                 recs = open_loop(policy, steps, board_z=args.board_z, progress=lambda t=task: bar.advance(t))
                 records[name] += [{**r, "checkpoint": str(ckpt)} for r in recs]
+                bar.console.log(f"{name} {ckpt}: {len(val)} episodes, {len(steps)} steps in "
+                                f"{time.perf_counter() - t0:.0f} s")
             rows[name] = summarize(records[name], label=name)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

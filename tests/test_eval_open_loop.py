@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from topocut.eval.open_loop import normal_angle_deg, open_loop, partition_error, summarize
+from topocut.eval.open_loop import BAND, normal_angle_deg, open_loop, partition_error, plane_gap, summarize
 from topocut.policies.base import history_from_actions
 from topocut.sim.action import KnifeAction
 
@@ -40,6 +40,19 @@ def test_partition_error_counts_the_points_between_two_parallel_cuts():
     assert cross == pytest.approx(0.5, abs=0.03)
 
 
+def test_plane_gap_is_the_distance_from_the_demonstrators_cut_to_the_policys_plane():
+    demo = KnifeAction(0.5, 0.5)
+    assert plane_gap(POINTS, KnifeAction(0.42, 0.5), demo) == pytest.approx(0.08)  # parallel: 8 cm everywhere
+    near = np.abs(POINTS[:, 0] - 0.5) <= BAND
+    crossing = plane_gap(POINTS, KnifeAction(0.5, 0.5, yaw=math.pi / 2), demo)
+    assert crossing == pytest.approx(np.mean(np.abs(POINTS[near, 1] - 0.5)))  # ~0.1: E|y - 0.5| on [0.3, 0.7]
+    tilted = KnifeAction(0.5, 0.5, tilt=math.radians(10))  # through the board line x = 0.5: |z - board| sin 10°
+    assert plane_gap(POINTS, tilted, demo) == pytest.approx(np.mean(np.abs(POINTS[near, 2] - 0.05)) * math.sin(
+        math.radians(10)))
+    assert crossing == pytest.approx(0.1, abs=0.01)
+    assert math.isnan(plane_gap(POINTS, demo, KnifeAction(0.9, 0.5)))  # the demonstrator's plane misses the box
+
+
 def _step(episode, k, demo: KnifeAction, previous=(), task="slice"):
     return {"x_t": POINTS.astype(np.float32), "f_t": np.zeros(len(POINTS), np.int32),
             "history": history_from_actions(list(previous)), "goal": POINTS[:500].astype(np.float32),
@@ -68,6 +81,8 @@ def test_open_loop_compares_each_cut_with_the_demonstrators_and_the_previous_cut
     recs = open_loop(_Fixed(0.4), steps)
     assert [r["cut"] for r in recs] == ["1", "2", "3+"]
     assert recs[0]["partition_error"] == 0.0 and recs[0]["angle_deg"] == pytest.approx(0.0)
+    assert recs[0]["gap_mm"] == pytest.approx(0.0, abs=1e-3) and recs[1]["gap_mm"] == pytest.approx(200.0)
+    assert recs[1]["pred"] == pytest.approx([0.4, 0.5, 0.0, 0.0]) and recs[1]["demo"][0] == pytest.approx(0.6)
     between = np.mean((x > 0.4) & (x <= 0.6))
     assert recs[1]["partition_error"] == pytest.approx(min(between, 1 - between))
     assert math.isnan(recs[0]["prev_partition_error"])  # no previous cut on the first
@@ -82,17 +97,18 @@ def test_open_loop_compares_each_cut_with_the_demonstrators_and_the_previous_cut
 
 def test_summarize_averages_an_episode_first_then_bootstraps_over_episodes():
     recs = [{"task": "slice", "episode": 0, "cut": "3+", "angle_deg": 10.0, "partition_error": 0.1,
-             "prev_partition_error": 0.3},
+             "gap_mm": 4.0, "prev_partition_error": 0.3},
             {"task": "slice", "episode": 0, "cut": "3+", "angle_deg": 30.0, "partition_error": 0.3,
-             "prev_partition_error": 0.5},
+             "gap_mm": 6.0, "prev_partition_error": 0.5},
             {"task": "slice", "episode": 1, "cut": "3+", "angle_deg": 50.0, "partition_error": 0.2,
-             "prev_partition_error": math.nan},
+             "gap_mm": 2.0, "prev_partition_error": math.nan},
             {"task": "dice", "episode": 2, "cut": "1", "angle_deg": 5.0, "partition_error": 0.0,
-             "prev_partition_error": math.nan}]
+             "gap_mm": math.nan, "prev_partition_error": math.nan}]
     rows = {(r["task"], r["cut"]): r for r in summarize(recs)}
     later = rows["slice", "3+"]
     assert later["n"] == 2 and later["angle_deg"] == pytest.approx((20.0 + 50.0) / 2)  # episode 0's mean is 20
     assert later["partition_error"] == pytest.approx((0.2 + 0.2) / 2)
+    assert later["gap_mm"] == pytest.approx((5.0 + 2.0) / 2)
     assert later["prev_partition_error"] == pytest.approx(0.4)  # episode 1 has no floor: only episode 0's 0.4
     assert later["angle_deg_lo"] <= later["angle_deg"] <= later["angle_deg_hi"]
     every = rows["all", "all"]

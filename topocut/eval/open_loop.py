@@ -8,8 +8,11 @@ states of held-out demonstrations and each of its cuts is compared with the demo
 - ``partition_error``: the share of the state's points that the two cuts put on different sides, taking the better
   of the two ways to match the sides (0: the same two parts; a cut that misses the object against one that halves
   it: 0.5);
-- ``prev_partition_error``: the same for the demonstrator's *previous* cut replayed on this state, a no-learning
-  floor ("cut where you cut last"), undefined on an episode's first cut.
+- ``gap_mm``: how far the policy's plane passes from where the demonstrator cut: the mean distance to the policy's
+  plane of the state's points within ``BAND`` of the demonstrator's plane, projected onto it, in mm (1 simulator
+  unit = 1 m);
+- ``prev_partition_error``: the partition error of the demonstrator's *previous* cut replayed on this state, a
+  no-learning floor ("cut where you cut last"), undefined on an episode's first cut.
 
 A policy that is right here and wrong in Table 1 suffers from the states its own cuts make (covariate shift); one
 that is wrong here has not learned the demonstrator's cut.  The bootstrap unit is the held-out episode: an
@@ -26,9 +29,10 @@ from topocut.eval.stats import bootstrap_mean
 from topocut.policies.actions import previous_action
 from topocut.policies.base import reset_policy
 from topocut.policies.inputs import step_action, step_obs
-from topocut.sim.action import KnifeAction, cut_mask
+from topocut.sim.action import KnifeAction, cut_mask, signed_distance_to_plane
 
-METRICS = ("angle_deg", "partition_error", "prev_partition_error")
+METRICS = ("angle_deg", "partition_error", "gap_mm", "prev_partition_error")
+BAND = 0.01  # m: the points that the demonstrator's blade passes through
 
 
 def normal_angle_deg(a: KnifeAction, b: KnifeAction) -> float:
@@ -42,6 +46,17 @@ def partition_error(points, a: KnifeAction, b: KnifeAction, board_z: float = 0.0
     ma, mb = cut_mask(points, a, board_z).astype(bool), cut_mask(points, b, board_z).astype(bool)
     differ = float(np.mean(ma != mb))
     return min(differ, 1.0 - differ)
+
+
+def plane_gap(points, a: KnifeAction, demo: KnifeAction, board_z: float = 0.05, band: float = BAND) -> float:
+    """Mean |distance to a's plane| of the ``points`` within ``band`` of ``demo``'s plane, each first projected onto
+    that plane (the material the demonstrator's blade cuts through; 0 when the planes agree). NaN if no point is."""
+    d = signed_distance_to_plane(points, demo, board_z)  # N,
+    near = np.abs(d) <= band
+    if not near.any():
+        return math.nan
+    on_plane = np.asarray(points, np.float64)[near] - d[near, None] * demo.normal  # M,3
+    return float(np.mean(np.abs(signed_distance_to_plane(on_plane, a, board_z))))
 
 
 def cut_bucket(step: int) -> str:
@@ -70,6 +85,9 @@ def open_loop(policy, steps, board_z: float = 0.05, seed: int = 0, progress=None
                "angle_deg": math.nan if pred is None else normal_angle_deg(pred, demo),
                "partition_error": _miss(points, demo, board_z) if pred is None
                else partition_error(points, pred, demo, board_z),
+               "gap_mm": math.nan if pred is None else 1000.0 * plane_gap(points, pred, demo, board_z),
+               "pred": None if pred is None else [float(v) for v in pred.to_vector()],
+               "demo": [float(v) for v in demo.to_vector()],
                "prev_partition_error": math.nan if prev is None else partition_error(points, prev, demo, board_z)}
         records.append(rec)
         if progress is not None:
@@ -122,12 +140,12 @@ def _keys(record: dict, by) -> list[tuple]:
 
 def markdown(rows_by_policy: dict[str, list[dict]], by=("task", "cut")) -> str:
     """A table of every policy's rows: mean [interval] of each metric."""
-    head = [*by, "policy", "episodes", "angle (deg)", "partition error", "previous cut's partition error"]
+    head = [*by, "policy", "episodes", "angle (deg)", "partition error", "gap (mm)", "previous cut's partition error"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for policy, rows in rows_by_policy.items():
         for r in rows:
             cells = [str(r[b]) for b in by] + [policy, str(r["n"])]
-            cells += [_fmt(r, m, 1 if m == "angle_deg" else 2) for m in METRICS]
+            cells += [_fmt(r, m, 1 if m in ("angle_deg", "gap_mm") else 2) for m in METRICS]
             lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
