@@ -10,7 +10,6 @@ Slice is the task whose first cut makes a goal piece; stick's and dice's need la
 """
 import argparse
 import json
-import math
 import sys
 import time
 
@@ -18,16 +17,8 @@ import numpy as np
 
 from topocut.envs import CuttingVectorEnv
 from topocut.eval.config import EvalConfig
-from topocut.sim.action import KnifeAction
 from topocut.sim.config import SimConfig
 from topocut.tasks import Cut, TaskConfig
-
-
-def shifted(a: KnifeAction, offset: float) -> KnifeAction:
-    """``a``'s plane moved ``offset`` (m) along its normal: its board point moves offset / |n_xy| horizontally."""
-    n = a.normal
-    h = math.hypot(n[0], n[1])
-    return KnifeAction(a.x + offset * n[0] / h ** 2, a.y + offset * n[1] / h ** 2, a.yaw, a.tilt)
 
 
 def main(argv=None) -> int:
@@ -51,7 +42,7 @@ def main(argv=None) -> int:
             t0 = time.perf_counter()
             env.reset(seed=0, options={"object": obj})
             cut = next(s for s in env.engine.goals[0].steps if isinstance(s, Cut)).action
-            actions = np.stack([shifted(cut, d / 1000.0).to_vector() for d in args.offsets_mm])  # B,4
+            actions = np.stack([cut.shifted(d / 1000.0).to_vector() for d in args.offsets_mm])  # B,4
             _, _, _, _, info = env.step(actions)
             for b, d in enumerate(args.offsets_mm):
                 rows.append({"task": task, "object": obj, "offset_mm": d, "reward": float(info["reward_total"][b]),

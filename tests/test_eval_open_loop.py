@@ -53,6 +53,16 @@ def test_plane_gap_is_the_distance_from_the_demonstrators_cut_to_the_policys_pla
     assert math.isnan(plane_gap(POINTS, demo, KnifeAction(0.9, 0.5)))  # the demonstrator's plane misses the box
 
 
+def test_a_cut_shifted_along_its_normal_moves_its_plane_by_the_offset():
+    for a in (KnifeAction(0.5, 0.4, yaw=0.7), KnifeAction(0.5, 0.4, yaw=-0.3, tilt=0.4)):
+        b = a.shifted(0.006)
+        assert b.normal == pytest.approx(a.normal) and (b.yaw, b.tilt) == (a.yaw, a.tilt)
+        # every point of a's plane is 6 mm behind b's: signed distance n . (p - p_b) = -0.006
+        p = a.plane_point() + 0.1 * a.blade_axis + 0.05 * a.travel
+        assert float((p - b.plane_point()) @ b.normal) == pytest.approx(-0.006)
+    assert partition_error(POINTS, KnifeAction(0.5, 0.5).shifted(-0.08), KnifeAction(0.42, 0.5)) == 0.0
+
+
 def _step(episode, k, demo: KnifeAction, previous=(), task="slice"):
     return {"x_t": POINTS.astype(np.float32), "f_t": np.zeros(len(POINTS), np.int32),
             "history": history_from_actions(list(previous)), "goal": POINTS[:500].astype(np.float32),

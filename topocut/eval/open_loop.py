@@ -27,9 +27,10 @@ import numpy as np
 
 from topocut.eval.stats import bootstrap_mean
 from topocut.policies.actions import previous_action
-from topocut.policies.base import reset_policy
+from topocut.policies.base import mix_seed, reset_policy
 from topocut.policies.inputs import step_action, step_obs
 from topocut.sim.action import KnifeAction, cut_mask, signed_distance_to_plane
+from topocut.tasks import Goal
 
 METRICS = ("angle_deg", "partition_error", "gap_mm", "prev_partition_error")
 BAND = 0.01  # m: the points that the demonstrator's blade passes through
@@ -74,9 +75,11 @@ def open_loop(policy, steps, board_z: float = 0.05, seed: int = 0, progress=None
     records = []
     for s in steps:
         obs = step_obs(s)
-        goal = _Goal(obs["goal"], obs["goal_labels"])
+        # the goal as the dataset keeps it: its cloud and piece labels (no fragments or oracle steps)
+        goal = Goal(fragments=[], planes=[], points=obs["goal"], labels=obs["goal_labels"],
+                    task=str(s.get("task", "")), object=str(s.get("object", "")))
         episode, k = int(s["episode"]), int(s["step"])
-        reset_policy(policy, goal, seed=seed * 1_000_003 + episode * 101 + k)
+        reset_policy(policy, goal, seed=mix_seed(seed, episode * 101 + k))
         pred, demo = policy.act(obs), step_action(s)
         points = np.asarray(obs["points"], np.float64)  # N,3
         prev = previous_action(obs["history"], board_z) if k > 0 and obs["history"] is not None else None
@@ -99,13 +102,6 @@ def _miss(points, demo: KnifeAction, board_z: float) -> float:
     """A policy that stops cuts nothing: its error is the share of points on the smaller side of the demo's cut."""
     m = cut_mask(points, demo, board_z).astype(bool)
     return float(min(m.mean(), 1.0 - m.mean()))
-
-
-class _Goal:
-    """The goal as a policy's reset() reads it (points, labels) from a dataset step."""
-
-    def __init__(self, points, labels):
-        self.points, self.labels = points, labels
 
 
 def summarize(records: list[dict], by=("task", "cut"), label: str = "") -> list[dict]:

@@ -25,7 +25,7 @@ classifier fitted to a mask therefore recovers the plane, and hence the action.
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
@@ -91,6 +91,13 @@ class KnifeAction:
         T[:3, :3] = self.rotation()
         T[:3, 3] = self.plane_point(board_z)
         return T
+
+    def shifted(self, offset: float) -> KnifeAction:
+        """The same cut with its plane moved ``offset`` along the normal: the board point moves offset / |n_xy|
+        horizontally along n_xy / |n_xy| (a tilted plane's board line moves further than the plane does)."""
+        n = self.normal
+        h2 = float(n[0] ** 2 + n[1] ** 2)
+        return replace(self, x=self.x + offset * n[0] / h2, y=self.y + offset * n[1] / h2)
 
     def to_vector(self) -> np.ndarray:  # ACTION_DIM,
         return np.array([self.x, self.y, self.yaw, self.tilt], dtype=np.float32)
