@@ -104,8 +104,10 @@ def test_a_piece_without_the_reference_takes_it_from_the_piece_that_ran_it(tmp_p
     rows = {(r["policy"], r["split"]): r for r in _rows(combine([a, b], tmp_path / "t2", reference="heuristic")["csv"])
             if r["object"] == "all" and r["task"] == "slice"}
     assert float(rows["pddp", "out"]["R_hat_mean"]) == pytest.approx(np.mean(SEED0[1::2]) / 0.2)
-    with pytest.raises(ValueError, match="'dp3' is not among the combined policies"):
+    with pytest.raises(ValueError, match="reference 'dp3' is not among the combined policies"):
         combine([a, b], tmp_path / "t3", reference="dp3")
+    with pytest.raises(ValueError, match="compare_to 'mppi' is not among the combined policies"):
+        combine([a, b], tmp_path / "t3", reference="oracle", compare_to="mppi")
     with pytest.raises(ValueError, match="'oracle' is not among the combined policies"):
         c = _artifact(tmp_path, "c", {"dp3@s0": SEED1}, json.loads(json.dumps(CONFIG)), seeds={"dp3@s0": 0})
         combine([c], tmp_path / "t4")

@@ -62,6 +62,17 @@ def _reporting(manifest: dict) -> dict:
             "compare_to": flat.get("eval.compare_to") or None}
 
 
+def _pick(reports: list[dict], key: str, given):
+    """``given``, else the value of ``key`` all pieces share (ValueError naming them when they differ)."""
+    if given is not None:
+        return given
+    values = {r[key] for r in reports}
+    if len(values) > 1:
+        raise ValueError(f"the pieces differ in eval.{key} ({', '.join(sorted(map(str, values)))}); "
+                         f"pass {key}= one of them (experiments/table1.py --{key.replace('_', '-')})")
+    return values.pop()
+
+
 def combine(sources: list, out_dir, console: bool = False, reference: str | None = None,
             normalize_by: str | None = None, compare_to: str | None = None) -> dict:
     """Episodes of ``sources`` (evaluation artifact directories) into ``out_dir`` and its report.
@@ -94,21 +105,13 @@ def combine(sources: list, out_dir, console: bool = False, reference: str | None
             origin[run_dir.name] = src
             runs[run_dir.name] = src_runs.get(run_dir.name, {})
     policies = {m.get("policy") or split_run(r)[0] for r, m in runs.items()}  # runs: every run in origin
-    def pick(key, given):
-        if given is not None:
-            return given
-        values = {r[key] for r in reports}
-        if len(values) > 1:
-            raise ValueError(f"the pieces differ in eval.{key} ({', '.join(sorted(map(str, values)))}); "
-                             f"pass {key}= one of them")
-        return values.pop()
-
-    reference, normalize_by = pick("reference", reference), pick("normalize_by", normalize_by)
-    if reference not in policies:
-        raise ValueError(f"reference {reference!r} is not among the combined policies ({', '.join(sorted(policies))})")
+    reference, normalize_by = _pick(reports, "reference", reference), _pick(reports, "normalize_by", normalize_by)
+    for key, value in (("reference", reference), ("compare_to", compare_to)):
+        if value is not None and value not in policies:
+            raise ValueError(f"{key} {value!r} is not among the combined policies ({', '.join(sorted(policies))})")
     if compare_to is None and len({r["compare_to"] for r in reports}) == 1:
-        compare_to = reports[0]["compare_to"]
-    compare_to = compare_to if compare_to in policies else None  # None: the reference
+        compare_to = reports[0]["compare_to"]  # the pieces' own, when they agree and it ran (else: the reference)
+        compare_to = compare_to if compare_to in policies else None
     tmp = out_dir.with_name(out_dir.name + ".partial")
     shutil.rmtree(tmp, ignore_errors=True)
     for run, src in origin.items():
