@@ -9,12 +9,13 @@ the shifted first cut, and writes them as JSON (--out).  docs/results.md reads i
 Slice is the task whose first cut makes a goal piece; stick's and dice's need later cuts (their R stays 0 here).
 """
 import argparse
-import json
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
+from topocut.data.store import write_json_atomic
 from topocut.envs import CuttingVectorEnv
 from topocut.eval.config import EvalConfig
 from topocut.sim.config import SimConfig
@@ -51,8 +52,7 @@ def main(argv=None) -> int:
                 f"{r['offset_mm']:+g} mm R={r['reward']:.2f} N_C={r['cut_count']}" for r in rows[-len(args.offsets_mm):]),
                 flush=True)
         env.close()
-    with open(args.out, "w") as f:
-        json.dump({"piece_m": args.piece, "n_grid": args.n_grid, "rows": rows}, f, indent=1)
+    write_json_atomic(Path(args.out), {"piece_m": args.piece, "n_grid": args.n_grid, "rows": rows})
     return 0
 
 

@@ -4,8 +4,9 @@
 
 Each checkpoint (every committed version of checkpoint/<policy>, one per training seed, or --checkpoints DIR ...)
 acts on the states of the validation episodes it did not train on (its metrics.json split); its cut is compared
-with the demonstrator's.  Writes open_loop.md (per task and cut: plane angle, partition error, the previous cut's
-partition error as a floor; mean [95% bootstrap interval over episodes]) and open_loop.json (every record).
+with the demonstrator's.  Writes open_loop.md (per task and cut: plane angle, partition error, plane gap in mm, the
+previous cut's partition error as a floor; mean [95% bootstrap interval over episodes]) and open_loop.json (every
+record, with both actions).
 """
 import argparse
 import json
