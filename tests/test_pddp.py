@@ -284,3 +284,59 @@ def test_policy_reseeds_per_episode_and_forwards_the_whole_sampler_config(one_th
     assert {k: calls[0][k] for k in ("steps", "predictor", "denoise", "eps")} == \
         {"steps": 3, "predictor": "euler", "denoise": False, "eps": 1e-3}
     assert policy.scfg.plane == "lsq"
+
+
+def _perception_ckpt(path, seed=1):
+    """A tiny pretrain checkpoint as stage=pretrain writes it (state_dict + hyper_parameters.cfg)."""
+    import dataclasses
+
+    from topocut.models.config import DynamicsConfig
+    from topocut.models.module import DynamicsModule
+
+    cfg = DynamicsConfig(num_points=16, hidden=16, k=4, cross_k=4, num_layers=1, num_heads=2, query_hidden=8)
+    torch.manual_seed(seed)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save({"state_dict": DynamicsModule(cfg).state_dict(), "hyper_parameters": {"cfg": dataclasses.asdict(cfg)}},
+               path)
+    return str(path)
+
+
+def _save_like_lightning(module, path, drop=()):
+    import lightning
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    hp = {k: v for k, v in dict(module.hparams).items() if k not in drop}
+    torch.save({"state_dict": module.state_dict(), "hyper_parameters": hp,
+                "pytorch-lightning_version": lightning.__version__}, path)
+
+
+def test_pddp_checkpoint_with_pretrained_encoder_travels_without_its_perception_file(tmp_path):
+    """Φ's weights are in the policy's own state dict and its architecture in encoder_arch: a checkpoint moved to a
+    machine that never had checkpoint/perception loads, with Φ's weights as trained. A checkpoint from before
+    encoder_arch finds the perception version in its own store; found nowhere, one error names both paths."""
+    first = tmp_path / "gpu" / "checkpoint" / "perception" / "v001" / "model.ckpt"
+    enc_ckpt = _perception_ckpt(first)
+    train = PolicyTrainConfig(encoder="pretrained", encoder_ckpt=enc_ckpt, num_points=16, num_goal_points=16)
+    torch.manual_seed(0)
+    module = PDDPModule(PDDPConfig(**TINY), "pretrained", enc_ckpt, train)
+    assert module.hparams["encoder_arch"]["hidden"] == 16
+    trained = {k: v.clone() for k, v in module.state_dict().items() if ".encoder." in k}
+    assert trained
+    ckpt = tmp_path / "store" / "checkpoint" / "pddp" / "v001" / "model.ckpt"
+    _save_like_lightning(module, ckpt)
+    old = tmp_path / "store" / "checkpoint" / "pddp" / "v002" / "model.ckpt"
+    _save_like_lightning(module, old, drop=("encoder_arch",))
+    first.unlink()  # the machine it trained on is gone
+
+    policy = PDDPPolicy(str(ckpt), steps=2)
+    loaded = policy.module.state_dict()
+    for k, v in trained.items():
+        torch.testing.assert_close(loaded[k], v, msg=k)
+    with pytest.raises(FileNotFoundError, match=r"perception/v001/model\.ckpt.*store/checkpoint/perception/v001"):
+        PDDPPolicy(str(old), steps=2)
+    _perception_ckpt(tmp_path / "store" / "checkpoint" / "perception" / "v001" / "model.ckpt", seed=2)  # carried
+    relocated = PDDPPolicy(str(old), steps=2).module
+    assert relocated.hparams["encoder_ckpt"] == str(tmp_path / "store" / "checkpoint" / "perception" / "v001"
+                                                    / "model.ckpt")
+    for k, v in trained.items():  # the state dict, not the relocated file's (other) weights, wins
+        torch.testing.assert_close(relocated.state_dict()[k], v, msg=k)

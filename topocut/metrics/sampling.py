@@ -165,7 +165,9 @@ def _picks_graph(p, dist, cur, n: int, sqdist):
     dist.copy_(saved[1])
     at.zero_()
     graph = torch.cuda.CUDAGraph()
-    with torch.cuda.graph(graph):
+    # thread_local: a DataLoader's pin-memory thread allocating pinned memory during a capture in the default
+    # ("global") mode invalidates it (cudaErrorStreamCaptureInvalidated, seen at 2048 points beside training).
+    with torch.cuda.graph(graph, capture_error_mode="thread_local"):
         step()
     for _ in range(n):
         graph.replay()

@@ -114,16 +114,27 @@ class FrozenEncoder(nn.Module):
         return self.encoder(points, labels.long())
 
 
-def build_encoder(kind: str, ckpt: str | None = None, out_dim: int = 96, num_labels: int = 32) -> nn.Module:
-    """One of ENCODER_KINDS; "pretrained" loads ``ckpt`` with topocut.models.load_encoder."""
+def build_encoder(kind: str, ckpt: str | None = None, out_dim: int = 96, num_labels: int = 32,
+                  arch: dict | None = None) -> nn.Module:
+    """One of ENCODER_KINDS. "pretrained": Φ of the pretrain checkpoint ``ckpt``, or, given ``arch`` (the
+    DynamicsConfig that checkpoint recorded), Φ built from it without reading any file: a PDDP checkpoint holds
+    Φ's weights in its own state dict, so it loads on a machine that never had the perception checkpoint."""
     if kind == "none":
         return PointMLPEncoder(out_dim, num_labels)
     if kind == "graphconv":
         return GraphConvEncoder(out_dim, num_labels)
     if kind == "pretrained":
-        if not ckpt:
-            raise ValueError("encoder='pretrained' needs ckpt: the path of a pretrain checkpoint")
-        from topocut.models import load_encoder  # lazy: written by the perception package
+        import dataclasses
 
-        return FrozenEncoder(load_encoder(ckpt))
+        from topocut.models.module import DynamicsModule, load_dynamics  # lazy: written by the perception package
+
+        if arch is not None:
+            enc = FrozenEncoder(DynamicsModule(arch).encoder)  # weights: the caller's state dict
+        elif ckpt:
+            dyn = load_dynamics(ckpt)
+            enc, arch = FrozenEncoder(dyn.encoder), dataclasses.asdict(dyn.cfg)
+        else:
+            raise ValueError("encoder='pretrained' needs ckpt: the path of a pretrain checkpoint")
+        enc.arch = arch  # saved in the policy's hyper-parameters (PDDPModule's encoder_arch)
+        return enc
     raise ValueError(f"encoder={kind!r} is not valid; choose one of {', '.join(ENCODER_KINDS)}")

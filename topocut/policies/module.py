@@ -138,20 +138,45 @@ def _legacy_config(cfg):
     return cfg
 
 
+def _encoder_overrides(ckpt_path) -> dict:
+    """Where a PDDP checkpoint from before ``encoder_arch`` finds its perception checkpoint.
+
+    Such a checkpoint names Φ's file by the absolute path it was trained with (e.g. /tmp/o/checkpoint/perception/
+    v001/model.ckpt on the GPU machine). Artifact stores move between machines, so when that path is missing the
+    same version is looked up in the store this checkpoint lives in (<root>/checkpoint/pddp/vNNN/model.ckpt →
+    <root>/checkpoint/perception/vNNN/model.ckpt); neither there → one error naming both."""
+    from pathlib import Path
+
+    hp = torch.load(str(ckpt_path), map_location="cpu", weights_only=True).get("hyper_parameters", {})
+    recorded = hp.get("encoder_ckpt")
+    if hp.get("encoder") != "pretrained" or hp.get("encoder_arch") or not recorded or Path(recorded).is_file():
+        return {}
+    parts = Path(recorded).parts
+    tail = parts[len(parts) - 1 - parts[::-1].index("checkpoint"):] if "checkpoint" in parts else parts[-1:]
+    here = Path(ckpt_path).parent.parent.parent.parent.joinpath(*tail)  # <root>/checkpoint/<name>/vNNN/model.ckpt
+    if here.is_file():
+        return {"encoder_ckpt": str(here)}
+    raise FileNotFoundError(f"{ckpt_path} was trained on the perception checkpoint {recorded}, which does not exist "
+                            f"here, nor does {here} (the same version in this checkpoint's artifact store): copy that "
+                            f"checkpoint/perception version beside it")
+
+
 VAL_KEYS = ("val/loss", "val/mask_acc", "val/mask_acc_majority", "val/mask_acc_prev_plane")
 
 
 class PDDPModule(L.LightningModule):
     def __init__(self, cfg: PDDPConfig | dict | None = None, encoder: str = "none", encoder_ckpt: str | None = None,
-                 train: PolicyTrainConfig | dict | None = None):
+                 train: PolicyTrainConfig | dict | None = None, encoder_arch: dict | None = None):
         super().__init__()
         cfg, train = _as(PDDPConfig, _legacy_config(cfg)), _as(PolicyTrainConfig, train)
-        enc = build_encoder(encoder, encoder_ckpt, out_dim=cfg.obs_dim)
+        # encoder_arch (recorded at training): a saved policy rebuilds Φ from it and loads Φ's weights from its own
+        # state dict, so the perception checkpoint need not travel with it
+        enc = build_encoder(encoder, encoder_ckpt, out_dim=cfg.obs_dim, arch=encoder_arch)
         cfg = dataclasses.replace(cfg, obs_dim=int(enc.out_dim)).validate()
         train = dataclasses.replace(train, encoder=encoder, encoder_ckpt=encoder_ckpt).validate()
         self.cfg, self.train_cfg = cfg, train
         self.save_hyperparameters({"cfg": dataclasses.asdict(cfg), "encoder": encoder, "encoder_ckpt": encoder_ckpt,
-                                   "train": dataclasses.asdict(train)})
+                                   "train": dataclasses.asdict(train), "encoder_arch": getattr(enc, "arch", None)})
         self.model = PolicyModel(cfg, enc)
         self.ema = AveragedModel(self.model, multi_avg_fn=ema_with_warmup(train.ema_decay), use_buffers=True)
         self.ema.requires_grad_(False)
@@ -266,7 +291,8 @@ class PDDPPolicy:
         if isinstance(module_or_ckpt, PDDPModule):
             module = module_or_ckpt
         else:
-            module = PDDPModule.load_from_checkpoint(str(module_or_ckpt), map_location=device, weights_only=True)
+            module = PDDPModule.load_from_checkpoint(str(module_or_ckpt), map_location=device, weights_only=True,
+                                                     **_encoder_overrides(module_or_ckpt))
         self.module = module.to(device).eval()
         self.device, self.board_z, self.use_ema, self.seed = torch.device(device), board_z, use_ema, int(seed)
         self.generator = torch.Generator(device=self.device).manual_seed(self.seed)
