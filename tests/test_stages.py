@@ -309,3 +309,36 @@ def test_eval_in_two_processes_writes_the_episodes_of_one(tmp_path):
         two = runs[2][key]
         assert (one["final_reward"], one["cut_counts"], one["actions"]) == \
             (two["final_reward"], two["cut_counts"], two["actions"]), key
+
+
+def test_stage_all_runs_the_whole_pipeline_and_each_stage_reads_the_last_ones_artifact(tmp_path):
+    """`make run`'s command (stage=all at smoke scale), shrunk: simulate → mppi → pretrain → bc → eval for real in
+    one process tree. Every stage commits its artifact, each reads the one before it (the manifests' inputs
+    name them), and the evaluation holds every Table 1 policy on every episode spec."""
+    root = tmp_path / "o"
+    small = [o for o in FAST if not o.startswith("stage.run.")]  # stage=all passes its stages no stage.run.* key
+    _ok(topocut(root, "stage=all", "scale=smoke", *small, "data.episodes=2", "trainer.max_epochs=1",
+                       "policy.train.max_epochs=1", "eval.max_cuts=1", "eval.bootstrap_resamples=100",
+                       timeout=900))
+    store = ArtifactStore(root)
+    demos = store.resolve("dataset", "demos")
+    assert EpisodeDataset(demos / "data.zarr").num_episodes == 2  # data.episodes of the one smoke cell
+    demos_ref = store.ref(demos)
+    assert store.manifest(store.resolve("checkpoint", "perception"))["inputs"]["dataset"] == demos_ref
+    learned = ["pddp", "pddp_noperc", "dp3", "3dda"]
+    ckpts = {}
+    for name in learned:
+        ckpts[name] = store.resolve("checkpoint", name)
+        assert (ckpts[name] / "model.ckpt").is_file(), name
+        assert store.manifest(ckpts[name])["inputs"]["dataset"] == demos_ref, name
+    assert store.manifest(ckpts["pddp"])["inputs"]["encoder"] == store.ref(store.resolve("checkpoint", "perception"))
+    table = store.resolve("eval", "table1")
+    inputs = store.manifest(table)["inputs"]
+    assert {store.ref(c) for c in ckpts.values()} <= set(inputs.values())  # the checkpoints bc just committed
+    specs = 2  # eval.seen=[cube] + eval.unseen=[donut], one slice episode each
+    policies = ["oracle", "heuristic", "mppi", *learned]
+    per_policy = {p: len(list((table / "episodes").glob(f"{p}@*/*.json")) + list((table / "episodes").glob(
+        f"{p}/*.json"))) for p in policies}
+    assert per_policy == {p: specs for p in policies}
+    report = (table / "results.md").read_text()
+    assert all(label in report for label in ("Oracle", "Heuristic", "MPPI", "DP3", "3D Diffuser Actor", "PDDP"))
