@@ -291,8 +291,12 @@ class PDDPPolicy:
         if isinstance(module_or_ckpt, PDDPModule):
             module = module_or_ckpt
         else:
-            module = PDDPModule.load_from_checkpoint(str(module_or_ckpt), map_location=device, weights_only=True,
-                                                     **_encoder_overrides(module_or_ckpt))
+            load = dict(map_location=device, weights_only=True)
+            try:
+                module = PDDPModule.load_from_checkpoint(str(module_or_ckpt), **load)
+            except FileNotFoundError:  # a checkpoint from before encoder_arch whose Φ file is not where it was
+                module = PDDPModule.load_from_checkpoint(str(module_or_ckpt), **load,
+                                                         **_encoder_overrides(module_or_ckpt))
         self.module = module.to(device).eval()
         self.device, self.board_z, self.use_ema, self.seed = torch.device(device), board_z, use_ema, int(seed)
         self.generator = torch.Generator(device=self.device).manual_seed(self.seed)
