@@ -8,6 +8,7 @@ observation and ``num_goal_points`` goal points by PolicyDataset; the mask targe
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import lightning as L
 import numpy as np
@@ -145,15 +146,12 @@ def _encoder_overrides(ckpt_path) -> dict:
     v001/model.ckpt on the GPU machine). Artifact stores move between machines, so when that path is missing the
     same version is looked up in the store this checkpoint lives in (<root>/checkpoint/pddp/vNNN/model.ckpt →
     <root>/checkpoint/perception/vNNN/model.ckpt); neither there → one error naming both."""
-    from pathlib import Path
-
     hp = torch.load(str(ckpt_path), map_location="cpu", weights_only=True).get("hyper_parameters", {})
     recorded = hp.get("encoder_ckpt")
     if hp.get("encoder") != "pretrained" or hp.get("encoder_arch") or not recorded or Path(recorded).is_file():
         return {}
-    parts = Path(recorded).parts
-    tail = parts[len(parts) - 1 - parts[::-1].index("checkpoint"):] if "checkpoint" in parts else parts[-1:]
-    here = Path(ckpt_path).parent.parent.parent.parent.joinpath(*tail)  # <root>/checkpoint/<name>/vNNN/model.ckpt
+    rel = Path(*Path(recorded).parts[-4:])  # checkpoint/<name>/vNNN/model.ckpt: the store's layout
+    here = Path(ckpt_path).parents[3] / rel  # the root of the store holding <root>/checkpoint/pddp/vNNN/model.ckpt
     if here.is_file():
         return {"encoder_ckpt": str(here)}
     raise FileNotFoundError(f"{ckpt_path} was trained on the perception checkpoint {recorded}, which does not exist "
