@@ -2,7 +2,8 @@
 
 The paper's three perception configurations (Table "cutting_eval"):
   "none"       no perception model: a per-point MLP + kNN max-pool, trained from scratch with the policy;
-  "pretrained" the frozen dynamics-informed encoder Phi from pretraining (topocut.models.load_encoder);
+  "pretrained" the frozen dynamics-informed encoder Phi from pretraining (its checkpoint, or the architecture a
+  PDDP checkpoint recorded: build_encoder);
   "graphconv"  a self-attention GraphConv encoder (local attention over kNN graphs) trained with the policy.
 Every encoder has ``out_dim`` and ``forward(points, labels)``.  Labels may be -1 (unassigned).
 """
