@@ -67,7 +67,7 @@ def episode_scene(object, task, sim, seed: int, planner=None):
     from topocut.tasks import get_task
 
     pose = object_pose(object, seed)
-    goal = get_task(task.name).make_goal(task, object.name, pose, spacing=sim.spacing, board_z=sim.board_z)
+    goal = get_task(task.name).make_goal(task, object.name, pose, spacing=sim.spacing, board_z=sim.board_z, seed=seed)
     need = max((abs(p.tilt) for p in goal.planes), default=0.0)
     if planner is not None and need > planner.tilt_max:
         raise ValueError(f"task={task.name}: the goal's planes tilt up to {need:.4f} rad, beyond "
@@ -96,7 +96,8 @@ def run_knife(ctx: RunContext, sim, object, task, topology, reward, planner, dat
     """MPPI demonstrations of a knife task: the planner plans the cuts, the goal's turns run between them."""
     planner = planner_for_task(planner, task)  # pyramid: the goal plane is tilted
     from topocut.data.episodes import EpisodeDataset, EpisodeWriter
-    from topocut.planning import HeuristicPolicy, MPPIPolicy, run_episode, sim_rollout_factory
+    from topocut.planning import MPPIPolicy, run_episode, sim_rollout_factory
+    from topocut.planning.oracle import OraclePolicy
     from topocut.sim import init_taichi
     from topocut.sim.env import cached_env
     from topocut.tasks import get_task
@@ -140,7 +141,7 @@ def run_knife(ctx: RunContext, sim, object, task, topology, reward, planner, dat
             # so that the parts of a cell compare the episodes one run over the cell would
             if compare_heuristic and e % compare_heuristic == 0:
                 env.reset(object.name, pose, seed=seed)
-                _, hs = run_episode(env, goal, HeuristicPolicy(goal), reward, topology, task.max_cuts, task.push,
+                _, hs = run_episode(env, goal, OraclePolicy(goal, sim.board_z), reward, topology, task.max_cuts, task.push,
                                     success_threshold=task.success_threshold, success_fn=success)
                 record["heuristic_final_reward"] = hs["final_reward"]
                 record["heuristic_time_s"] = hs["time_s"]

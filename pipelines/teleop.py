@@ -55,13 +55,13 @@ def run(ctx: RunContext, sim, object, task, topology, reward, data, replay: str 
     env = CuttingEnv(sim, batch_size=1)
     if replay is None:
         pose = object_pose(object, ctx.seed)
-        goal = make_goal(task, object.name, pose, spacing=sim.spacing, board_z=sim.board_z)
+        goal = make_goal(task, object.name, pose, spacing=sim.spacing, board_z=sim.board_z, seed=ctx.seed)
         session = TeleopSession(env, goal, object.name, pose, ctx.seed, task.name, reward, topology,
                                 task.success_threshold)
         log_path = record_session(session, ctx.run_dir / "teleop_log.json", backend)
     log = load_log(log_path)
     pose = ObjectPose(**log["pose"]) if isinstance(log.get("pose"), dict) else ObjectPose()
-    goal = make_goal(task, log["object"], pose, spacing=sim.spacing, board_z=sim.board_z)
+    goal = make_goal(task, log["object"], pose, spacing=sim.spacing, board_z=sim.board_z, seed=int(log["seed"]))
     config = as_dict(("sim", sim), ("task", task), ("topology", topology), ("reward", reward), ("log", log),
                      ("points_per_step", data.points_per_step))
     writer, existing = ctx.store.begin("dataset", f"teleop-{task.name}-{log['object']}", config)

@@ -127,7 +127,7 @@ def _box_scoring():
     from topocut.episode import Score, Scoring
     from topocut.sim.action import KnifeAction
 
-    def goal_fn(task, obj, pose, spacing):
+    def goal_fn(task, obj, pose, spacing, seed=0):
         k = int(obj)
         return SimpleNamespace(planes=[KnifeAction(0.2 + 0.2 * i, 0.0) for i in range(k)], points=np.zeros((2, 3)),
                                labels=np.zeros(2, np.int32))

@@ -59,7 +59,7 @@ class BoxEnv:
         return {"x": self.x.copy()}
 
 
-def fake_goal(task_cfg, obj, pose, spacing):
+def fake_goal(task_cfg, obj, pose, spacing, seed=0):
     """Slice goal: four slabs 0.04 wide (x extent 0.04 - spacing between outer particle centres)."""
     x0 = pose.x - 0.1
     frags = [np.array([[x0 + 0.005 + i * 0.05, 0, 0], [x0 + 0.045 + i * 0.05, 0, 0]]) for i in range(4)]

@@ -81,19 +81,20 @@ class Score:
 @dataclass
 class Scoring:
     """How a state is labelled and scored; each part replaceable (test doubles, other backends)."""
-    goal_fn: Callable  # (task_cfg, object, pose, spacing) -> Goal
+    goal_fn: Callable  # (task_cfg, object, pose, spacing, seed) -> Goal: seed, the scene's particle sampling
     discover_fn: Callable  # (x (N,3), damage (N,), sweeps, previous_labels) -> labels (N,)
     score_fn: Callable  # (xs, labels, goals, task_cfgs) -> [Score]: all scenes of a step in one call
 
 
 def fragment_scoring(goal_fn: Callable, discover_fn: Callable, rewards_fn: Callable, success_fn: Callable,
                      min_fragment_points: int = 4) -> Scoring:
-    """Scoring from pieces: ``rewards_fn(fragment sets, goal fragment sets) -> results`` (.total, .cut_count) of
-    every scene in one call, ``success_fn(result, task_cfg) -> bool``."""
+    """Scoring from pieces: ``rewards_fn(fragment sets, goal fragment sets, planned offcut sets) -> results``
+    (.total, .cut_count) of every scene in one call, ``success_fn(result, task_cfg) -> bool``."""
 
     def score_fn(xs, labels, goals, task_cfgs):
         sets = [fragments(x, lab, min_fragment_points) for x, lab in zip(xs, labels)]
-        res = rewards_fn(sets, [[np.asarray(f) for f in g.fragments] for g in goals]) if sets else []
+        res = rewards_fn(sets, [[np.asarray(f) for f in g.fragments] for g in goals],
+                         [[np.asarray(f) for f in getattr(g, "offcuts", None) or []] for g in goals]) if sets else []
         return [Score(float(r.total), int(r.cut_count), bool(success_fn(r, t)), len(f))
                 for r, t, f in zip(res, task_cfgs, sets)]
 
@@ -108,15 +109,15 @@ def default_scoring(reward_cfg=None, topo_cfg=None, device: str = "cpu", board_z
     from topocut.tasks import get_task
     from topocut.topology import discover
 
-    def goal_fn(task_cfg, obj, pose, spacing):
-        return get_task(task_cfg.name).make_goal(task_cfg, obj, pose, spacing, board_z=board_z)
+    def goal_fn(task_cfg, obj, pose, spacing, seed=0):  # the scene's own particles (its sampling seed), ideally cut
+        return get_task(task_cfg.name).make_goal(task_cfg, obj, pose, spacing, board_z=board_z, seed=seed)
 
     def discover_fn(x, damage, sweeps, previous):
         return np.asarray(discover(x, np.asarray(damage, bool), sweeps, previous_labels=previous, cfg=topo_cfg,
                                    device=device).labels, np.int32)
 
-    def rewards_fn(sets, goal_sets):
-        return spectral_rewards(sets, goal_sets, reward_cfg)
+    def rewards_fn(sets, goal_sets, offcut_sets=None):
+        return spectral_rewards(sets, goal_sets, reward_cfg, offcut_sets)
 
     def success_fn(res, task_cfg):
         return bool(get_task(task_cfg.name).success(res, task_cfg))
@@ -245,7 +246,8 @@ class EpisodeBatch:
         spacing = self.spacing
         if spacing is None and any(e.goal is None for e in episodes):
             spacing = _spacing(env)
-        self.goals = [e.goal if e.goal is not None else sc.goal_fn(e.task, e.object, e.pose, spacing) for e in episodes]
+        self.goals = [e.goal if e.goal is not None else sc.goal_fn(e.task, e.object, e.pose, spacing, e.seed or 0)
+                      for e in episodes]
         self.tasks = [e.task for e in episodes]
         st = env.state()
         self.xs = [np.asarray(_scene(st, b)[0]) for b in range(n)]
@@ -424,6 +426,9 @@ def run_episodes(env, episodes: list[Episode], policy, scoring: Scoring, max_cut
         while any(engine.live):
             live = [b for b in range(len(chunk)) if engine.live[b]]
             obs = {b: engine.observation(b, observe_fn) for b in live}
+            if getattr(policy, "privileged", False):  # the oracle reads the scene itself (planning/oracle.py)
+                for b in live:
+                    obs[b]["particles"] = engine.xs[b]  # N,3
             if alone and hasattr(env, "get_state"):  # one episode in every scene: a planner (MPPI) may roll
                 obs[0]["sim_state"] = env.get_state(0)  # out from its state (batched episodes: no planner)
             acts = _act(pols, obs, batched, engine)

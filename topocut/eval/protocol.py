@@ -173,9 +173,10 @@ def scoring_for(env, reward_cfg=None, topo_cfg=None, min_fragment_points: int = 
     if reward_fn is None:
         from topocut.reward import spectral_rewards
 
-        rewards = lambda sets, goal_sets: spectral_rewards(sets, goal_sets, reward_cfg)  # noqa: E731
-    else:
-        rewards = lambda sets, goal_sets: [reward_fn(f, g, reward_cfg) for f, g in zip(sets, goal_sets)]  # noqa: E731
+        rewards = lambda sets, goal_sets, offcuts=None: spectral_rewards(sets, goal_sets, reward_cfg, offcuts)  # noqa: E731
+    else:  # a replacement reward_fn(fragments, goal_fragments, reward_cfg) is told no planned offcuts
+        rewards = lambda sets, goal_sets, offcuts=None: [reward_fn(f, g, reward_cfg)  # noqa: E731
+                                                         for f, g in zip(sets, goal_sets)]
     discover = base.discover_fn if discover_fn is None else (
         lambda x, damage, sweeps, previous: discover_fn(x, np.asarray(damage, bool), sweeps, previous, topo_cfg))
     return fragment_scoring(goal_fn or base.goal_fn, discover, rewards,

@@ -89,8 +89,9 @@ def build_policies(ctx: RunContext, names, env, sim, planner, reward, topology, 
     ``train_seeds=1``, else one run ``<name>@s<seed>`` per training seed ctx.seed .. ctx.seed+k-1; ``runs``, when
     given, receives {run name: {"policy", "train_seed", "checkpoint"}} (the report's policies.json)."""
     from topocut.eval.report import run_name
-    from topocut.planning import HeuristicPolicy, MPPIPolicy, sim_rollout_factory
+    from topocut.planning import MPPIPolicy, sim_rollout_factory
     from topocut.planning.heuristic import FixedTrajectoryPolicy
+    from topocut.planning.oracle import OraclePolicy
 
     registry.check(names, "eval.policies", external=True, kwargs=policy_kwargs)
     seeds = None if train_seeds == 1 else [ctx.seed + i for i in range(train_seeds)]
@@ -105,7 +106,7 @@ def build_policies(ctx: RunContext, names, env, sim, planner, reward, topology, 
         if name in SCRIPTED:
             runs[name] = {"policy": name, "train_seed": None, "checkpoint": None}
         if name == "oracle":
-            policies[name] = HeuristicPolicy()
+            policies[name] = OraclePolicy(board_z=sim.board_z)
         elif name == "heuristic":
             policies[name] = FixedTrajectoryPolicy(task_cfgs, spacing=sim.spacing, board_z=sim.board_z)
         elif name == "mppi":

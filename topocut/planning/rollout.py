@@ -72,7 +72,8 @@ class Scorer:
     def reward(self, x, labels) -> tuple[float, bool]:
         from topocut.reward import spectral_reward
 
-        res = spectral_reward(self.fragments(x, labels), list(self.goal.fragments), self.reward_cfg)
+        res = spectral_reward(self.fragments(x, labels), list(self.goal.fragments), self.reward_cfg,
+                              offcuts=list(getattr(self.goal, "offcuts", None) or []))
         total = float(res.total)
         if self.success_fn is not None:
             return total, bool(self.success_fn(res))
@@ -83,7 +84,8 @@ class Scorer:
         from topocut.reward import spectral_rewards
 
         sets = [self.fragments(x, lab) for x, lab in zip(xs, labels)]
-        return np.array([r.total for r in spectral_rewards(sets, list(self.goal.fragments), self.reward_cfg)])
+        off = list(getattr(self.goal, "offcuts", None) or [])
+        return np.array([r.total for r in spectral_rewards(sets, list(self.goal.fragments), self.reward_cfg, off)])
 
 
 def topology_device(env) -> str:

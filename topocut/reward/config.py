@@ -39,6 +39,9 @@ class RewardConfig:
     # waste, - waste_cost r_max w, with w = min(1, its volume / the mean goal piece's)
     mismatch_cost: float = 1.0
     waste_cost: float = 1.0
+    # waste up to the goal's planned offcuts (Goal.offcuts, in goal-piece weights) + offcut_slack goal pieces is
+    # forgiven: the physics breaks a rim in two or leaves a sliver heavier than planned (docs/reward.md#planned-offcuts)
+    offcut_slack: float = 0.25
     clip_total: bool = True  # total clipped to [0, r_max] (RewardResult.unclipped keeps the sum)
     # a piece assigned to a goal piece counts as a correct cut (N_C) if d <= this, i.e. R(d) >= 0.77 with the
     # defaults: a slab within ~0.86-1.16x the goal thickness (docs/reward.md#sweep); None: tau
@@ -72,7 +75,7 @@ class RewardConfig:
                 raise ValueError(f"reward.{k}={getattr(self, k)} must be >= 1")
         if self.min_points < self.num_eig + 2:
             raise ValueError(f"reward.min_points={self.min_points} must be >= reward.num_eig + 2 = {self.num_eig + 2}")
-        for k in ("size_weight", "fill_weight", "profile_weight", "mismatch_cost", "waste_cost"):
+        for k in ("size_weight", "fill_weight", "profile_weight", "mismatch_cost", "waste_cost", "offcut_slack"):
             if getattr(self, k) < 0:
                 raise ValueError(f"reward.{k}={getattr(self, k)} must be >= 0")
         if self.sigma is not None and self.sigma <= 0:

@@ -20,7 +20,10 @@ to maximise the summed value:
 * waste (material cut from the wrong place):   - c_waste R_max w_f
 
 with w_f = min(1, V_f / mean_g V_g) the fragment's material in goal pieces (capped at one).  A goal piece
-left without a fragment earns 0.  total = kappa * sum of values (kappa = 1 / G by default), clipped to
+left without a fragment earns 0.  The goal's planned offcuts (``Goal.offcuts``: a die's rims, a stick's edge
+band, what its own steps make besides the goal pieces and the rest) are not waste: waste up to their summed
+weight (plus offcut_slack of a goal piece) is forgiven, the smallest fragments first (``forgive_offcuts``).
+total = kappa * sum of values (kappa = 1 / G by default), clipped to
 [0, R_max] (``RewardResult.unclipped`` keeps the sum).  N_C counts the fragments assigned to a goal piece
 with d <= success_distance.
 """
@@ -124,6 +127,9 @@ class RewardResult:
     waste: list = field(default_factory=list)  # fragments costing -c_waste w_f
     values: np.ndarray = None  # F, each fragment's value
     weights: np.ndarray = None  # F, w_f
+    # [(fragment, share forgiven)]: waste fragments counted (in full, or the last in part) as the offcuts the goal's
+    # own steps make (forgive_offcuts); ``waste`` still lists them
+    offcuts: list = field(default_factory=list)
 
 
 _CACHE: OrderedDict[tuple, object] = OrderedDict()  # goal resamplings / descriptors reused across MPPI rollouts
@@ -274,16 +280,43 @@ def _goal_descriptors(keys: list, clouds: list, sigma, cfg: RewardConfig) -> lis
             for j, k in enumerate(keys)]
 
 
+def forgive_offcuts(values, weights, waste, offcut_weight: float, cfg: RewardConfig):
+    """The waste the goal's own steps make, forgiven: (new values (F,), [(fragment, share forgiven)]).
+
+    The goal plans offcuts besides its goal pieces and the rest (a die's rims, a stick's edge band:
+    ``Goal.offcuts``), ``offcut_weight`` = their summed weight min(1, V_o / mean goal V) in the units of w_f.
+    Of the fragments the assignment calls waste, the smallest are forgiven first, in full, until that budget
+    plus reward.offcut_slack (a fraction of one goal piece) is spent (the last one in part): the plan's by-products are
+    not waste, however the physics broke or merged them, but material beyond them is
+    (docs/reward.md#planned-offcuts)."""
+    values = np.asarray(values, np.float64).copy()
+    budget = float(offcut_weight) + cfg.offcut_slack
+    forgiven = []
+    for f in sorted(waste, key=lambda f: (weights[f], f)):
+        if budget <= 0:
+            break
+        share = min(1.0, budget / weights[f]) if weights[f] > 0 else 1.0
+        budget -= share * weights[f]
+        values[f] *= 1.0 - share
+        forgiven.append((int(f), float(share)))
+    return values, forgiven
+
+
 def reward_from_distances(D: np.ndarray, G: int, cfg: RewardConfig, volumes=None,
-                          goal_volumes=None) -> RewardResult:
+                          goal_volumes=None, offcut_volumes=None) -> RewardResult:
     """Roles, values, total and N_C from an (F,G) distance matrix (spectral_reward's last step).
 
     volumes (F,) and goal_volumes (G,) give the fragments' weights w_f; without them every fragment weighs 1.
+    offcut_volumes (O,): the goal's planned offcuts (docs/reward.md#planned-offcuts; ``forgive_offcuts``).
     """
     D = np.asarray(D, np.float64).reshape(-1, G)
     w = (fragment_weights(volumes, goal_volumes) if volumes is not None and goal_volumes is not None
          else np.ones(len(D)))
     pairs, stock, waste, values = assign(D, cfg, w)
+    forgiven = []
+    if offcut_volumes is not None and len(offcut_volumes) and goal_volumes is not None and waste:
+        budget = float(fragment_weights(offcut_volumes, goal_volumes).sum())
+        values, forgiven = forgive_offcuts(values, w, waste, budget, cfg)
     per_goal = np.zeros(G)
     success = cfg.tau if cfg.success_distance is None else cfg.success_distance
     cut_count = 0
@@ -293,7 +326,7 @@ def reward_from_distances(D: np.ndarray, G: int, cfg: RewardConfig, volumes=None
     kappa = 1.0 / G if cfg.kappa is None else cfg.kappa
     unclipped = float(kappa * values.sum())
     total = float(np.clip(unclipped, 0.0, cfg.r_max)) if cfg.clip_total else unclipped
-    return RewardResult(total, per_goal, pairs, cut_count, D, unclipped, stock, waste, values, w)
+    return RewardResult(total, per_goal, pairs, cut_count, D, unclipped, stock, waste, values, w, forgiven)
 
 
 def _is_per_set(goal_fragments) -> bool:
@@ -305,27 +338,30 @@ def _is_per_set(goal_fragments) -> bool:
     return len(first) > 0 and np.ndim(first[0]) == 2
 
 
-def spectral_rewards(fragment_sets, goal_fragments, cfg: RewardConfig | None = None) -> list[RewardResult]:
+def spectral_rewards(fragment_sets, goal_fragments, cfg: RewardConfig | None = None, offcuts=None) -> list[RewardResult]:
     """spectral_reward of each set of fragments, descriptors batched across sets.
 
     goal_fragments is either one list of goal clouds (m,3) that every set is scored against, or one such
     list per set (``spectral_rewards_per_goal``), told apart by ``_is_per_set``: per set when its first
-    entry is a list of clouds rather than a cloud.  Result s equals spectral_reward(fragment_sets[s], its goals).
+    entry is a list of clouds rather than a cloud.  ``offcuts``: the goal's planned offcuts, shaped like
+    goal_fragments (one list, or one list per set).  Result s equals spectral_reward(fragment_sets[s], its goals).
     """
     if _is_per_set(goal_fragments):
-        return spectral_rewards_per_goal(fragment_sets, goal_fragments, cfg)
-    cfg = (cfg or RewardConfig()).validate()
+        return spectral_rewards_per_goal(fragment_sets, goal_fragments, cfg, offcuts)
     if not len(goal_fragments):
         raise ValueError("spectral_rewards needs at least one goal fragment")
-    Ds, vols, gvols = _score_sets(fragment_sets, goal_fragments, cfg)
-    return [reward_from_distances(D, len(goal_fragments), cfg, v, gvols) for D, v in zip(Ds, vols)]
+    off = list(offcuts or [])
+    return spectral_rewards_per_goal(fragment_sets, [list(goal_fragments)] * len(fragment_sets), cfg,
+                                     [off] * len(fragment_sets))
 
 
-def spectral_rewards_per_goal(fragment_sets, goal_sets, cfg: RewardConfig | None = None) -> list[RewardResult]:
-    """spectral_reward(fragment_sets[s], goal_sets[s], cfg) for every s in one batched call: scenes that each
-    have their own goal (goal_sets: one list of (m,3) goal clouds per set, same length as fragment_sets).
-    All fragments share one resampling / descriptor batch; each distinct goal cloud is described once and
-    cached by content, so repeated goals (and repeated calls, as in MPPI) cost nothing more."""
+def spectral_rewards_per_goal(fragment_sets, goal_sets, cfg: RewardConfig | None = None,
+                              offcut_sets=None) -> list[RewardResult]:
+    """spectral_reward(fragment_sets[s], goal_sets[s], cfg, offcut_sets[s]) for every s in one batched call:
+    scenes that each have their own goal (goal_sets: one list of (m,3) goal clouds per set, same length as
+    fragment_sets; offcut_sets: one list of planned offcuts per set, or None).  All fragments share one
+    resampling / descriptor batch; each distinct goal cloud is described once and cached by content, so
+    repeated goals (and repeated calls, as in MPPI) cost nothing more."""
     cfg = (cfg or RewardConfig()).validate()
     if len(goal_sets) != len(fragment_sets):
         raise ValueError(f"spectral_rewards_per_goal: {len(goal_sets)} goal lists for {len(fragment_sets)} "
@@ -333,15 +369,27 @@ def spectral_rewards_per_goal(fragment_sets, goal_sets, cfg: RewardConfig | None
     for s, gs in enumerate(goal_sets):
         if not len(gs):
             raise ValueError(f"spectral_rewards_per_goal: goal_sets[{s}] has no goal fragment")
+    offcut_sets = [[] for _ in goal_sets] if offcut_sets is None else [list(o or []) for o in offcut_sets]
+    if len(offcut_sets) != len(goal_sets):
+        raise ValueError(f"spectral_rewards_per_goal: {len(offcut_sets)} offcut lists for {len(goal_sets)} sets")
     Ds, vols, gvols = _score_sets(fragment_sets, goal_sets, cfg, per_set=True)
-    return [reward_from_distances(D, len(gs), cfg, v, gv) for D, v, gv, gs in zip(Ds, vols, gvols, goal_sets)]
+    ovols = [_offcut_volumes(off) for off in offcut_sets]
+    return [reward_from_distances(D, len(gs), cfg, v, gv, ov)
+            for D, v, gv, ov, gs in zip(Ds, vols, gvols, ovols, goal_sets)]
 
 
-def spectral_reward(fragments, goal_fragments, cfg: RewardConfig | None = None) -> RewardResult:
-    """Reward of the current pieces (list of (n,3)) against the goal pieces (list of (m,3))."""
+def _offcut_volumes(offcuts) -> np.ndarray:
+    """(O,) volumes of a goal's planned offcuts (cached by content, as the goal pieces' descriptors are)."""
+    clouds = [_points(o, f"offcuts[{i}]") for i, o in enumerate(offcuts or [])]
+    return np.array([_cached(("size", _hash(o)), lambda o=o: size_descriptor(o))[3] for o in clouds])
+
+
+def spectral_reward(fragments, goal_fragments, cfg: RewardConfig | None = None, offcuts=None) -> RewardResult:
+    """Reward of the current pieces (list of (n,3)) against the goal pieces (list of (m,3)) and the goal's
+    planned offcuts (list of (k,3), docs/reward.md#planned-offcuts; None: the goal plans none)."""
     cfg = (cfg or RewardConfig()).validate()
     G = len(goal_fragments)
     if G == 0:
         raise ValueError("spectral_reward needs at least one goal fragment")
     Ds, vols, gvols = _score_sets([fragments], goal_fragments, cfg, names=("fragments",))
-    return reward_from_distances(Ds[0], G, cfg, vols[0], gvols)
+    return reward_from_distances(Ds[0], G, cfg, vols[0], gvols, _offcut_volumes(offcuts))

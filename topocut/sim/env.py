@@ -209,17 +209,14 @@ class CuttingEnv(Scenes, Primitives):
         counts = self.counts
         x = [xb[:c] for xb, c in zip(s.x.to_numpy().astype(np.float64), counts)]  # B x (n_b,3)
         dmg0 = s.damage.to_numpy()[:, :self.n].sum(1)
-        frames, o0, depth = [], [], []
+        frames, o0, depth, sweeps = [], [], [], []
         for b, a in enumerate(acts):
             a = a.canonical()
-            u, w, nrm = a.blade_axis, a.travel, a.normal
-            p0 = a.plane_point(cfg.board_z)
-            p0 = p0 + u * float(u @ (x[b].mean(0) - p0))  # centre the blade on the object
-            z_start = a.z_start if a.z_start is not None else x[b][:, 2].max() + cfg.knife_clearance + cfg.margin
-            t_board = max(z_start - cfg.board_z, 0.0) / -w[2]  # travel until the edge reaches the board
-            depth.append(t_board if a.depth is None else min(max(a.depth, 0.0), t_board))
-            o0.append(p0 - w * t_board)
-            frames.append((u, w, nrm))
+            sw, d, o = P.blade_sweep(a, x[b], cfg)
+            sweeps.append(sw)
+            depth.append(d)
+            o0.append(o)
+            frames.append((a.blade_axis, a.travel, a.normal))
         depth = np.asarray(depth)
         if cfg.cut_substeps is not None:  # each scene covers its own depth in cut_substeps substeps
             speed = np.maximum(depth, 1e-6) / (cfg.cut_substeps * self.dt)
@@ -235,11 +232,7 @@ class CuttingEnv(Scenes, Primitives):
                                  f"use sim.cut_substeps >= {need} or a smaller sim.dt")
         else:
             speed = np.full(self.B, cfg.knife_speed)
-        # the swept surface of each scene's blade: what _split separates before the knife moves
-        sweeps = [KnifeSweep(origin=tuple(map(float, o0[b])), u=tuple(map(float, u)), w=tuple(map(float, w)),
-                             n=tuple(map(float, nrm)), half_length=cfg.knife_half_length + cfg.osc_amplitude,
-                             depth=float(depth[b]), half_thickness=cfg.knife_half_thickness + cfg.margin)
-                  for b, (u, w, nrm) in enumerate(frames)]
+        # the swept surface of each scene's blade (P.blade_sweep): what _split separates before the knife moves
         t_split = time.perf_counter()
         self._split(x, sweeps, idle)
         t_split = time.perf_counter() - t_split

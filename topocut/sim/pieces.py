@@ -23,7 +23,32 @@ from scipy.spatial import cKDTree
 
 LINK = 1.6  # neighbours closer than this many particle spacings are bonded (jittered lattice: 1 .. 1.5)
 MIN_PIECE = 8  # components with fewer particles are flakes: they join the nearest large piece
+CENTRE_BAND = 0.01  # the blade centres on the particles within this distance of its plane [units]
 REACH = 3  # pieces whose base cells lie within this many cells (Chebyshev) may share a node: colour apart
+
+
+def blade_sweep(action, x: np.ndarray, cfg):
+    """(KnifeSweep, depth, start origin o0) of ``action`` (a KnifeAction) cutting particles x (N,3) in a scene of
+    SimConfig ``cfg``: the blade centred along its long axis on the material it cuts (the particles within
+    ``CENTRE_BAND`` of its plane; all of them if none is), started ``knife_clearance`` above the highest
+    particle, travelling to the board (or ``action.depth``).  CuttingEnv.cut and the ideal execution of a goal's
+    steps (topocut.tasks.ideal) share it, so both separate exactly the same pieces."""
+    from topocut.sim.action import KnifeSweep
+
+    a = action.canonical()
+    u, w, nrm = a.blade_axis, a.travel, a.normal
+    p0 = a.plane_point(cfg.board_z)
+    near = np.abs((x - p0) @ nrm) <= CENTRE_BAND
+    mid = x[near].mean(0) if near.any() else x.mean(0)
+    p0 = p0 + u * float(u @ (mid - p0))  # centre the blade on what it cuts: a slab set far aside is cut whole
+    z_start = a.z_start if a.z_start is not None else x[:, 2].max() + cfg.knife_clearance + cfg.margin
+    t_board = max(z_start - cfg.board_z, 0.0) / -w[2]  # travel until the edge reaches the board
+    depth = t_board if a.depth is None else min(max(a.depth, 0.0), t_board)
+    o0 = p0 - w * t_board
+    sweep = KnifeSweep(origin=tuple(map(float, o0)), u=tuple(map(float, u)), w=tuple(map(float, w)),
+                       n=tuple(map(float, nrm)), half_length=cfg.knife_half_length + cfg.osc_amplitude,
+                       depth=float(depth), half_thickness=cfg.knife_half_thickness + cfg.margin)
+    return sweep, float(depth), o0
 
 
 def bonds(x: np.ndarray, spacing: float) -> np.ndarray:

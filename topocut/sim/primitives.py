@@ -10,6 +10,24 @@ import numpy as np
 from topocut.sim import pieces as P
 
 
+def turned_positions(p: np.ndarray, turn, cfg) -> np.ndarray:
+    """Where ``turn`` lays particles p (n,3): x <- R (x - c) + target about their current centroid c, lowered or
+    raised so that the lowest rests half a cell above the board (``Primitives.turn``; the ideal execution of a
+    goal's steps, topocut.tasks.ideal, uses the same rule)."""
+    p = np.asarray(p, np.float64)
+    q = (p - p.mean(0)) @ turn.rotation().astype(np.float64).T + np.asarray(turn.target, np.float64)
+    q[:, 2] += cfg.board_z + 0.5 * cfg.dx - q[:, 2].min()
+    return q
+
+
+def nearest_piece(x: np.ndarray, piece: np.ndarray, center) -> int:
+    """The piece label whose centroid lies nearest ``center`` (the piece a Turn picks up)."""
+    cnt = np.bincount(piece)
+    cen = np.stack([np.bincount(piece, x[:, d], minlength=len(cnt)) for d in range(3)], -1) / np.maximum(cnt, 1)[:, None]
+    dist = np.where(cnt > 0, np.linalg.norm(cen - np.asarray(center, np.float64), axis=1), np.inf)
+    return int(np.argmin(dist))
+
+
 class TurnRefused(ValueError):
     """``turn`` cannot lay the pieces where asked (they would leave the simulation box)."""
 
@@ -45,11 +63,7 @@ class Primitives:
                 mask[b] = False
             elif select is None:
                 lab = self.piece[b, :counts[b]]
-                cnt = np.bincount(lab)
-                cen = np.stack([np.bincount(lab, x[b, :counts[b], d], minlength=len(cnt)) for d in range(3)], -1)
-                cen = cen / np.maximum(cnt, 1)[:, None]
-                dist = np.where(cnt > 0, np.linalg.norm(cen - np.asarray(turns[b].center, np.float64), axis=1), np.inf)
-                mask[b, :counts[b]] = lab == int(np.argmin(dist))
+                mask[b, :counts[b]] = lab == nearest_piece(x[b, :counts[b]].astype(np.float64), lab, turns[b].center)
         mask &= np.arange(n)[None] < counts[:, None]  # never the padding
         F, C, v = s.F.to_numpy(), s.C.to_numpy(), s.v.to_numpy()
         body = s.body.to_numpy()
@@ -59,13 +73,11 @@ class Primitives:
             sel = np.flatnonzero(mask[b])
             if not len(sel):
                 continue
-            R, target = turns[b].rotation().astype(np.float64), np.asarray(turns[b].target, np.float64)
-            p = x[b, sel].astype(np.float64)
-            q = (p - p.mean(0)) @ R.T + target
-            q[:, 2] += cfg.board_z + 0.5 * cfg.dx - q[:, 2].min()  # rest half a cell above the board
+            R = turns[b].rotation().astype(np.float64)
+            q = turned_positions(x[b, sel], turns[b], cfg)
             if q[:, :2].min() < lo or q.max() > hi:  # (z rests on the board, above the boundary band)
                 msg = (f"turn: the turned pieces would leave the simulation box [{lo:.3f}, {hi:.3f}] "
-                       f"(target {tuple(np.round(target, 3))}); move turn.target")
+                       f"(target {tuple(np.round(np.asarray(turns[b].target), 3))}); move turn.target")
                 if not per_scene:
                     raise TurnRefused(msg)
                 self.turn_refused[b] = msg

@@ -74,6 +74,10 @@ class Goal:
     object: str = ""
     axes: np.ndarray = field(default=None)  # 3,3 rows a1, a2, z (world)
     steps: list = field(default_factory=list)  # [Cut | Turn] the oracle sequence
+    # the pieces the steps make besides the goal pieces and the uncut rest (a die's rims, a stick's edge band), in
+    # the initial pose: not waste (docs/reward.md#planned-offcuts); topocut.tasks.ideal
+    offcuts: list = field(default_factory=list)  # [(k_i,3) f32]
+    anchors: list = field(default_factory=list)  # [ideal.Anchor] per Cut: the piece it splits, for the oracle
 
     @property
     def turns(self) -> list:
@@ -152,6 +156,7 @@ class KnifeTask(ABC):
                   skin_thickness: float = 0.01) -> Goal:
         from topocut.metrics import fps
         from topocut.sim.objects import ObjectPose, object_sdf, sample_object
+        from topocut.tasks import ideal
         from topocut.tasks.config import check_max_cuts
 
         cfg = cfg.validate()
@@ -161,20 +166,23 @@ class KnifeTask(ABC):
         p64 = pts.astype(np.float64)
         axes = object_axes(p64, pose.yaw)
         pad = -object_sdf(object, p64, pose, board_z)  # each particle's depth below the surface
-        steps, labels = self.pieces(cfg, p64, axes, pad, spacing, board_z)
-        ids = [i for i in range(1, labels.max(initial=0) + 1) if (labels == i).any()]
-        if not ids:
+        steps, cells = self.pieces(cfg, p64, axes, pad, spacing, board_z)
+        # what the plan's steps make (a cut that separates nothing is left out)
+        steps, run = ideal.effective_steps(p64, steps, ideal.sim_config_for(spacing, board_z))
+        goal_ids, offcut_ids, _ = ideal.roles(run.piece, cells)
+        if not goal_ids:
             raise ValueError(f"task {self.name!r} produced no goal piece on {object!r} at spacing {spacing}: "
                              f"increase task.thickness/width/size or decrease spacing")
-        fragments = [pts[labels == i] for i in ids]
-        remap = np.zeros(labels.max() + 1, np.int32)  # a plane that caught no particle leaves an empty label:
-        remap[ids] = np.arange(1, len(ids) + 1)  # renumber so that label i + 1 is fragments[i]
-        labels = remap[labels]
+        fragments = [pts[run.piece == p] for p in goal_ids]
+        labels = np.zeros(len(pts), np.int32)  # 0 = not a goal piece, i + 1 = fragments[i]
+        for i, p in enumerate(goal_ids):
+            labels[run.piece == p] = i + 1
         keep = np.arange(len(pts))
         if 0 < cfg.num_goal_points < len(pts):
             keep = fps(p64, cfg.num_goal_points)
         planes = [s.action for s in steps if isinstance(s, Cut)]
-        return Goal(fragments, planes, pts[keep], labels[keep].astype(np.int32), self.name, object, axes, steps)
+        return Goal(fragments, planes, pts[keep], labels[keep], self.name, object, axes, steps,
+                    offcuts=[pts[run.piece == p] for p in offcut_ids], anchors=run.anchors)
 
     @abstractmethod
     def pieces(self, cfg, pts, axes, pad, spacing, board_z):
@@ -184,9 +192,12 @@ class KnifeTask(ABC):
         return list(goal.steps)
 
     def success(self, result, cfg) -> bool:
-        """Every goal piece made (N_C = G) or the total at task.success_threshold."""
+        """The one success of the knife tasks (docs/tasks.md#success): every goal piece made (N_C = G: each
+        matched with d <= reward.success_distance) *and* the total at task.success_threshold, so that no
+        episode whose waste ate its pieces' reward succeeds.  The episode flag, Table 1, the demonstrations'
+        report and MPPI's stopping rule all call this."""
         G = len(getattr(result, "per_goal", []))
-        return bool(result.total >= cfg.success_threshold or (G and result.cut_count >= G))
+        return bool(G and result.cut_count >= G and result.total >= cfg.success_threshold)
 
     def scene(self, cfg, sim):
         """The object on the board and the knife (topocut.sim.CuttingEnv); push after each cut iff cfg.push."""
@@ -249,6 +260,17 @@ def lay_flat(pts, slab, axes, board_z, gap: float = 0.02, beside: bool = False) 
     return Turn("slab", tuple(a2.tolist()), float(np.pi / 2), tuple(c.tolist()), tuple(target.tolist()),
                 note="lay the slab flat: a1 -> -z, z -> +a1, about a2 through its centroid"
                 + (", beside the object's +a2 side" if beside else ""))
+
+
+def move_aside(pts, slab, axes, gap: float = 0.02) -> Turn:
+    """Set the freed slab down, unturned, off the object's +a1/+a2 corner (``gap`` beyond the object along both):
+    a cut normal to a2 (or a1) through it then misses the rest of the object.  A Turn by 0 deg about a2."""
+    p = pts[slab]
+    c = p.mean(0)
+    a1, a2, _ = axes
+    target = c + ((pts @ a1).max() + gap - (p @ a1).min()) * a1 + ((pts @ a2).max() + gap - (p @ a2).min()) * a2
+    return Turn("slab", tuple(a2.tolist()), 0.0, tuple(c.tolist()), tuple(target.tolist()),
+                note="move the standing slab off the object's +a1/+a2 corner, unturned")
 
 
 def bands(values, start, step, count, sign=-1):

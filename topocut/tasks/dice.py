@@ -12,7 +12,7 @@ cells holding >= 3/4 of a full die's particles, in the object's initial pose.
 centred) and counts are chosen to make the most full dice.  Needs max_cuts >= 3 for a die bounded on
 every side (slab cut + one cut each way; faces close the rest).
 **Randomisations.** As slice; size per task config.
-**Success.** Every die made (N_C = G) or the total at task.success_threshold.
+**Success.** Every die made (N_C = G) and the total at task.success_threshold (KnifeTask.success).
 """
 from __future__ import annotations
 

@@ -5,7 +5,7 @@ three points at distance ``task.size`` from the top (+a1, +a2, +z) corner of the
 along its edges.  Goal piece: the corner tetrahedron (volume size^3 / 6 for a box).
 **Oracle.** That single cut.
 **Randomisations.** As slice; MPPI also samples the knife tilt (task.sample_tilt).
-**Success.** The tetrahedron made (N_C = 1) or the total at task.success_threshold.
+**Success.** The tetrahedron made (N_C = 1) and the total at task.success_threshold (KnifeTask.success).
 """
 from __future__ import annotations
 

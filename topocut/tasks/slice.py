@@ -6,7 +6,7 @@ horizontal axis), each plane normal to a1.  Goal pieces: the slabs, in the objec
 **Randomisations.** Object (10 shapes), its pose (translation, yaw, scale; topocut.sim.objects.random_pose),
 the particle jitter (seed); the thickness per task config (eval: task_overrides).
 **Success.** Every slab made (N_C = number of goal pieces: a piece counts when its distance to its goal slab is
-within reward.success_distance, i.e. its thickness within ~0.86-1.16 t) or the total at task.success_threshold.
+within reward.success_distance, i.e. its thickness within ~0.86-1.16 t) and the total at task.success_threshold (KnifeTask.success).
 """
 from __future__ import annotations
 

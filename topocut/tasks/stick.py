@@ -5,17 +5,18 @@ A stick is thickness x width x L with L the slab's longer in-plane side, so it h
 if the slab is at least as tall as it is wide (cube, tall objects) the sticks stand upright (cuts normal to
 a2 across the standing slab); if it is wider than tall (steak, cake, donut edge slabs) the slab is first
 laid flat (``Turn``: 90 deg about a2, cut face up) and cut normal to its former height, so the sticks lie
-along a2.  Goal pieces: the full sticks (bands holding >= half a full stick's particles), initial pose.
-**Oracle.** Slab cut; [lay the slab flat]; ``max_cuts - 1`` cuts at the band edges that lie inside the slab
+along a2.  Either way the slab is first set where no stick cut reaches the rest of the object: a standing slab off
+the object's +a1/+a2 corner (a ``Turn`` by 0 deg), a laid one beyond its +a1 end.  Goal pieces: the full sticks (bands holding >= half a full stick's particles), initial pose.
+**Oracle.** Slab cut; move the slab aside [laid flat]; ``max_cuts - 1`` cuts at the band edges that lie inside the slab
 (bands anchored at a face or centred, whichever makes the most full sticks).
 **Randomisations.** As slice; thickness and width per task config.
-**Success.** Every stick made (N_C = G) or the total at task.success_threshold.
+**Success.** Every stick made (N_C = G) and the total at task.success_threshold (KnifeTask.success).
 """
 from __future__ import annotations
 
 import numpy as np
 
-from topocut.tasks.base import KnifeTask, first_slab, lay_flat, plane
+from topocut.tasks.base import KnifeTask, first_slab, lay_flat, move_aside, plane
 from topocut.tasks.grid import best_grid
 
 
@@ -45,10 +46,11 @@ class StickTask(KnifeTask):
         lab, cuts, _ = best_grid(coords, faces, [cfg.width], budget, full)
         labels = np.zeros(len(pts), np.int32)
         labels[slab] = lab
-        if tall:
-            base = p.mean(0)  # the knife centred on the slab, so a finite blade cuts the slab first
-            steps += [plane(a2, base + (c - base @ a2) * a2, board_z) for c in cuts[0]]
-        else:
+        if tall:  # move the standing slab off the object's +a1/+a2 corner: cuts across it miss the rest
+            turn = move_aside(pts, slab, axes)
+            t, c0 = np.asarray(turn.target), np.asarray(turn.center)
+            steps += [turn] + [plane(a2, t + (c - c0 @ a2) * a2, board_z) for c in cuts[0]]
+        else:  # lay it flat beyond the object's +a1 end: cuts normal to a1 there miss the rest
             turn = lay_flat(pts, slab, axes, board_z)
             t, c0 = np.asarray(turn.target), np.asarray(turn.center)
             steps += [turn] + [plane(a1, t + (c - c0 @ z) * a1, board_z) for c in cuts[0]]

@@ -1,0 +1,170 @@
+"""Why an episode scores what it scores: the oracle's cuts, fragment by fragment (docs/tasks.md, docs/results.md).
+
+Simulated (default): runs the oracle (the goal's own steps at the episode's true pose, topocut.planning.oracle)
+through the episode engine on evaluation episodes and prints, after every cut, each fragment's role (goal piece,
+rest, planned offcut, waste), its distance d to its goal piece, its weight w and value, and the simulator's own
+pieces (its bond components, ``CuttingEnv.piece``) beside what topology discovery reports: their counts and the
+worst IoU of a discovered fragment with its best simulator piece.  ``--render`` writes the cutting sequence.
+
+    python experiments/oracle_audit.py --task dice --object potato                       # CPU, 64^3, 5 cm pieces
+    python experiments/oracle_audit.py --task stick --object cube --episodes 2 --render /tmp/seq.png
+    python experiments/oracle_audit.py --device cuda --n-grid 128 --size 0.03 --task dice --object cake
+
+Ideal (``--ideal``): the goal's steps on the ideal particle set, no physics (topocut.tasks.ideal), for every
+evaluation object at four poses: R, N_C / G and the pieces, one line each (tests/test_answer_key.py's check).
+
+    python experiments/oracle_audit.py --ideal --n-grid 128 --size 0.03
+"""
+import argparse
+import time
+
+import numpy as np
+
+POSES = [(0.5, 0.5, 0.0, 1.0), (0.52, 0.48, 0.2, 0.8), (0.48, 0.515, -0.25, 1.2), (0.505, 0.49, 0.1, 1.0)]
+
+
+def roles(res) -> list[str]:
+    """Each fragment's role in a RewardResult."""
+    out = ["waste"] * len(res.values)
+    for f, g in res.matching:
+        out[f] = f"goal {g}"
+    if res.stock is not None:
+        out[res.stock] = "rest"
+    for f, share in res.offcuts:
+        out[f] = "offcut" if share >= 1 - 1e-9 else f"offcut {share:.0%}"
+    return out
+
+
+def best_iou(ids: np.ndarray, piece: np.ndarray) -> float:
+    owners, counts = np.unique(piece[ids], return_counts=True)
+    p = owners[np.argmax(counts)]
+    inter = counts.max()
+    return float(inter / (len(ids) + (piece == p).sum() - inter))
+
+
+def audit_cut(k, x, labels, piece, goal, reward_cfg):
+    from topocut.reward import spectral_reward
+
+    ids = [c for c in np.unique(labels) if c >= 0 and (labels == c).sum() >= 4]
+    frags = [x[labels == c] for c in ids]
+    res = spectral_reward(frags, goal.fragments, reward_cfg, offcuts=goal.offcuts)
+    sim_pieces = int((np.bincount(piece) >= 4).sum())
+    ious = [best_iou(np.flatnonzero(labels == c), piece) for c in ids]
+    print(f"  cut {k}: R {res.total:.3f} (unclipped {res.unclipped:+.3f}), N_C {res.cut_count} of "
+          f"{len(goal.fragments)}; pieces: discovered {len(ids)}, simulator {sim_pieces}; "
+          f"min IoU {min(ious):.3f}")
+    role = roles(res)
+    for i, c in enumerate(ids):
+        g = next((g for f, g in res.matching if f == i), None)
+        d = f"{res.distances[i, g]:.3f}" if g is not None else "  -  "
+        print(f"    cluster {c:3d}: {len(frags[i]):6d} particles  {role[i]:12s} d {d}  w {res.weights[i]:.3f}  "
+              f"value {res.values[i]:+.3f}  IoU {ious[i]:.3f}")
+    return res, min(ious)
+
+
+def simulated(args):
+    from topocut.episode import Episode, EpisodeBatch, default_scoring
+    from topocut.eval.config import EvalConfig
+    from topocut.eval.protocol import episode_pose, episode_seed
+    from topocut.planning.oracle import OraclePolicy
+    from topocut.reward import RewardConfig
+    from topocut.sim.config import SimConfig
+    from topocut.sim.env import CuttingEnv
+    from topocut.sim.mpm import init_taichi
+    from topocut.sim.render import render_sequences
+    from topocut.tasks import TaskConfig
+
+    init_taichi(args.device)
+    sim = SimConfig(n_grid=args.n_grid, arch=args.device)
+    env = CuttingEnv(sim, batch_size=1)
+    reward_cfg = RewardConfig()
+    dev = "cuda" if args.device == "cuda" else "cpu"
+    scoring = default_scoring(reward_cfg, device=dev, board_z=sim.board_z)
+    rows = []
+    for e in range(args.first, args.first + args.episodes):
+        seed = episode_seed(args.seed, args.task, args.object, e)
+        pose = episode_pose(EvalConfig(seed=args.seed), seed)
+        task = TaskConfig(name=args.task, thickness=args.size, width=args.size, size=args.size, max_cuts=args.max_cuts,
+                          push=args.task in ("stick", "dice"))
+        engine = EpisodeBatch(env, scoring, max_cuts=args.max_cuts, frames=bool(args.render))
+        t0 = time.perf_counter()
+        engine.start([Episode(args.object, pose, seed, task)], alone=True)
+        policy = OraclePolicy(engine.goals[0], board_z=sim.board_z)
+        goal = engine.goals[0]
+        print(f"{args.task}/{args.object} episode {e} (seed {seed}, scale {pose.scale:.2f}, yaw {pose.yaw:+.2f}): "
+              f"{len(goal.fragments)} goal pieces, {len(goal.offcuts)} planned offcuts, steps "
+              f"{' '.join(s.kind for s in goal.steps)}")
+        k = 0
+        while engine.live[0]:
+            obs = engine.observation(0)
+            obs["particles"] = engine.xs[0]
+            action = policy.act(obs)
+            if action is None:
+                break
+            engine.step([action])
+            k += 1
+            if engine.logs[0].status != "ok":
+                print(f"  {engine.logs[0].status}: {engine.logs[0].error}")
+                break
+            audit_cut(k, engine.xs[0], engine.labels[0], env.piece[0, :len(engine.xs[0])], goal, reward_cfg)
+        log = engine.finish()[0]
+        print(f"  final R {log.rewards[-1] if log.rewards else float('nan'):.3f}, success "
+              f"{bool(log.successes and log.successes[-1])}, turns after cuts {log.turns}, "
+              f"{time.perf_counter() - t0:.1f} s")
+        if args.render:
+            rows.append((f"{args.object} e{e}", [(x, lab, knife, what) for x, lab, what, knife in log.frames]))
+    if args.render:
+        print(render_sequences(rows, args.render, board_z=sim.board_z))
+
+
+def ideal_sweep(args):
+    from topocut.eval.config import EvalConfig
+    from topocut.reward import spectral_reward
+    from topocut.sim.objects import ObjectPose, sample_object
+    from topocut.tasks import TaskConfig, get_task, ideal
+
+    spacing = 0.5 / args.n_grid
+    objects = [args.object] if args.object != "all" else EvalConfig().seen + EvalConfig().unseen
+    tasks = [args.task] if args.task != "all" else ["slice", "stick", "dice"]
+    worst = 1.0
+    print("| task | object | pose | G | planned offcuts | pieces | R | N_C |\n|---|---|---|---|---|---|---|---|")
+    for task in tasks:
+        for obj in objects:
+            for i, p in enumerate(POSES):
+                pose = ObjectPose(*p)
+                cfg = TaskConfig(name=task, thickness=args.size, width=args.size, size=args.size, max_cuts=args.max_cuts)
+                goal = get_task(task).make_goal(cfg, obj, pose, spacing, seed=args.seed)
+                pts, _ = sample_object(obj, pose, spacing, seed=args.seed)
+                run = ideal.execute(pts.astype(np.float64), goal.steps, ideal.sim_config_for(spacing, 0.05))
+                frags = [run.x[run.piece == q] for q in np.unique(run.piece)]
+                res = spectral_reward(frags, goal.fragments, offcuts=goal.offcuts)
+                worst = min(worst, res.total)
+                print(f"| {task} | {obj} | {i} | {len(goal.fragments)} | {len(goal.offcuts)} | {len(frags)} | "
+                      f"{res.total:.3f} | {res.cut_count} |", flush=True)
+    print(f"lowest R: {worst:.3f}")
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--task", default=None, help="slice | stick | dice (default dice; --ideal: or all, the default)")
+    ap.add_argument("--object", default=None, help="an object (default potato; --ideal: or all, the default)")
+    ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    ap.add_argument("--n-grid", type=int, default=64)
+    ap.add_argument("--size", type=float, default=0.05, help="thickness = width = die size [units]")
+    ap.add_argument("--max-cuts", type=int, default=5)
+    ap.add_argument("--seed", type=int, default=0, help="the evaluation's base seed (--ideal: the sampling seed)")
+    ap.add_argument("--episodes", type=int, default=1)
+    ap.add_argument("--first", type=int, default=0, help="first episode index of the (task, object) cell")
+    ap.add_argument("--render", default="", help="write the cutting sequence here (PNG)")
+    ap.add_argument("--ideal", action="store_true", help="no physics: the steps on the ideal particle set")
+    args = ap.parse_args()
+    if args.ideal:
+        args.task, args.object = args.task or "all", args.object or "all"
+        ideal_sweep(args)
+    else:
+        args.task, args.object = args.task or "dice", args.object or "potato"
+        simulated(args)
+
+
+if __name__ == "__main__":
+    main()

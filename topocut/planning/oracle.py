@@ -1,0 +1,86 @@
+"""The oracle: the goal's own steps executed at the episode's true pose, the reference of Table 1.
+
+``OraclePolicy`` cuts the goal's planes (``Goal.planes``, the Cut steps of ``Goal.steps``; the episode engine
+performs the Turn steps between them) and stops when they are done: the protocol scores what is on the board,
+and a cut past the plan would only cut a goal piece.
+
+A cook looks where the piece is before each cut.  The plan places every plane on the ideal, unmoved material,
+but the push after a cut slides pieces a couple of centimetres and pieces settle, so each plane is carried with
+the piece it splits: ``Goal.anchors[k]`` holds particles of that piece at their initial and their planned
+positions just before cut k (topocut.tasks.ideal); the oracle finds the same particles in the scene (nearest
+initial position), fits the horizontal rigid motion (rotation about z, translation) from planned to current
+positions, and moves the plane by it.  It reads the scene's particles from the observation's ``particles``
+(N,3), which the episode engine adds only for a policy marked ``privileged`` (a reference, not a contender).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from topocut.sim.action import KnifeAction
+
+
+def planar_rigid(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(R 3x3 rotation about z, t 3,) minimising sum |R src_i + t - dst_i|^2 over the horizontal components
+    (2-D Kabsch); t's z is 0: a push slides pieces on the board, it does not lift them."""
+    a, b = np.asarray(src, np.float64)[:, :2], np.asarray(dst, np.float64)[:, :2]
+    ca, cb = a.mean(0), b.mean(0)
+    h = (a - ca).T @ (b - cb)  # 2,2
+    ang = np.arctan2(h[0, 1] - h[1, 0], h[0, 0] + h[1, 1])
+    c, s = np.cos(ang), np.sin(ang)
+    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    t = np.zeros(3)
+    t[:2] = cb - R[:2, :2] @ ca
+    return R, t
+
+
+def moved_plane(action: KnifeAction, R: np.ndarray, t: np.ndarray, board_z: float) -> KnifeAction:
+    """``action``'s plane carried by the rigid motion x -> R x + t."""
+    point = R @ action.plane_point(board_z) + t
+    return KnifeAction.from_plane(R @ action.normal, point, board_z)
+
+
+class OraclePolicy:
+    """Policy protocol: ``reset(goal)``, ``act(obs)``: the goal's planes in order, each carried with the piece it
+    cuts (module docstring); None once they are done.  Without ``particles`` in the observation (or anchors in
+    the goal) it cuts the planes where the plan put them."""
+
+    privileged = True  # the episode engine adds the scene's particles to its observation (no learned policy's)
+
+    def __init__(self, goal=None, board_z: float = 0.05, track: bool = True):
+        self.board_z, self.track = float(board_z), bool(track)
+        self.planes: list[KnifeAction] = []
+        self.anchors: list = []
+        self.t = 0
+        self.initial = None  # N,3 the scene's particles before the first cut
+        if goal is not None:
+            self.reset(goal)
+
+    def reset(self, goal) -> None:
+        planes = list(getattr(goal, "planes", []) or [])
+        if not planes:
+            raise ValueError("OraclePolicy needs a goal with at least one plane in goal.planes")
+        self.planes = [p if isinstance(p, KnifeAction) else KnifeAction.from_vector(p) for p in planes]
+        self.anchors = list(getattr(goal, "anchors", None) or [])
+        self.t, self.initial = 0, None
+
+    def act(self, obs: dict | None = None) -> KnifeAction | None:
+        if self.t >= len(self.planes):
+            return None  # the plan is done
+        obs = obs or {}
+        x = obs.get("particles")
+        if x is not None and self.initial is None and int(obs.get("cuts_done", 0)) == 0:
+            self.initial = np.asarray(x, np.float64).copy()
+        action = self.planes[self.t]
+        if self.track and x is not None and self.initial is not None and self.t < len(self.anchors):
+            action = self._carried(action, self.anchors[self.t], np.asarray(x, np.float64))
+        self.t += 1
+        return action
+
+    def _carried(self, action: KnifeAction, anchor, x: np.ndarray) -> KnifeAction:
+        from scipy.spatial import cKDTree
+
+        if len(self.initial) != len(x):
+            return action
+        _, idx = cKDTree(self.initial).query(np.asarray(anchor.initial, np.float64))
+        R, t = planar_rigid(anchor.planned, x[idx])
+        return moved_plane(action, R, t, self.board_z)

@@ -1,0 +1,125 @@
+"""A goal's own steps executed on the ideal particle set, with no physics: the pieces the plan makes.
+
+``execute(points, steps, sim_cfg)`` runs the ``Cut`` and ``Turn`` steps of ``Goal.steps`` the way the simulator
+separates and moves material, without the forces: a cut splits the pieces its blade's swept surface crosses
+(``topocut.sim.pieces.blade_sweep`` and ``split``, the simulator's own rule), a turn moves the piece nearest its
+centre rigidly (``topocut.sim.primitives.turned_positions``, ``nearest_piece``).  No push, no settling, no
+deformation.  The result is what a perfect cook's execution of the plan leaves on the board, so the goal is
+defined by it (docs/tasks.md#goals-are-what-their-steps-make):
+
+* goal pieces: the pieces lying in a goal cell (a slab, a stick, a die), one per connected piece (a donut slab
+  through the hole is two);
+* planned offcuts: every other piece but the largest (a die's rims, a stick's edge band);
+* the rest: the largest piece that is no goal piece (the uncut stock).
+
+``Anchor``: for each cut, particles of the piece it splits, at their initial and their planned positions just
+before the cut; the oracle policy (topocut.planning.oracle) finds where that piece has moved since (pushes,
+settling) and moves the plane with it.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+ANCHOR_POINTS = 256  # particles per cut the oracle tracks (those nearest the plane on the piece it splits)
+MIN_GOAL_SHARE = 0.2  # a piece of a goal cell with less of the cell than this is an offcut (a corner sliver)
+
+
+@dataclass
+class Anchor:
+    """Where the piece a cut splits was planned to be: initial positions (m,3) and positions before the cut."""
+
+    initial: np.ndarray
+    planned: np.ndarray
+
+
+@dataclass
+class IdealRun:
+    x: np.ndarray  # N,3 positions after the last step
+    piece: np.ndarray  # N, piece labels after the last step (0..P-1)
+    anchors: list = field(default_factory=list)  # one Anchor per Cut
+    pieces_after_cut: list = field(default_factory=list)  # the number of pieces after each Cut
+    splits: list = field(default_factory=list)  # per Cut: whether it separated anything
+
+
+def sim_config_for(spacing: float, board_z: float):
+    """A SimConfig whose lattice spacing is ``spacing`` (half a cell) and whose board is at ``board_z``."""
+    from topocut.sim.config import SimConfig
+
+    return SimConfig(n_grid=max(8, int(round(0.5 / spacing))), particle_spacing=float(spacing), board_z=float(board_z))
+
+
+def execute(points: np.ndarray, steps, sim_cfg) -> IdealRun:
+    """Run ``steps`` (Cut / Turn) on ``points`` (N,3) without physics (module docstring)."""
+    from topocut.sim import pieces as P
+    from topocut.sim.primitives import nearest_piece, turned_positions
+
+    x0 = np.asarray(points, np.float64)
+    x = x0.copy()
+    piece = np.zeros(len(x), np.int32)
+    pairs = P.bonds(x, sim_cfg.spacing)  # rigid moves keep every bond within a piece: one search serves all steps
+    run = IdealRun(x, piece)
+    for step in steps:
+        if getattr(step, "kind", "cut") == "turn":
+            sel = piece == nearest_piece(x, piece, step.center)
+            x[sel] = turned_positions(x[sel], step, sim_cfg)
+            continue
+        sweep, _, _ = P.blade_sweep(step.action, x, sim_cfg)
+        after = P.split(x, piece, sweep, sim_cfg.spacing, pairs)
+        run.anchors.append(_anchor(x0, x, piece, after, step.action))
+        run.splits.append(int(after.max()) > int(piece.max()))
+        piece = after
+        run.pieces_after_cut.append(int(piece.max()) + 1)
+    run.x, run.piece = x, piece
+    return run
+
+
+def effective_steps(points: np.ndarray, steps, sim_cfg) -> tuple[list, IdealRun]:
+    """``steps`` without the cuts that separate nothing on the ideal material (a band edge planned past the
+    material's end: a cook would not make it, and in the simulator it only presses on a piece), and the
+    ideal run of what is left."""
+    run = execute(points, steps, sim_cfg)
+    if all(run.splits):
+        return list(steps), run
+    out, k = [], 0
+    for step in steps:
+        if getattr(step, "kind", "cut") != "turn":
+            k += 1
+            if not run.splits[k - 1]:
+                continue
+        out.append(step)
+    while out and getattr(out[-1], "kind", "cut") == "turn":
+        out.pop()
+    return out, execute(points, out, sim_cfg)
+
+
+def _anchor(x0, x, before, after, action) -> Anchor:
+    """The particles nearest the cut's plane on the pieces it splits (all pieces it touches if it splits none)."""
+    split = [p for p in np.unique(before) if len(np.unique(after[before == p])) > 1]
+    n, q = action.normal, action.plane_point()
+    dist = np.abs((x - q) @ n)
+    cand = np.flatnonzero(np.isin(before, split)) if split else np.arange(len(x))
+    keep = cand[np.argsort(dist[cand], kind="stable")[:ANCHOR_POINTS]]
+    return Anchor(x0[keep].astype(np.float32), x[keep].astype(np.float32))
+
+
+def roles(piece: np.ndarray, cells: np.ndarray, min_points: int = 32):
+    """Split the executed pieces into goal pieces and the rest: (goal piece labels [p], offcut labels [p],
+    rest label or None).  A piece is a goal piece when most of its particles lie in one goal cell (``cells``
+    (N,), 0 = none), it holds at least MIN_GOAL_SHARE of that cell and ``min_points`` particles."""
+    counts = np.bincount(piece)
+    cell_size = np.bincount(cells)
+    goal, other = [], []
+    for p in np.flatnonzero(counts):
+        c = cells[piece == p]
+        top = np.bincount(c, minlength=len(cell_size))
+        top[0] = 0
+        k = int(np.argmax(top))
+        if k and top[k] * 2 > counts[p] and top[k] >= MIN_GOAL_SHARE * cell_size[k] and counts[p] >= min_points:
+            goal.append((k, int(p)))
+        else:
+            other.append(int(p))
+    goal = [p for _, p in sorted(goal)]  # in the order of the plan's cells
+    rest = max(other, key=lambda p: counts[p]) if other else None
+    return goal, [p for p in other if p != rest], rest
