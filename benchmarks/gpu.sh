@@ -136,6 +136,25 @@ PY
     if [ "${MPS:-0}" = 1 ]; then mps_stop; fi
     find /tmp/o -name results.md -exec cp {} "$OUT/" \;
     tar -czf "$OUT/protocol_eval.tgz" -C /tmp/o eval 2>/dev/null ;;
+  oracle-check)  # the answer key (#47): the oracle through stage=eval at scale=paper (128^3, 3 cm pieces) and at 64^3
+    # with 5 cm pieces, EPC episodes a cell (default 5: 135 episodes each), EVAL_JOBS processes under MPS;
+    # experiments/oracle_audit.py --summary tabulates R per task x split and object, success, and the worst IoU of a
+    # discovered piece with the simulator's own piece
+    mps_start
+    for grid in ${GRIDS:-128 64}; do
+      extra=""; [ "$grid" = 64 ] && extra="eval.task_overrides={slice:{thickness:0.05},stick:{thickness:0.05,width:0.05},dice:{thickness:0.05,width:0.05,size:0.05}} eval.name=oracle64"
+      [ "$grid" = 128 ] && extra="eval.name=oracle128"
+      t0=$(date +%s)
+      timeout ${LIMIT:-560} python3 -m topocut.run stage=eval scale=paper device=cuda reward=torch sim.n_grid=$grid \
+        sim.batch_size=4 "eval.policies=[oracle]" eval.train_seeds=1 eval.jobs=${EVAL_JOBS:-12} eval.gifs=0 \
+        eval.episodes_per_cell=${EPC:-5} logger=none progress=false outputs_root=/tmp/o $extra 2>&1 \
+        | grep -v -i warn | tail -5 | tee -a "$OUT/oracle_check.txt"
+      echo "== ${grid}^3: wall $(( $(date +%s) - t0 )) s" | tee -a "$OUT/oracle_check.txt"
+      d=$(ls -d /tmp/o/eval/oracle$grid/v* | tail -1)
+      python3 experiments/oracle_audit.py --summary "$d" 2>&1 | tee -a "$OUT/oracle_check.txt"
+      tar -czf "$OUT/oracle$grid.tgz" -C "$d" episodes
+    done
+    mps_stop ;;
   demos)  # MPPI demonstrations through stage=mppi at 64^3, K=16, 2 iterations, horizon 1 (#31's per-cut figure)
     timeout ${LIMIT:-560} python3 -m topocut.run stage=mppi task=slice object=cake device=cuda sim.n_grid=64 \
       sim.batch_size=16 planner.num_samples=16 planner.iterations=2 planner.horizon=1 reward=torch \

@@ -10,6 +10,12 @@ worst IoU of a discovered fragment with its best simulator piece.  ``--render`` 
     python experiments/oracle_audit.py --task stick --object cube --episodes 2 --render /tmp/seq.png
     python experiments/oracle_audit.py --device cuda --n-grid 128 --size 0.03 --task dice --object cake
 
+Summary (``--summary DIR``): an evaluation artifact's oracle episodes (``stage=eval "eval.policies=[oracle]"``): mean
+raw R per task x split and per object, the least, success, and the simulator's pieces against discovery's
+(the worst IoU of a discovered piece with its simulator piece, ``EpisodeResult.piece_iou``).
+
+    python experiments/oracle_audit.py --summary outputs/eval/table1/v001
+
 Ideal (``--ideal``): the goal's steps on the ideal particle set, no physics (topocut.tasks.ideal), for every
 evaluation object at four poses: R, N_C / G and the pieces, one line each (tests/test_answer_key.py's check).
 
@@ -144,6 +150,32 @@ def ideal_sweep(args):
     print(f"lowest R: {worst:.3f}")
 
 
+def summary(path):
+    import json
+    from collections import defaultdict
+    from pathlib import Path
+
+    eps = [json.loads(p.read_text()) for p in sorted(Path(path).glob("episodes/oracle/*.json"))]
+    if not eps:
+        raise SystemExit(f"--summary: no oracle episodes under {path}/episodes/oracle")
+    cells, objects = defaultdict(list), defaultdict(list)
+    for e in eps:
+        cells[(e["spec"]["task"], e["spec"]["split"])].append(e)
+        objects[(e["spec"]["task"], e["spec"]["object"])].append(e["final_reward"])
+    print(f"{len(eps)} oracle episodes in {path}")
+    print("| task | split | episodes | mean raw R | least R | success | worst piece IoU | not ok |")
+    print("|---|---|---|---|---|---|---|---|")
+    for (task, split), es in sorted(cells.items()):
+        r = [e["final_reward"] for e in es]
+        iou = [min(e["piece_iou"]) for e in es if e.get("piece_iou")]
+        print(f"| {task} | {split} | {len(es)} | {np.mean(r):.3f} | {min(r):.3f} | "
+              f"{np.mean([e['success'] for e in es]):.2f} | {min(iou) if iou else float('nan'):.3f} | "
+              f"{sum(e['status'] != 'ok' for e in es)} |")
+    print("\n| task | object | mean raw R | least |\n|---|---|---|---|")
+    for (task, obj), r in sorted(objects.items()):
+        print(f"| {task} | {obj} | {np.mean(r):.3f} | {min(r):.3f} |")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--task", default=None, help="slice | stick | dice (default dice; --ideal: or all, the default)")
@@ -157,8 +189,11 @@ def main():
     ap.add_argument("--first", type=int, default=0, help="first episode index of the (task, object) cell")
     ap.add_argument("--render", default="", help="write the cutting sequence here (PNG)")
     ap.add_argument("--ideal", action="store_true", help="no physics: the steps on the ideal particle set")
+    ap.add_argument("--summary", default="", help="summarise the oracle episodes of this evaluation artifact")
     args = ap.parse_args()
-    if args.ideal:
+    if args.summary:
+        summary(args.summary)
+    elif args.ideal:
         args.task, args.object = args.task or "all", args.object or "all"
         ideal_sweep(args)
     else:

@@ -60,6 +60,10 @@ class EpisodeLog:
     successes: list[bool] = field(default_factory=list)
     turns: list[int] = field(default_factory=list)  # the cuts after which the goal's turn was performed
     num_pieces: list[int] = field(default_factory=list)
+    # after each cut: the simulator's own pieces (its bond components, CuttingEnv.piece, >= 4 particles) and the
+    # worst IoU of a discovered piece with its best simulator piece (piece_agreement); empty for an env without
+    sim_pieces: list[int] = field(default_factory=list)
+    piece_iou: list[float] = field(default_factory=list)
     actions: list[list[float]] = field(default_factory=list)  # executed [x, y, yaw, tilt]
     act_time_s: list[float] = field(default_factory=list)
     time_s: float = 0.0
@@ -130,6 +134,29 @@ def fragments(x, labels, min_points: int) -> list[np.ndarray]:
     x, labels = np.asarray(x), np.asarray(labels)
     ids = [c for c in np.unique(labels) if c >= 0]
     return [f for f in (x[labels == c] for c in ids) if len(f) >= min_points]
+
+
+def piece_agreement(labels, piece, min_points: int = 4) -> tuple[int, float]:
+    """(the simulator's pieces of >= min_points particles, the lowest IoU of a discovered piece (label >= 0, >=
+    min_points particles) with the simulator piece it overlaps most): does discovery see what the simulator
+    separated?"""
+    labels, piece = np.asarray(labels, np.int64), np.asarray(piece, np.int64)
+    n_sim = int((np.bincount(piece) >= min_points).sum()) if len(piece) else 0
+    ok = labels >= 0
+    if not ok.any():
+        return n_sim, float("nan")
+    pairs, inter = np.unique(np.stack([labels[ok], piece[ok]]), axis=1, return_counts=True)
+    size_l = np.bincount(labels[ok])
+    size_p = np.bincount(piece)
+    worst = 1.0
+    for lab in np.unique(pairs[0]):
+        if size_l[lab] < min_points:
+            continue
+        m = pairs[0] == lab
+        j = np.argmax(inter[m])
+        i = inter[m][j]
+        worst = min(worst, float(i / (size_l[lab] + size_p[pairs[1][m][j]] - i)))
+    return n_sim, worst
 
 
 def new_history() -> deque:
@@ -329,6 +356,11 @@ class EpisodeBatch:
             log.cut_counts.append(res.cut_count)
             log.successes.append(res.success)
             log.num_pieces.append(res.pieces)
+            sim_piece = getattr(env, "piece", None)
+            if isinstance(sim_piece, np.ndarray) and sim_piece.ndim == 2 and sim_piece.shape[1] >= len(lab1):
+                n_sim, iou = piece_agreement(lab1, sim_piece[0 if self.alone else b, :len(lab1)])
+                log.sim_pieces.append(n_sim)
+                log.piece_iou.append(iou)
             log.actions.append([float(v) for v in a.to_vector()])
             self.hist[b].append(a.pose_feature(self.board_z))
             self.xs[b], self.labels[b] = x1, lab1

@@ -70,6 +70,8 @@ class EpisodeResult:
     successes: list[bool] = field(default_factory=list)  # the task's success (Task.success) after each cut
     turns: list[int] = field(default_factory=list)  # the cuts after which the goal's turn was performed
     num_pieces: list[int] = field(default_factory=list)
+    sim_pieces: list[int] = field(default_factory=list)  # the simulator's own pieces after each cut (EpisodeLog)
+    piece_iou: list[float] = field(default_factory=list)  # worst IoU of a discovered piece with a simulator piece
     actions: list[list[float]] = field(default_factory=list)  # executed [x, y, yaw, tilt]
     act_time_s: list[float] = field(default_factory=list)
     time_s: float = 0.0
@@ -187,7 +189,8 @@ def scoring_for(env, reward_cfg=None, topo_cfg=None, min_fragment_points: int = 
 def _result(spec: EpisodeSpec, name: str, log) -> EpisodeResult:
     return EpisodeResult(spec=spec.asdict(), policy=name, status=log.status, error=log.error,
                          initial_reward=log.initial_reward, rewards=log.rewards, cut_counts=log.cut_counts,
-                         successes=log.successes, turns=log.turns, num_pieces=log.num_pieces, actions=log.actions,
+                         successes=log.successes, turns=log.turns, num_pieces=log.num_pieces,
+                         sim_pieces=log.sim_pieces, piece_iou=log.piece_iou, actions=log.actions,
                          act_time_s=log.act_time_s, time_s=log.time_s)
 
 
