@@ -69,7 +69,7 @@ def audit_cut(k, x, labels, piece, goal, reward_cfg):
 
 
 def simulated(args):
-    from topocut.episode import Episode, EpisodeBatch, default_scoring
+    from topocut.episode import Episode, EpisodeBatch, default_scoring, piece_agreement
     from topocut.eval.config import EvalConfig
     from topocut.eval.protocol import episode_pose, episode_seed
     from topocut.planning.oracle import OraclePolicy
@@ -84,7 +84,7 @@ def simulated(args):
     sim = SimConfig(n_grid=args.n_grid, arch=args.device)
     env = CuttingEnv(sim, batch_size=1)
     reward_cfg = RewardConfig()
-    dev = "cuda" if args.device == "cuda" else "cpu"
+    dev = args.topology_device or ("cuda" if args.device == "cuda" else "cpu")
     scoring = default_scoring(reward_cfg, device=dev, board_z=sim.board_z)
     rows = []
     for e in range(args.first, args.first + args.episodes):
@@ -107,8 +107,18 @@ def simulated(args):
             action = policy.act(obs)
             if action is None:
                 break
+            before = np.asarray(engine.labels[0]).copy()
             engine.step([action])
             k += 1
+            if args.compare_cpu and engine.logs[0].status == "ok":  # the same inputs, discovered on the host
+                from topocut.topology import discover
+
+                st = env.state()
+                x, dmg = st.scene(0) if hasattr(st, "scene") else (st.x[0], st.damage[0])
+                lab = discover(np.asarray(x), np.asarray(dmg, bool), st.sweeps[0], previous_labels=before,
+                               device="cpu").labels
+                n_sim, iou = piece_agreement(lab, env.piece[0, :len(lab)])
+                print(f"  cut {k} discovered on the CPU: {len(np.unique(lab[lab >= 0]))} pieces, min IoU {iou:.3f}")
             if engine.logs[0].status != "ok":
                 print(f"  {engine.logs[0].status}: {engine.logs[0].error}")
                 break
@@ -189,6 +199,8 @@ def main():
     ap.add_argument("--first", type=int, default=0, help="first episode index of the (task, object) cell")
     ap.add_argument("--render", default="", help="write the cutting sequence here (PNG)")
     ap.add_argument("--ideal", action="store_true", help="no physics: the steps on the ideal particle set")
+    ap.add_argument("--topology-device", default="", help="where discovery runs (default: the simulator's device)")
+    ap.add_argument("--compare-cpu", action="store_true", help="also discover each state on the CPU")
     ap.add_argument("--summary", default="", help="summarise the oracle episodes of this evaluation artifact")
     args = ap.parse_args()
     if args.summary:

@@ -215,12 +215,13 @@ def test_evaluation_runs_the_oracle_steps_and_asks_the_task_for_success():
         return SimpleNamespace(total=0.2 * n, cut_count=1 if n >= 3 else 0, per_goal=np.zeros(1))
 
     env.reset = lambda *a, **k: None
-    cfg = SimpleNamespace(name="dice", push=False, success_threshold=0.99)
+    cfg = SimpleNamespace(name="dice", push=False, success_threshold=0.5)  # 0.2 a cut: 0.6 after the third
     res = evaluate_episode(spec, HeuristicPolicy(), env, cfg, max_cuts=3, spacing=0.01, goal_fn=lambda *a: _goal(),
                            discover_fn=discover, reward_fn=reward)
     assert env.calls == ["cut", "turn", "cut", "cut"] and res.turns == [1] and res.num_cuts == 3
     assert seen[2] == ([], 1)  # after the turn: no sweep, the previous labels
-    assert res.successes == [False, False, True] and res.asdict()["success"]  # N_C = G: the task's success
+    # the task's success: N_C = G and the total at the threshold (0.4 with N_C = 0, then 0.6 with N_C = G)
+    assert res.successes == [False, False, True] and res.asdict()["success"]
 
 
 def test_a_simulated_dice_episode_lays_the_slab_flat_and_keeps_its_cluster():

@@ -106,7 +106,7 @@ def build_policies(ctx: RunContext, names, env, sim, planner, reward, topology, 
         if name in SCRIPTED:
             runs[name] = {"policy": name, "train_seed": None, "checkpoint": None}
         if name == "oracle":
-            policies[name] = OraclePolicy(board_z=sim.board_z)
+            policies[name] = OraclePolicy(board_z=getattr(sim, "board_z", 0.05))
         elif name == "heuristic":
             policies[name] = FixedTrajectoryPolicy(task_cfgs, spacing=sim.spacing, board_z=sim.board_z)
         elif name == "mppi":

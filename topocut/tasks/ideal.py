@@ -104,10 +104,16 @@ def _anchor(x0, x, before, after, action) -> Anchor:
     return Anchor(x0[keep].astype(np.float32), x[keep].astype(np.float32))
 
 
-def roles(piece: np.ndarray, cells: np.ndarray, min_points: int = 32):
+def roles(piece: np.ndarray, cells: np.ndarray, min_points: int = 32, fallback: int = 8):
     """Split the executed pieces into goal pieces and the rest: (goal piece labels [p], offcut labels [p],
     rest label or None).  A piece is a goal piece when most of its particles lie in one goal cell (``cells``
-    (N,), 0 = none), it holds at least MIN_GOAL_SHARE of that cell and ``min_points`` particles."""
+    (N,), 0 = none), it holds at least MIN_GOAL_SHARE of that cell and ``min_points`` particles (the reward's
+    least spectrum); where no piece has that many (a coarse smoke grid), ``fallback`` particles will do."""
+    out = _roles(piece, cells, min_points)
+    return out if out[0] or fallback >= min_points else _roles(piece, cells, fallback)
+
+
+def _roles(piece, cells, min_points):
     counts = np.bincount(piece)
     cell_size = np.bincount(cells)
     goal, other = [], []

@@ -92,6 +92,8 @@ class _Scene:
 
 def _scene(positions, damage, knife_sweep, previous, next_id, cfg: TopologyConfig, max_direct: int) -> _Scene:
     x, dmg = particles(positions, damage)  # N,3 and N,
+    if cfg.carve_through == "swept":  # every particle by the sweep licenses its carving (discover's rule)
+        dmg = np.ones_like(dmg)
     n = len(x)
     prev, col, old_ids, used, split = _previous(previous, n, cfg.preserve_splits, max_direct)
     # per column, as discover() (numpy's axis-0 min of an (N, 3) array is slow): the same bounds, the same grid

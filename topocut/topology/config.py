@@ -24,6 +24,11 @@ class TopologyConfig:
     # a sweep whose lower end is within this many voxels of the board is carved on through the board
     board_snap_voxels: float = 2.0
     carve_radius: float | None = None  # carve only within this distance of damaged particles; None: 3 r_p
+    # which particles license carving the sweep: "swept", every particle the blade passed (the simulator separates
+    # pieces by the swept surface alone, topocut.sim.pieces.split); "damaged", only damaged ones (the paper's
+    # damage-driven rule: at 128^3 cuts that damage few particles left discovery merging what the simulator had
+    # separated, docs/topology.md)
+    carve_through: str = "swept"
     # --- keep earlier splits ------------------------------------------------
     preserve_splits: bool = True  # different previous clusters never merge (cutting only splits)
     # --- mesh ---------------------------------------------------------------
@@ -44,6 +49,8 @@ class TopologyConfig:
     batch_scenes: bool = True
 
     def validate(self) -> TopologyConfig:
+        if self.carve_through not in ("swept", "damaged"):
+            raise ValueError(f"topology.carve_through={self.carve_through!r}; valid: swept, damaged")
         if self.resolution < 8:
             raise ValueError(f"topology.resolution must be >= 8, got {self.resolution}")
         if self.voxel_size is not None and self.voxel_size <= 0:

@@ -233,6 +233,8 @@ def discover(positions, damage, knife_sweep, previous_labels=None, cfg: Topology
     timings, t_all = lap.timings, lap.started
 
     x, dmg = particles(positions, damage)  # N,3 and N,
+    if cfg.carve_through == "swept":  # every particle by the sweep licenses its carving (the simulator's rule)
+        dmg = np.ones_like(dmg)
     n = len(x)
     prev, prev_idx, old_ids, used, split = _previous(previous_labels, n, cfg.preserve_splits)
     if n == 0:

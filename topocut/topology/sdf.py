@@ -208,8 +208,11 @@ def _splat_sdf(x: wp.array(dtype=wp.vec3), r: float, lower: wp.vec3, h: float, r
 
 @wp.kernel
 def _splat_owner(x: wp.array(dtype=wp.vec3), lab: wp.array(dtype=wp.int32), r: float, lower: wp.vec3, h: float,
-                 reach: int, sdf: wp.array3d(dtype=float), owner: wp.array3d(dtype=wp.int32)):
-    # second pass: the particle that achieved the min writes its label (same float expression -> exact tie test)
+                 reach: int, tol: float, sdf: wp.array3d(dtype=float), owner: wp.array3d(dtype=wp.int32)):
+    # second pass: a particle within ``tol`` of the min writes its label.  Not an exact tie test: on CUDA the
+    # compiler may contract this kernel's arithmetic (fused multiply-adds) differently from _splat_sdf's, so the
+    # same expression can differ in its last bits; then no particle matched, the node had no owner, no wall
+    # was raised and two pieces an earlier cut had split merged again (128^3 slices, docs/topology.md)
     p, s = wp.tid()  # (particle, slab), as in _splat_sdf
     xp = x[p]
     c = (xp - lower) / h
@@ -220,7 +223,7 @@ def _splat_owner(x: wp.array(dtype=wp.vec3), lab: wp.array(dtype=wp.int32), r: f
     if i >= 0 and i < sdf.shape[0]:
         for j in range(wp.max(cj - reach, 0), wp.min(cj + reach + 1, sdf.shape[1])):
             for k in range(wp.max(ck - reach, 0), wp.min(ck + reach + 1, sdf.shape[2])):
-                if _node_dist(xp, lower, h, i, j, k, r) == sdf[i, j, k]:
+                if _node_dist(xp, lower, h, i, j, k, r) <= sdf[i, j, k] + tol:
                     owner[i, j, k] = lab[p]
 
 
@@ -267,7 +270,8 @@ def particle_sdf(x, r: float, grid: Grid, band: float, device: str = "cpu", owne
             owner_labels = wp.array(np.ascontiguousarray(owner_labels, np.int32), dtype=wp.int32, device=device)
         ow = wp.full(grid.shape, -1, dtype=wp.int32, device=device)
         wp.launch(_splat_owner, dim=(x.shape[0], 2 * reach + 1),
-                  inputs=[x, owner_labels, float(r), grid.wp_lower, float(grid.h), reach, sdf, ow], device=device)
+                  inputs=[x, owner_labels, float(r), grid.wp_lower, float(grid.h), reach, 1e-3 * float(grid.h), sdf, ow],
+                  device=device)
         walled = wp.empty_like(sdf)
         wp.launch(_walls, dim=grid.shape, inputs=[sdf, ow, 0.5 * float(grid.h), walled], device=device)
         sdf = walled
