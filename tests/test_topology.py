@@ -103,14 +103,28 @@ def test_half_way_cut_leaves_one_piece():
     assert res.num_clusters == 1 and (res.labels == res.labels[0]).all()
 
 
-def test_sweep_without_damage_carves_nothing():
+def test_sweep_without_damage_carves_nothing_in_the_damage_driven_mode():
+    import dataclasses
+
+    cfg = dataclasses.replace(CFG, carve_through="damaged")
     x = box()
-    res = discover(x, np.zeros(len(x), bool), vertical_sweep(0.503), cfg=CFG)
+    res = discover(x, np.zeros(len(x), bool), vertical_sweep(0.503), cfg=cfg)
     assert res.num_clusters == 1
     # damage far from the sweep does not license a carve either
     far = x[:, 0] < 0.42
-    res = discover(x, far, vertical_sweep(0.503), cfg=CFG)
+    res = discover(x, far, vertical_sweep(0.503), cfg=cfg)
     assert res.num_clusters == 1
+
+
+def test_a_sweep_through_undamaged_material_separates_it_as_the_simulator_does():
+    """carve_through="swept" (the default): the pieces are what the blade's swept surface separates, damaged or
+    not (topocut.sim.pieces.split's rule); the two sides of the plane at x = 0.503 are the two pieces."""
+    x = box()
+    res = discover(x, np.zeros(len(x), bool), vertical_sweep(0.503), cfg=CFG)
+    assert res.num_clusters == 2
+    side = x[:, 0] > 0.503
+    assert len(np.unique(res.labels[side])) == 1 and len(np.unique(res.labels[~side])) == 1
+    assert res.labels[side][0] != res.labels[~side][0]
 
 
 def test_torus_is_one_piece_of_genus_one():
