@@ -143,3 +143,13 @@ def test_success_agrees_with_reward():
     assert not task.success(made, cfg)
     assert task.success(RewardResult(total=0.97, per_goal=np.ones(2), cut_count=2), cfg)
     assert not task.success(RewardResult(total=0.97, per_goal=np.ones(2), cut_count=1), cfg)
+
+
+def test_the_largest_fragment_is_the_stock_when_roles_tie():
+    """Weights are capped at one goal piece, so a die and the whole rest of the object weigh the same; the stock
+    (the uncut rest, free) must still be the rest, not the die."""
+    from topocut.reward.matching import reward_from_distances
+
+    D = np.array([[np.inf], [np.inf]])  # neither matches the goal piece (say, a badly cut die and the rest)
+    res = reward_from_distances(D, 1, RewardConfig(), volumes=np.array([1.2, 40.0]), goal_volumes=np.array([1.0]))
+    assert res.stock == 1 and res.waste == [0]

@@ -78,10 +78,12 @@ def fragment_weights(volumes, goal_volumes) -> np.ndarray:
     return np.minimum(1.0, v / gv)
 
 
-def assign(distances, cfg: RewardConfig | None = None, weights=None):
+def assign(distances, cfg: RewardConfig | None = None, weights=None, volumes=None):
     """Roles of the fragments of an (F,G) distance matrix: (pairs [(f, g)], stock f or None, waste [f],
     values (F,)).  Maximises the summed value (module docstring); the summed distance of the pairs breaks
-    ties.  A fragment at d = inf to every goal piece (below min_points) can only be stock or waste."""
+    ties.  A fragment at d = inf to every goal piece (below min_points) can only be stock or waste.
+    ``volumes`` (F,), uncapped: among equal choices the largest fragment is the stock (the weights are capped at
+    one, so a die and the whole rest of the object would tie)."""
     cfg = cfg or RewardConfig()
     D = np.asarray(distances, dtype=np.float64).reshape(len(distances), -1) if len(distances) else np.zeros((0, 0))
     F, G = D.shape if D.ndim == 2 else (0, 0)
@@ -98,7 +100,8 @@ def assign(distances, cfg: RewardConfig | None = None, weights=None):
     big = 1e6
     cost = np.full((F, G + 1 + F), big)
     cost[:, :G] = np.where(finite, -pair_val + eps * Df, big)
-    cost[:, G] = 0.0 - 1e-12 * w  # the stock: a hair better for the larger fragment among equal choices
+    size = w if volumes is None else np.asarray(volumes, np.float64) / max(float(np.max(volumes)), 1e-300)
+    cost[:, G] = 0.0 - 1e-12 * size  # the stock: a hair better for the larger fragment among equal choices
     cost[np.arange(F), G + 1 + np.arange(F)] = -waste_val
     rows, cols = linear_sum_assignment(cost)
     pairs, stock, waste = [], None, []
@@ -312,7 +315,7 @@ def reward_from_distances(D: np.ndarray, G: int, cfg: RewardConfig, volumes=None
     D = np.asarray(D, np.float64).reshape(-1, G)
     w = (fragment_weights(volumes, goal_volumes) if volumes is not None and goal_volumes is not None
          else np.ones(len(D)))
-    pairs, stock, waste, values = assign(D, cfg, w)
+    pairs, stock, waste, values = assign(D, cfg, w, volumes)
     forgiven = []
     if offcut_volumes is not None and len(offcut_volumes) and goal_volumes is not None and waste:
         budget = float(fragment_weights(offcut_volumes, goal_volumes).sum())
