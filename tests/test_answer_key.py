@@ -150,6 +150,8 @@ def test_the_largest_fragment_is_the_stock_when_roles_tie():
     (the uncut rest, free) must still be the rest, not the die."""
     from topocut.reward.matching import reward_from_distances
 
-    D = np.array([[np.inf], [np.inf]])  # neither matches the goal piece (say, a badly cut die and the rest)
-    res = reward_from_distances(D, 1, RewardConfig(), volumes=np.array([1.2, 40.0]), goal_volumes=np.array([1.0]))
-    assert res.stock == 1 and res.waste == [0]
+    # none matches the goal piece (say, a badly cut die and the rest)
+    for vols in ([40.0, 1.2], [1.2, 40.0], [3.0, 1.2, 40.0]):
+        res = reward_from_distances(np.full((len(vols), 1), np.inf), 1, RewardConfig(), volumes=np.array(vols),
+                                    goal_volumes=np.array([1.0]))
+        assert res.stock == int(np.argmax(vols)), vols
