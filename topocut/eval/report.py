@@ -375,6 +375,20 @@ def print_table(rows: list[dict], title: str = "Evaluation") -> None:
     Console().print(table)
 
 
+def wandb_data(rows: list[dict], columns=CSV_COLUMNS) -> list[list]:
+    """The rows as a wandb.Table's data: one type per column, as wandb.Table demands (its first row fixes a
+    column's type; a "" for a missing value and a bool further down failed the whole stage=eval).  A column of
+    numbers (bools among them: a tie flag) keeps numbers, a missing one NaN; any other column is text."""
+    out = [[r[c] for c in columns] for r in rows]
+    for j, c in enumerate(columns):
+        vals = [row[j] for row in out if row[j] is not None]
+        numeric = bool(vals) and all(isinstance(v, (bool, int, float, np.integer, np.floating)) for v in vals)
+        for row in out:
+            v = row[j]
+            row[j] = (float("nan") if v is None else float(v)) if numeric else ("" if v is None else str(v))
+    return out
+
+
 def log_wandb_table(rows: list[dict], key: str = "eval/table1") -> bool:
     """A wandb.Table of the rows when a wandb run is active; returns whether it logged."""
     try:
@@ -383,8 +397,7 @@ def log_wandb_table(rows: list[dict], key: str = "eval/table1") -> bool:
         return False
     if wandb.run is None:
         return False
-    data = [["" if r[c] is None else r[c] for c in CSV_COLUMNS] for r in rows]
-    wandb.log({key: wandb.Table(columns=CSV_COLUMNS, data=data)})
+    wandb.log({key: wandb.Table(columns=CSV_COLUMNS, data=wandb_data(rows))})
     return True
 
 
