@@ -9,13 +9,15 @@ but the push after a cut slides pieces a couple of centimetres and pieces settle
 the piece it splits: ``Goal.anchors[k]`` holds particles of that piece at their initial and their planned
 positions just before cut k (topocut.tasks.ideal); the oracle finds the same particles in the scene (nearest
 initial position), fits the horizontal rigid motion (rotation about z, translation) from planned to current
-positions, and moves the plane by it.  It reads the scene's particles from the observation's ``particles``
+positions, and moves the plane by it; then it sets the plane between the anchor particles the plan leaves on
+its two sides, where they are now (a soft slab spreads when laid down).  It reads the scene's particles from the observation's ``particles``
 (N,3), which the episode engine adds only for a policy marked ``privileged`` (a reference, not a contender).
 """
 from __future__ import annotations
 
 import numpy as np
 
+from topocut.planning.heuristic import HeuristicPolicy
 from topocut.sim.action import KnifeAction
 
 
@@ -39,7 +41,7 @@ def moved_plane(action: KnifeAction, R: np.ndarray, t: np.ndarray, board_z: floa
     return KnifeAction.from_plane(R @ action.normal, point, board_z)
 
 
-class OraclePolicy:
+class OraclePolicy(HeuristicPolicy):
     """Policy protocol: ``reset(goal)``, ``act(obs)``: the goal's planes in order, each carried with the piece it
     cuts (module docstring); None once they are done.  Without ``particles`` in the observation (or anchors in
     the goal) it cuts the planes where the plan put them."""
@@ -48,20 +50,14 @@ class OraclePolicy:
 
     def __init__(self, goal=None, board_z: float = 0.05, track: bool = True):
         self.board_z, self.track = float(board_z), bool(track)
-        self.planes: list[KnifeAction] = []
         self.anchors: list = []
-        self.t = 0
         self.initial = None  # N,3 the scene's particles before the first cut
-        if goal is not None:
-            self.reset(goal)
+        super().__init__(goal)
 
     def reset(self, goal) -> None:
-        planes = list(getattr(goal, "planes", []) or [])
-        if not planes:
-            raise ValueError("OraclePolicy needs a goal with at least one plane in goal.planes")
-        self.planes = [p if isinstance(p, KnifeAction) else KnifeAction.from_vector(p) for p in planes]
+        super().reset(goal)  # the goal's planes, from the first
         self.anchors = list(getattr(goal, "anchors", None) or [])
-        self.t, self.initial = 0, None
+        self.initial = None
 
     def act(self, obs: dict | None = None) -> KnifeAction | None:
         if self.t >= len(self.planes):
@@ -82,5 +78,16 @@ class OraclePolicy:
         if len(self.initial) != len(x):
             return action
         _, idx = cKDTree(self.initial).query(np.asarray(anchor.initial, np.float64))
-        R, t = planar_rigid(anchor.planned, x[idx])
-        return moved_plane(action, R, t, self.board_z)
+        y = x[idx]  # m,3 the anchor particles now
+        R, t = planar_rigid(anchor.planned, y)
+        moved = moved_plane(action, R, t, self.board_z)
+        side = getattr(anchor, "side", None)
+        if side is None or side.sum() < 5 or (~side).sum() < 5:
+            return moved
+        # a soft piece also spreads or sags when laid down or pushed: put the plane between the particles the plan
+        # leaves on either side of it, where they are now, rather than where the rigid motion expects them
+        n = moved.normal
+        s = y @ n
+        c = 0.5 * (np.quantile(s[~side], 0.9) + np.quantile(s[side], 0.1))
+        p = moved.plane_point(self.board_z)
+        return KnifeAction.from_plane(n, p + (c - p @ n) * n, self.board_z)

@@ -28,10 +28,12 @@ MIN_GOAL_SHARE = 0.2  # a piece of a goal cell with less of the cell than this i
 
 @dataclass
 class Anchor:
-    """Where the piece a cut splits was planned to be: initial positions (m,3) and positions before the cut."""
+    """Where the piece a cut splits was planned to be: initial positions (m,3), positions before the cut, and
+    which of them the cut leaves on the +n side of its plane (m,) bool."""
 
     initial: np.ndarray
     planned: np.ndarray
+    side: np.ndarray = None
 
 
 @dataclass
@@ -95,13 +97,18 @@ def effective_steps(points: np.ndarray, steps, sim_cfg) -> tuple[list, IdealRun]
 
 
 def _anchor(x0, x, before, after, action) -> Anchor:
-    """The particles nearest the cut's plane on the pieces it splits (all pieces it touches if it splits none)."""
+    """The particles nearest the cut's plane on the pieces it splits (all pieces it touches if it splits none),
+    half of them on each side."""
     split = [p for p in np.unique(before) if len(np.unique(after[before == p])) > 1]
     n, q = action.normal, action.plane_point()
-    dist = np.abs((x - q) @ n)
+    sd = (x - q) @ n
     cand = np.flatnonzero(np.isin(before, split)) if split else np.arange(len(x))
-    keep = cand[np.argsort(dist[cand], kind="stable")[:ANCHOR_POINTS]]
-    return Anchor(x0[keep].astype(np.float32), x[keep].astype(np.float32))
+    keep = []
+    for on_plus in (True, False):
+        c = cand[(sd[cand] > 0) == on_plus]
+        keep.append(c[np.argsort(np.abs(sd[c]), kind="stable")[:ANCHOR_POINTS // 2]])
+    keep = np.concatenate(keep)
+    return Anchor(x0[keep].astype(np.float32), x[keep].astype(np.float32), sd[keep] > 0)
 
 
 def roles(piece: np.ndarray, cells: np.ndarray, min_points: int = 32, fallback: int = 8):
