@@ -9,8 +9,8 @@ but the push after a cut slides pieces a couple of centimetres and pieces settle
 the piece it splits: ``Goal.anchors[k]`` holds particles of that piece at their initial and their planned
 positions just before cut k (topocut.tasks.ideal); the oracle finds the same particles in the scene (nearest
 initial position), fits the horizontal rigid motion (rotation about z, translation) from planned to current
-positions, and moves the plane by it; then it sets the plane between the anchor particles the plan leaves on
-its two sides, where they are now (a soft slab spreads when laid down).  It reads the scene's particles from the observation's ``particles``
+positions, and moves the plane by it; where that plane leaves more than 5% of the anchor particles on the wrong
+side (a soft slab spreads when laid down), it sets the plane between the two sides' particles where they are now.  It reads the scene's particles from the observation's ``particles``
 (N,3), which the episode engine adds only for a policy marked ``privileged`` (a reference, not a contender).
 """
 from __future__ import annotations
@@ -84,10 +84,12 @@ class OraclePolicy(HeuristicPolicy):
         side = getattr(anchor, "side", None)
         if side is None or side.sum() < 5 or (~side).sum() < 5:
             return moved
-        # a soft piece also spreads or sags when laid down or pushed: put the plane between the particles the plan
-        # leaves on either side of it, where they are now, rather than where the rigid motion expects them
+        # a soft piece also spreads or sags when laid down or pushed: where the rigidly moved plane no longer parts
+        # the particles the plan leaves on either side of it (more than 5% on the wrong side), put it between them
         n = moved.normal
         s = y @ n
-        c = 0.5 * (np.quantile(s[~side], 0.9) + np.quantile(s[side], 0.1))
         p = moved.plane_point(self.board_z)
+        if ((s > p @ n) == side).mean() >= 0.95:
+            return moved
+        c = 0.5 * (np.quantile(s[~side], 0.9) + np.quantile(s[side], 0.1))
         return KnifeAction.from_plane(n, p + (c - p @ n) * n, self.board_z)
