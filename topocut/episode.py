@@ -367,7 +367,8 @@ class EpisodeBatch:
             self._keep(b, f"cut {k + 1}: R={res.total:.2f}", knife=a)
             out[b] = res
             if self.progress is not None:
-                self.progress(1, info=f"{self.eps[b].key or self.eps[b].object} cut {k + 1}: reward {res.total:.3f}")
+                name = self.eps[b].key or self.eps[b].object or getattr(self.goals[b], "object", "") or f"episode {b}"
+                self.progress(1, info=f"{name} cut {k + 1}: reward {res.total:.3f}")  # (MPPI's episodes: no key)
             if self.stop_on_success and res.success:
                 self.live[b] = False
         self.k += 1

@@ -380,7 +380,7 @@ def wandb_data(rows: list[dict], columns=CSV_COLUMNS) -> list[list]:
     column's type; a "" for a missing value and a bool further down failed the whole stage=eval).  A column of
     numbers (bools among them: a tie flag) keeps numbers, a missing one NaN; any other column is text."""
     out = [[r[c] for c in columns] for r in rows]
-    for j, c in enumerate(columns):
+    for j in range(len(columns)):
         vals = [row[j] for row in out if row[j] is not None]
         numeric = bool(vals) and all(isinstance(v, (bool, int, float, np.integer, np.floating)) for v in vals)
         for row in out:
