@@ -279,6 +279,7 @@ def test_simulate_slices_a_cube_into_three_labelled_pieces(tmp_path):
     (("stage=eval", "task=stick"), "set eval.tasks=[stick]"),
     (("stage=eval", "task=pyramid"), "task=pyramid has no evaluation protocol"),
     (("stage=pretrain", "data.version=v999"), "MissingArtifact: no committed dataset named 'demos'"),
+    (("stage=simulate", "task.thickness=10"), "a piece must be thinner than the object"),
 ])
 def test_user_errors_print_one_message_and_exit_2(tmp_path, overrides, needle):
     """A bad value or a missing input is the user's to fix: its message, no traceback, exit status 2, and the

@@ -171,8 +171,14 @@ class KnifeTask(ABC):
         steps, run = ideal.effective_steps(p64, steps, ideal.sim_config_for(spacing, board_z))
         goal_ids, offcut_ids, _ = ideal.roles(run.piece, cells)
         if not goal_ids:
-            raise ValueError(f"task {self.name!r} produced no goal piece on {object!r} at spacing {spacing}: "
-                             f"increase task.thickness/width/size or decrease spacing")
+            from topocut.config import ConfigError  # a ValueError: the user's to fix (exit 2 from a stage)
+
+            sizes = ", ".join(f"task.{k}={getattr(cfg, k)}" for k in ("thickness", "width", "size"))
+            raise ConfigError(f"task {self.name!r} produced no goal piece on {object!r} at particle spacing "
+                              f"{spacing:.4g} ({sizes}): a piece must be thinner than the object "
+                              f"({np.ptp(p64 @ axes[0]):.3f} along its longer axis) and at least {3 * spacing:.3f} "
+                              f"(3 particle spacings) thick; set task.thickness/width/size in that range, or a finer "
+                              f"sim.n_grid")
         fragments = [pts[run.piece == p] for p in goal_ids]
         labels = np.zeros(len(pts), np.int32)  # 0 = not a goal piece, i + 1 = fragments[i]
         for i, p in enumerate(goal_ids):
@@ -237,7 +243,10 @@ def first_slab(pts, axes, thickness, board_z, pad, key="task.thickness"):
     """The first slab (thickness off the +a1 face): (its Cut, mask (N,))."""
     steps, lab = slices(pts, axes, thickness, 1, board_z, pad)
     if not steps:
-        raise ValueError(f"{key}={thickness} exceeds the object's extent")
+        from topocut.config import ConfigError  # a ValueError: the user's to fix (exit 2 from a stage)
+
+        raise ConfigError(f"{key}={thickness} exceeds the object's extent ({np.ptp(pts @ axes[0]):.3f} along its "
+                          f"longer axis); set {key} below it")
     return steps[0], lab == 1
 
 
