@@ -60,6 +60,12 @@ def run(ctx: RunContext, sim, object, task, topology, reward, data, replay: str 
                                 task.success_threshold)
         log_path = record_session(session, ctx.run_dir / "teleop_log.json", backend)
     log = load_log(log_path)
+    if not any(entry.get("type") == "cut" for entry in log["actions"]):  # nothing to learn from or compare against
+        from topocut.config import ConfigError
+
+        raise ConfigError(f"teleop log {log_path} holds no cut: nothing to replay, nothing committed; record cuts "
+                          f"in a window (stage=teleop) or replay one that has them "
+                          f"(stage.run.replay=examples/teleop_slice_cake.json)")
     pose = ObjectPose(**log["pose"]) if isinstance(log.get("pose"), dict) else ObjectPose()
     goal = make_goal(task, log["object"], pose, spacing=sim.spacing, board_z=sim.board_z, seed=int(log["seed"]))
     config = as_dict(("sim", sim), ("task", task), ("topology", topology), ("reward", reward), ("log", log),

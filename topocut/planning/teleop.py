@@ -370,6 +370,8 @@ def run_window(session: TeleopSession, backend: str = "auto", res: int = 720) ->
 
     Only opening a window falls back or is reported as such: an error while the session runs propagates as
     itself (a diverged cut does not end it: session.handle reports it in the status line)."""
+    from topocut.utils.runtime import DeviceUnavailable
+
     backends = ("auto", "ggui", "gui")
     if backend not in backends:
         raise ValueError(f"teleop backend {backend!r}; valid: {', '.join(backends)}")
@@ -379,15 +381,16 @@ def run_window(session: TeleopSession, backend: str = "auto", res: int = 720) ->
             window = _open_window("ggui", res)
         except Exception as e:  # noqa: BLE001 - no Vulkan device / no display: fall back to the CPU GUI
             if backend == "ggui":
-                raise RuntimeError(f"GGUI window unavailable ({e}); try backend='gui'") from e
+                raise DeviceUnavailable(f"GGUI window unavailable ({e}); try backend='gui'") from e
         else:
             _loop_ggui(session, window)
             return session
     try:
         gui = _open_window("gui", res)
     except Exception as e:  # noqa: BLE001
-        raise RuntimeError(f"cannot open a teleop window ({e}); without a display, replay a saved log "
-                           f"headlessly: stage=teleop stage.run.replay=<log.json>") from e
+        # the user's to fix (exit 2, one line): no display here
+        raise DeviceUnavailable(f"cannot open a teleop window ({e}); without a display, replay a saved log "
+                                f"headlessly: stage=teleop stage.run.replay=examples/teleop_slice_cake.json") from e
     _loop_cpu_gui(session, gui)
     return session
 
