@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import difflib
 import inspect
+import os
 from dataclasses import dataclass, field, fields, is_dataclass
 from typing import Any
 
@@ -133,6 +134,9 @@ class TopoCutConfig:
 
 def register_configs() -> None:
     ConfigStore.instance().store(name="base_config", node=TopoCutConfig)
+    # ${pid:} in hydra.run.dir: two runs started in the same second get directories of their own
+    if not OmegaConf.has_resolver("pid"):
+        OmegaConf.register_new_resolver("pid", lambda: os.getpid())
 
 
 def _check(cond: bool, key: str, msg: str) -> None:

@@ -48,6 +48,15 @@ USER_ERRORS = (ConfigError, MissingArtifact, CorruptArtifact, ArtifactBusy, Devi
 USER_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM)
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (Slurm's cancel, `docker stop`, `kill`), handled as Ctrl-C is: status.json says failed, committed
+    work is kept, one line is printed."""
+
+
+def _raise_terminated(signum, frame) -> None:
+    raise Terminated(f"signal {signum}")
+
+
 def is_user_error(e: BaseException) -> bool:
     return isinstance(e, USER_ERRORS) or (isinstance(e, OSError) and e.errno in USER_ERRNOS)
 
@@ -56,8 +65,13 @@ def run_stage(cfg: DictConfig, run_dir: Path, overrides: list[str] | None = None
     """Run ``cfg.stage`` with status and logging around it; returns the stage's summary."""
     run_dir.mkdir(parents=True, exist_ok=True)
     started = time.time()
-    status: dict = {"stage": cfg.stage.name, "status": "running", "overrides": overrides or []}
+    status: dict = {"stage": cfg.stage.name, "status": "running", "overrides": overrides or [], "pid": os.getpid(),
+                    "started": started}
     logger = None
+    try:  # a run killed with SIGKILL leaves this "running" record behind: it says which run it was
+        write_json_atomic(run_dir / "status.json", status)
+    except OSError:  # (a full disk: the final write below warns about it once)
+        pass
     try:
         validate(cfg)
         check_overrides(cfg, overrides or [])
@@ -111,6 +125,10 @@ def main(cfg: DictConfig) -> None:
     hc = HydraConfig.get()
     overrides = list(hc.overrides.task)
     single = hc.mode == RunMode.RUN
+    if single:  # SIGTERM as Ctrl-C: status.json records it, one line, committed work kept
+        import signal
+
+        signal.signal(signal.SIGTERM, _raise_terminated)
     try:
         summary = run_stage(cfg, Path(hc.runtime.output_dir), overrides)
     except Exception as e:
@@ -118,12 +136,13 @@ def main(cfg: DictConfig) -> None:
             raise
         log.error("%s: %s", type(e).__name__, e)
         sys.exit(2)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as e:
         if not single:
             raise
-        log.error("interrupted: committed work is kept; re-run the same command to resume (%s)",
+        log.error("%s: committed work is kept; re-run the same command to resume (%s)",
+                  "terminated (SIGTERM)" if isinstance(e, Terminated) else "interrupted",
                   Path(hc.runtime.output_dir) / "status.json")
-        sys.exit(130)
+        sys.exit(143 if isinstance(e, Terminated) else 130)
     log.info("summary: %s", json.dumps(summary, default=str))
 
 
