@@ -180,3 +180,17 @@ def test_a_tampered_version_is_not_reused(tmp_path):
     (path / "model.ckpt").write_bytes(bytes(blob))
     with pytest.raises(CorruptArtifact, match=r"model\.ckpt does not match its sha256.*delete"):
         store.begin("checkpoint", "pddp", {"k": 1})
+
+
+def test_a_missing_artifact_names_the_stage_that_makes_it(tmp_path):
+    """stage=eval on an empty outputs root: the hint names `make bc` for a policy checkpoint (it named only
+    `make mppi` and `make pretrain`), and the n_grid hint agrees with the scales' own grids."""
+    from topocut.data.store import ArtifactStore, MissingArtifact
+    from topocut.sim.config import SimConfig
+
+    with pytest.raises(MissingArtifact, match=r"make bc"):
+        ArtifactStore(tmp_path).resolve("checkpoint", "pddp")
+    with pytest.raises(MissingArtifact, match=r"make mppi"):
+        ArtifactStore(tmp_path).resolve("dataset", "demos")
+    with pytest.raises(ValueError, match=r"n_grid.*48: smoke, 128: paper"):
+        SimConfig(n_grid=0).validate()

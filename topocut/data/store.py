@@ -37,6 +37,13 @@ NAME_PATTERN = r"[A-Za-z0-9][A-Za-z0-9._-]*"
 _NAME_RE = re.compile(rf"^{NAME_PATTERN}$")
 
 
+# which stage makes each kind of artifact (the hint of a MissingArtifact)
+PRODUCED_BY = {"dataset": "`make mppi` (or stage=mppi, stage=teleop) for demonstrations",
+               "checkpoint": "`make pretrain` for the perception checkpoint, `make bc` for the policies' "
+                             "(or `make run`: every stage in order)",
+               "sim": "`make simulate`", "eval": "`make eval`"}
+
+
 class MissingArtifact(FileNotFoundError):
     """A requested artifact (kind/name/version) does not exist."""
 
@@ -258,7 +265,7 @@ class ArtifactStore:
             raise MissingArtifact(
                 f"no committed {ref.kind} named {ref.name!r} under {self.root / ref.kind}; "
                 f"known {ref.kind} names: {known or 'none'}. Run the stage that produces it first "
-                f"(e.g. `make mppi` for datasets, `make pretrain` for the encoder checkpoint).")
+                f"({PRODUCED_BY.get(ref.kind, 'see docs/architecture.md')}).")
         # latest is the highest-numbered directory: one without a manifest is refused, not silently skipped
         version = numbered[-1] if ref.version == "latest" else ref.version
         if version not in numbered:

@@ -222,7 +222,7 @@ class SimConfig:
             raise ValueError(f"sim.{key}: {msg}")
 
         if self.n_grid < 16:
-            bad("n_grid", f"{self.n_grid} is too coarse; use >= 16 (64 on CPU, 128 on GPU)")
+            bad("n_grid", f"{self.n_grid} is too coarse; use >= 16 (the scales use 48: smoke, 128: paper)")
         if self.arch not in ARCHS:
             bad("arch", f"{self.arch!r}; valid: {', '.join(ARCHS)}")
         if self.knife_mode not in KNIFE_MODES:
