@@ -34,3 +34,15 @@ def test_progress_logs_a_line_per_step_when_output_is_not_a_terminal(caplog):
     lines = [r.getMessage() for r in caplog.records]
     assert len(lines) == 2 and lines[0].startswith("eval 1/3 (") and lines[0].endswith(": cube R=0.5")
     assert lines[1].startswith("eval 3/3 (") and "not shown" not in " ".join(lines)
+
+
+def test_tables_printed_to_a_log_do_not_wrap(capsys):
+    """A stage's summary in a log file or a CI log (stdout not a terminal): one row a line, not folded at 80
+    columns as rich does by default."""
+    from topocut.utils.progress import print_summary
+
+    key = "eval/a_rather_long_metric_name_that_would_not_fit"
+    value = "/some/outputs/eval/table1/v001/results.md and more words to pass eighty columns"
+    print_summary("summary", {key: value})
+    out = capsys.readouterr().out
+    assert any(key in line and value in line for line in out.splitlines()), out

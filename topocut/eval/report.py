@@ -357,8 +357,9 @@ def plot_results(rows: list[dict], path, reference: str | None = None) -> None:
 
 
 def print_table(rows: list[dict], title: str = "Evaluation") -> None:
-    from rich.console import Console
     from rich.table import Table
+
+    from topocut.utils.progress import console
 
     table = Table(title=title, header_style="bold")
     for c in ("policy", "split", "task", "R̂ [95% CI]", "N_C [95% CI]", "R", "ΔR̂ (paired)", "seeds", "episodes",
@@ -372,7 +373,7 @@ def print_table(rows: list[dict], title: str = "Evaluation") -> None:
                       format_interval((r["N_C_mean"], r["N_C_lo"], r["N_C_hi"])), f"{_fmt(r['R_mean'], 3)}",
                       format_difference(r["dR_hat_mean"], r["dR_hat_lo"], r["dR_hat_hi"], r["dR_hat_tie"]),
                       str(r["train_seeds"] or "-"), str(r["episodes"]), str(r["failures"]))
-    Console().print(table)
+    console().print(table)
 
 
 def wandb_data(rows: list[dict], columns=CSV_COLUMNS) -> list[list]:

@@ -49,9 +49,20 @@ def flatten(d: dict, sep: str = "/", prefix: str = "") -> dict:
     return out
 
 
+LOG_WIDTH = 240  # columns of a table printed to a file or a CI log: rich's default there (80) wraps Table 1
+
+
+def console():
+    """A rich Console as wide as the terminal, or LOG_WIDTH columns when the output is not a terminal (a log file,
+    a CI log), where rich would wrap every table at 80 columns."""
+    from rich.console import Console
+
+    c = Console()
+    return c if c.is_terminal else Console(width=LOG_WIDTH)
+
+
 def print_summary(title: str, summary: dict) -> None:
     """A two-column rich table of a stage's summary (nested dicts flattened with '/')."""
-    from rich.console import Console
     from rich.table import Table
 
     table = Table(title=title, show_header=True, header_style="bold")
@@ -59,4 +70,4 @@ def print_summary(title: str, summary: dict) -> None:
     table.add_column("value", overflow="fold")
     for k, v in flatten(summary).items():
         table.add_row(k, f"{v:.4g}" if isinstance(v, float) else str(v))
-    Console().print(table)
+    console().print(table)
