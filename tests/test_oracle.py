@@ -74,3 +74,29 @@ def test_a_piece_that_did_not_move_as_planned_is_cut_between_its_planned_sides()
     # back where the material parts (the plan's plane cuts through a jittered layer: within 2 mm of it), not 1 cm in
     off = (second.plane_point() - goal.planes[1].plane_point()) @ n
     assert abs(off) < 0.002 and abs(second.yaw - goal.planes[1].yaw) < 0.05  # (the odd plan turns the fit 1.3 deg)
+
+
+def test_a_plane_turned_across_the_canonical_yaw_wrap_keeps_its_sides():
+    """A stick cut normal to a2 (yaw 88.9 deg) whose piece turned 3 deg (to 91.9 deg): the canonical action flips its
+    normal, the planned sides must not flip with it (else every such cut would take the midpoint branch)."""
+    goal = make_goal(TaskConfig(name="stick", thickness=0.05, width=0.05, max_cuts=3), "cube", ObjectPose(yaw=-0.02),
+                     SP)
+    k = 1  # the first stick cut
+    anchor = goal.anchors[k]
+    x0 = np.asarray(anchor.initial, np.float64)
+    ang = np.radians(3.0)
+    R = np.array([[np.cos(ang), -np.sin(ang), 0], [np.sin(ang), np.cos(ang), 0], [0, 0, 1]])
+    planned = np.asarray(anchor.planned, np.float64)
+    c = planned.mean(0)
+    now = (planned - c) @ R.T + c  # the piece turned about its centre
+    pol = OraclePolicy(goal)
+    pol.initial, pol.t = x0, k
+    scene = x0.copy()  # the scene's particles: the anchors' own, moved as the piece moved
+    _, idx = __import__("scipy.spatial", fromlist=["cKDTree"]).cKDTree(x0).query(x0)
+    scene[idx] = now
+    cut = pol.act(_obs(scene, k))
+    rigid = goal.planes[k]
+    n_rigid = R @ rigid.normal
+    assert abs(abs(cut.normal @ n_rigid) - 1) < 1e-6  # the rigidly turned plane: no midpoint shift needed
+    off = (cut.plane_point() - (R @ (rigid.plane_point() - c) + c)) @ n_rigid
+    assert abs(off) < 1e-6

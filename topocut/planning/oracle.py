@@ -85,10 +85,11 @@ class OraclePolicy(HeuristicPolicy):
         if side is None or side.sum() < 5 or (~side).sum() < 5:
             return moved
         # a soft piece also spreads or sags when laid down or pushed: where the rigidly moved plane no longer parts
-        # the particles the plan leaves on either side of it (more than 5% on the wrong side), put it between them
-        n = moved.normal
+        # the particles the plan leaves on either side of it (more than 5% on the wrong side), put it between them.
+        # The sides are the plan's normal's, carried by R (moved.normal may be flipped into canonical form)
+        n = R @ action.normal
         s = y @ n
-        p = moved.plane_point(self.board_z)
+        p = R @ action.plane_point(self.board_z) + t
         if ((s > p @ n) == side).mean() >= 0.95:
             return moved
         c = 0.5 * (np.quantile(s[~side], 0.9) + np.quantile(s[side], 0.1))
