@@ -155,3 +155,21 @@ def test_the_largest_fragment_is_the_stock_when_roles_tie():
         res = reward_from_distances(np.full((len(vols), 1), np.inf), 1, RewardConfig(), volumes=np.array(vols),
                                     goal_volumes=np.array([1.0]))
         assert res.stock == int(np.argmax(vols)), vols
+
+
+def test_the_batched_reward_counts_planned_offcuts_as_the_single_one_does():
+    """spectral_rewards (one shared goal, MPPI's rollouts) and spectral_rewards_per_goal (the episode engine) give
+    each set what spectral_reward gives it, offcuts forgiven alike."""
+    from topocut.reward import spectral_rewards
+    from topocut.reward.matching import spectral_rewards_per_goal
+
+    goal, _, run = execute_reference("dice", "cube", ObjectPose(), 64, 0.05)
+    full = [run.x[run.piece == p] for p in np.unique(run.piece)]
+    sets = [full, full[:-2] + [np.concatenate(full[-2:])]]  # the plan's pieces; two of them left joined
+    single = [spectral_reward(s, goal.fragments, offcuts=goal.offcuts) for s in sets]
+    shared = spectral_rewards(sets, goal.fragments, offcuts=goal.offcuts)
+    per_goal = spectral_rewards_per_goal(sets, [goal.fragments] * 2, offcut_sets=[goal.offcuts] * 2)
+    for a, b, c in zip(single, shared, per_goal):
+        assert a.total == pytest.approx(b.total) == pytest.approx(c.total)
+        assert a.offcuts == b.offcuts == c.offcuts
+    assert single[0].total >= 0.99 and single[1].total < single[0].total

@@ -353,9 +353,10 @@ def spectral_rewards(fragment_sets, goal_fragments, cfg: RewardConfig | None = N
         return spectral_rewards_per_goal(fragment_sets, goal_fragments, cfg, offcuts)
     if not len(goal_fragments):
         raise ValueError("spectral_rewards needs at least one goal fragment")
-    off = list(offcuts or [])
-    return spectral_rewards_per_goal(fragment_sets, [list(goal_fragments)] * len(fragment_sets), cfg,
-                                     [off] * len(fragment_sets))
+    cfg = (cfg or RewardConfig()).validate()
+    Ds, vols, gvols = _score_sets(fragment_sets, goal_fragments, cfg)  # the shared goal hashed once
+    ov = _offcut_volumes(offcuts)
+    return [reward_from_distances(D, len(goal_fragments), cfg, v, gvols, ov) for D, v in zip(Ds, vols)]
 
 
 def spectral_rewards_per_goal(fragment_sets, goal_sets, cfg: RewardConfig | None = None,
