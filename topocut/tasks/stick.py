@@ -6,7 +6,8 @@ if the slab is at least as tall as it is wide (cube, tall objects) the sticks st
 a2 across the standing slab); if it is wider than tall (steak, cake, donut edge slabs) the slab is first
 laid flat (``Turn``: 90 deg about a2, cut face up) and cut normal to its former height, so the sticks lie
 along a2.  Either way the slab is first set where no stick cut reaches the rest of the object: a standing slab off
-the object's +a1/+a2 corner (a ``Turn`` by 0 deg), a laid one beyond its +a1 end.  Goal pieces: the full sticks (bands holding >= half a full stick's particles), initial pose.
+the object's +a1/+a2 corner (a ``Turn`` by 0 deg), a laid one beyond its +a1 end.  Goal pieces: the pieces the steps make that lie mostly in a full stick's band (a band holding >= half
+a full stick's particles; topocut.tasks.ideal), initial pose.
 **Oracle.** Slab cut; move the slab aside [laid flat]; ``max_cuts - 1`` cuts at the band edges that lie inside the slab
 (bands anchored at a face or centred, whichever makes the most full sticks).
 **Randomisations.** As slice; thickness and width per task config.
