@@ -10,7 +10,7 @@ from pathlib import Path
 from topocut.data.episodes import EpisodeDataset
 from topocut.data.store import ArtifactStore
 from topocut.sim.action import KnifeAction
-from topocut.sim.render import render_sequences
+from topocut.sim.render import goal_colors, render_sequences
 
 
 def main(argv=None) -> None:
@@ -34,7 +34,8 @@ def main(argv=None) -> None:
             raise SystemExit(f"--index {args.index}: {path} holds {len(found)} episodes of {task} on {args.object}")
         steps = ds.episode(found[args.index])
         first = steps[0]
-        panels = [(first["x_t"], first["f_t"], None, "initial"), (first["goal"], first["goal_labels"], None, "goal")]
+        panels = [(first["x_t"], first["f_t"], None, "initial"),
+                  (first["goal"], goal_colors(first["goal_labels"]), None, "goal")]  # 0: not a goal piece, grey
         for i, s in enumerate(steps):  # action: (x, y, yaw, tilt) of the blade plane (docs/contracts.md)
             panels.append((s["x_t1"], s["f_t1"], KnifeAction(*map(float, s["action"][:4])),
                            f"cut {i + 1}: R {float(s['reward']):.2f}"))

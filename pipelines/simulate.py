@@ -3,7 +3,8 @@
 The task (``topocut.tasks.get_task(task.name)``) says which scene runs (``tool``): the knife tasks execute
 their goal's ideal steps (``Goal.steps``: cuts, and the turns between them, topocut.sim.CuttingEnv.turn) and
 store per-step particle states (positions, damage, cluster labels, knife sweeps); cream writing runs the scripted
-writer and scooping the spoon primitive.  PNG frames coloured by cluster id and a GIF.
+writer and scooping the spoon primitive.  PNG frames coloured by cluster id with the knife and the board, and a
+GIF that shows each cut in motion (topocut.sim.render; docs/sim.md#rendering).
 """
 from __future__ import annotations
 
@@ -17,21 +18,33 @@ from topocut.utils.context import RunContext
 from topocut.utils.progress import progress_bar
 
 
-def run(ctx: RunContext, sim, object, task, topology, frames_per_cut: int = 6) -> dict:
+def run(ctx: RunContext, sim, object, task, topology, frames_per_cut: int = 10) -> dict:
     from topocut.config import task_for_stage
 
     tool = task_for_stage(task, "simulate").tool
-    return {"knife": run_knife, "pen": run_writing, "spoon": run_scooping}[tool](ctx, sim, object, task, topology)
+    if tool == "knife":
+        return run_knife(ctx, sim, object, task, topology, frames_per_cut)
+    return {"pen": run_writing, "spoon": run_scooping}[tool](ctx, sim, object, task, topology)
 
 
-def run_knife(ctx: RunContext, sim, object, task, topology) -> dict:
-    """The goal's ideal steps (at most task.max_cuts cuts, the turns between them), push after cuts iff task.push."""
+def run_knife(ctx: RunContext, sim, object, task, topology, frames_per_cut: int = 10) -> dict:
+    """The goal's ideal steps (at most task.max_cuts cuts, the turns between them), push after cuts iff task.push.
+
+    Renders (topocut.sim.render, one view box over the whole sequence): frames/cut0.png, per cut cutK_damage.png
+    and cutK.png (the knife at the cut's plane, the board, pieces by cluster id), turnK.png; cut.gif plays each
+    cut in motion (``frames_per_cut`` snapshots of the particles during the cut, CuttingEnv.cut's record_every,
+    the particles this cut has damaged so far dark) and holds the states between the cuts."""
     from topocut.sim import CuttingEnv
-    from topocut.sim.render import render_particles, write_gif
+    from topocut.sim.render import DAMAGED, UNASSIGNED, render_frames, save_png, write_gif
     from topocut.tasks import get_task, truncate_steps
     from topocut.topology import discover
 
-    config = as_dict(("sim", sim), ("object", object), ("task", task), ("topology", topology), ("seed", ctx.seed))
+    if frames_per_cut < 0:
+        from topocut.config import ConfigError  # the user's to fix: one message, exit 2
+
+        raise ConfigError(f"stage.run.frames_per_cut={frames_per_cut}: must be >= 0 (0: no motion frames in cut.gif)")
+    config = as_dict(("sim", sim), ("object", object), ("task", task), ("topology", topology), ("seed", ctx.seed),
+                     ("frames_per_cut", frames_per_cut))
     writer, reused, sim = begin_sim(ctx, f"{object.name}-{task.name}", config, sim)
     if reused is not None:
         return reused
@@ -41,14 +54,10 @@ def run_knife(ctx: RunContext, sim, object, task, topology) -> dict:
     env = CuttingEnv(sim, batch_size=1)
     st = env.reset(object.name, pose, seed=ctx.seed)
     x0 = st.x[0]
-    limits = (x0.min(0) - 0.03, x0.max(0) + 0.03)
     labels = discover(x0, st.damage[0], None, cfg=topology, device=ctx.device).labels
-    frames_dir = writer.path / "frames"
-
-    def draw(x, lab, name, title):
-        return render_particles(x, lab, frames_dir / f"{name}.png", title=title, limits=limits, size=6)
-
-    frames = [draw(x0, labels, "cut0", f"{object.name}: start")]
+    # every frame is drawn at the end with one view box over all of them (pieces pushed aside stay in view);
+    # "png": its file under frames/ (None: a GIF-only motion frame), "hold": seconds it shows in cut.gif (0: not shown)
+    frames = [dict(x=x0, labels=labels, title=f"{object.name}: start", png="cut0", hold=1.0)]
     arrays = {"x_0": x0, "damage_0": st.damage[0], "labels_0": labels, "material": st.material}
     records, turns = [], []
     steps = truncate_steps(t.oracle(goal), task.max_cuts)
@@ -62,13 +71,23 @@ def run_knife(ctx: RunContext, sim, object, task, topology) -> dict:
                                 device=ctx.device)
                 labels = topo.labels
                 arrays.update({f"x_turn{i}": st.x[0], f"labels_turn{i}": labels})
-                frames.append(draw(st.x[0], labels, f"turn{i}", f"turn after cut {i}: {topo.num_clusters} pieces"))
+                frames.append(dict(x=st.x[0], labels=labels, title=f"turn after cut {i}: {topo.num_clusters} pieces",
+                                   png=f"turn{i}", hold=1.0))
                 turns.append({"after_cut": i, "turned": int(mask[0].sum()), "pieces": int(topo.num_clusters),
                               "turn": {k: getattr(step, k) for k in ("pieces", "axis", "angle", "center", "target")}})
                 advance(1, info=f"turn after cut {i}")
                 continue
             i += 1
-            info = env.cut(step.action)
+            # snapshots every `every` substeps: about frames_per_cut over the knife's travel from above the object
+            travel = sim.cut_substeps or (float(st.x[0][:, 2].max()) - sim.board_z + sim.knife_clearance) / (
+                sim.knife_speed * env.dt)
+            every = max(1, int(travel) // frames_per_cut) if frames_per_cut else 0
+            damaged_before = st.damage[0]
+            info = env.cut(step.action, record_every=every)
+            for snap in info.snapshots or []:  # the previous pieces' colours, the particles this cut damaged dark
+                frames.append(dict(x=snap.x[0], labels=labels, damaged=snap.damage[0] & ~damaged_before, knife=step.action,
+                                   knife_edge=snap.knife_edge[0], png=None, hold=0.12,
+                                   title=f"cut {i}: {1e3 * snap.substep * env.dt:.0f} ms"))
             if task.push:
                 env.push()
             st = env.state()
@@ -76,8 +95,11 @@ def run_knife(ctx: RunContext, sim, object, task, topology) -> dict:
                             device=ctx.device)
             labels = topo.labels
             arrays.update({f"x_{i}": st.x[0], f"damage_{i}": st.damage[0], f"labels_{i}": labels})
-            frames.append(draw(st.x[0], np.where(st.damage[0], 7, 0), f"cut{i}_damage", f"cut {i}: damaged particles"))
-            frames.append(draw(st.x[0], labels, f"cut{i}", f"cut {i}: {topo.num_clusters} pieces"))
+            dmg = np.where(st.damage[0][:, None], DAMAGED, UNASSIGNED)  # N,3
+            frames.append(dict(x=st.x[0], colors=dmg, legend_extra=(("intact", UNASSIGNED), ("damaged", DAMAGED)),
+                               knife=step.action, title=f"cut {i}: damaged particles", png=f"cut{i}_damage", hold=0))
+            frames.append(dict(x=st.x[0], labels=labels, knife=step.action, png=f"cut{i}", hold=1.2,
+                               title=f"cut {i}{' + push' if task.push else ''}: {topo.num_clusters} pieces"))
             records.append({"cut": i, "action": step.action.asdict(), "sweep": info.sweeps[0].asdict(),
                             "pieces": int(topo.num_clusters), "damaged": int(st.damage[0].sum()),
                             "force": float(np.linalg.norm(info.force[0])), "work": float(info.work[0]),
@@ -87,11 +109,15 @@ def run_knife(ctx: RunContext, sim, object, task, topology) -> dict:
     np.savez_compressed(writer.path / "states.npz", **arrays)
     (writer.path / "cuts.json").write_text(json.dumps({"object": object.name, "pose": pose.__dict__, "task": task.name,
                                                        "cuts": records, "turns": turns}, indent=2, default=float))
-    write_gif(frames, writer.path / "cut.gif", fps=2)
+    images = render_frames([{k: v for k, v in f.items() if k not in ("png", "hold")} for f in frames],
+                           board_z=sim.board_z)
+    pngs = [save_png(img, writer.path / "frames" / f"{f['png']}.png") for f, img in zip(frames, images) if f["png"]]
+    shown = [(img, f["hold"]) for f, img in zip(frames, images) if f["hold"] > 0]
+    write_gif([img for img, _ in shown], writer.path / "cut.gif", durations=[h for _, h in shown])
     summary = {"cuts": len(records), "turns": len(turns), "pieces": records[-1]["pieces"] if records else 1,
                "particles": int(len(x0)), "sim_s_per_cut": float(np.mean([r["wall_s"] for r in records] or [0])),
                "topology_s_per_cut": float(np.mean([r["topology_s"] for r in records] or [0]))}
-    return _commit(ctx, writer, summary, "simulate", Path(frames[-1]).relative_to(writer.path))
+    return _commit(ctx, writer, summary, "simulate", Path(pngs[-1]).relative_to(writer.path))
 
 
 def _commit(ctx, writer, summary: dict, stage: str, image) -> dict:

@@ -272,6 +272,10 @@ def test_simulate_slices_a_cube_into_three_labelled_pieces(tmp_path):
     assert _pixels_of(frames / "cut1.png", _PALETTE[1]) > 200
     assert _pixels_of(frames / "cut1.png", _PALETTE[2]) < 20
     assert _pixels_of(frames / "cut2.png", _PALETTE[2]) > 200
+    from PIL import Image
+
+    with Image.open(art / "cut.gif") as gif:  # each cut in motion (stage.run.frames_per_cut snapshots), not stills
+        assert gif.n_frames >= 1 + 4 * len(cuts) and gif.size[0] >= 800
 
 
 @pytest.mark.parametrize("overrides,needle", [

@@ -25,6 +25,11 @@ Reward (``reward_mode``): "total" (default; the paper's per-step reward: R, the 
 both as ``reward_total`` and ``reward_gain``, with ``cut_count``, ``num_pieces``, ``success``, ``failed``.
 terminated = ``task.success(result, task_cfg)``; truncated = cuts == max_cuts, or the batch diverged / a turn
 was refused (``info["failed"]``).
+
+Rendering: ``render_mode="rgb_array"`` makes ``render()`` return each scene's (H,W,3) uint8 frame
+(topocut.sim.render.render_frame: pieces by cluster id, the board, the knife of the scene's last cut) -- a tuple
+of them from the vector env, one array from ``CuttingEnvGym``.  ``import topocut.envs`` registers
+``TopoCut/Slice-v0``, ``TopoCut/Stick-v0`` and ``TopoCut/Dice-v0`` (``make_env`` / ``make_vector_env``).
 """
 from __future__ import annotations
 
@@ -42,6 +47,9 @@ from topocut.sim.action import ACTION_DIM, POSE_FEATURE_DIM, KnifeAction, execut
 ID_MAX = 2**31 - 1  # cluster ids / goal piece labels are int32 in the pipeline
 REWARD_MODES = ("total", "gain")
 OBS_FIELDS = ("points", "labels", "history", "goal", "goal_labels", "cuts_done")
+RENDER_MODES = ["rgb_array"]
+RENDER_FPS = 2  # a frame per cut
+VIEW_MARGIN = 0.05  # [units] round the uncut object in a rendered episode's view box: room for pushed/turned pieces
 
 
 def default_tilt_max(task_cfg) -> float:
@@ -82,20 +90,21 @@ def single_spaces(num_points: int, num_goal_points: int, max_cuts: int, tilt_max
 class CuttingVectorEnv(VectorEnv):
     """``num_envs`` cutting scenes in one CuttingEnv batch (module docstring for the episode rule)."""
 
-    metadata = {"autoreset_mode": AutoresetMode.DISABLED, "render_modes": []}
+    metadata = {"autoreset_mode": AutoresetMode.DISABLED, "render_modes": RENDER_MODES, "render_fps": RENDER_FPS}
 
     def __init__(self, task: str = "slice", objects: str | list[str] = "cube", num_envs: int = 2, sim_cfg=None,
                  topo_cfg=None, reward_cfg=None, task_cfg=None, eval_cfg=None, num_points: int = 1024,
                  num_goal_points: int = 1024, max_cuts: int | None = None, push: bool | None = None,
                  reward_mode: str = "total", tilt_max: float | None = None, device: str = "cpu",
-                 min_fragment_points: int | None = None, turns: bool = True):
+                 min_fragment_points: int | None = None, turns: bool = True, render_mode: str | None = None):
         """task: a task name (knife tasks: slice, stick, dice, pyramid); task_cfg: its TaskConfig (default
         TaskConfig(name=task)).  objects: one object name, or a list from which each scene draws its own at
         every reset.  sim_cfg: SimConfig (its batch_size is replaced by num_envs).  topo_cfg /
         reward_cfg: TopologyConfig / RewardConfig (None: defaults).  eval_cfg: EvalConfig whose pose
         randomisation (randomize_pose, translation, yaw_deg, scale_min/max) and min_fragment_points are used.
         num_points / num_goal_points: P and M of the observation.  max_cuts (None: task_cfg.max_cuts), push
-        (None: task_cfg.push).  device: where topology discovery runs ("cpu" / "cuda")."""
+        (None: task_cfg.push).  device: where topology discovery runs ("cpu" / "cuda").  render_mode: None or
+        "rgb_array" (``render()`` returns frames)."""
         from topocut.eval.config import EvalConfig
         from topocut.sim.config import SimConfig
         from topocut.sim.env import CuttingEnv
@@ -103,6 +112,7 @@ class CuttingVectorEnv(VectorEnv):
 
         if reward_mode not in REWARD_MODES:
             raise ValueError(f"reward_mode={reward_mode!r}; choose one of {', '.join(REWARD_MODES)}")
+        check_render_mode(render_mode)
         self.task_cfg = (task_cfg if task_cfg is not None else TaskConfig(name=task)).validate()
         self.task = get_task(self.task_cfg.name)
         if getattr(self.task, "tool", "knife") != "knife":
@@ -133,10 +143,12 @@ class CuttingVectorEnv(VectorEnv):
             self.num_points, self.num_goal_points, self.max_cuts, self.tilt_max)
         self.action_space = batch_space(self.single_action_space, self.num_envs)
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
-        self.render_mode = None
+        self.render_mode = render_mode
         self.goal = None
         self.engine = None  # topocut.episode.EpisodeBatch, built at the first reset
         self.episode_seed = None
+        self.knife = [None] * self.num_envs  # per scene, the KnifeAction of its last cut in this episode (renders)
+        self.view = [None] * self.num_envs  # per scene, the (lo, hi) view box of its rendered frames
 
     # -- helpers ---------------------------------------------------------------------------------------
     def _sample(self, pts, n: int, labels) -> tuple[np.ndarray, np.ndarray]:
@@ -202,6 +214,8 @@ class CuttingVectorEnv(VectorEnv):
         self.goal = self.engine.goals
         self.total = np.array([s.total for s in self.engine.initial], np.float64)
         self.done = np.zeros(B, bool)
+        self.knife = [None] * B
+        self.view = [None] * B
         info = {"reward_total": self.total.copy(), "num_pieces": np.array([s.pieces for s in self.engine.initial],
                                                                           np.int64),
                 "episode_seed": np.array(seeds, np.int64)}
@@ -232,10 +246,39 @@ class CuttingVectorEnv(VectorEnv):
         terminated = active & success & ~failed
         truncated = active & ~terminated & ((cuts >= self.max_cuts) | failed)
         self.done |= terminated | truncated
+        self.knife = [k if active[b] else self.knife[b] for b, k in enumerate(knives)]
         info = {"reward_total": self.total.copy(), "reward_gain": gain, "cut_count": cut_count,
                 "num_pieces": num_pieces, "success": success, "failed": failed,
                 "actions": np.stack([a.to_vector() for a in knives])}
         return (self._obs(), reward.astype(np.float64), terminated, truncated, self._with_masks(info, active))
+
+    def render(self) -> tuple[np.ndarray, ...] | None:
+        """render_mode "rgb_array": each scene's (H,W,3) uint8 frame (topocut.sim.render.render_frame) -- its pieces
+        by cluster id, the board, the knife at the plane of its last cut.  A scene's view box is its uncut object
+        with VIEW_MARGIN round it, grown to hold every state rendered since the reset, so a piece is never cropped
+        and the view stays put while the pieces stay near the object."""
+        if self.render_mode is None:
+            gym.logger.warn("render() without a render_mode: make the env with render_mode='rgb_array'")
+            return None
+        if self.engine is None:
+            raise RuntimeError("CuttingVectorEnv.render before reset()")
+        from topocut.sim.render import render_frame
+
+        frames = []
+        for b in range(self.num_envs):
+            x = np.asarray(self.engine.xs[b], np.float64)  # n_b,3
+            if self.view[b] is None:
+                lo, hi = x.min(0) - VIEW_MARGIN, x.max(0) + VIEW_MARGIN
+                lo[2] = min(x[:, 2].min(), self.board_z) - 0.01
+                hi[2] = x[:, 2].max() + 0.02  # no margin above: the object rests on the board
+            else:
+                lo, hi = self.view[b]
+            self.view[b] = (np.minimum(lo, x.min(0) - 0.01), np.maximum(hi, x.max(0) + 0.01))
+            cuts = len(self.engine.logs[b].actions)
+            frames.append(render_frame(x, self.engine.labels[b], knife=self.knife[b], board_z=self.board_z,
+                                       limits=self.view[b], title=f"{self.task_cfg.name}: {self.object[b]}, cut "
+                                                                  f"{cuts}, R = {self.total[b]:.2f}"))
+        return tuple(frames)
 
     @staticmethod
     def _with_masks(info: dict, mask: np.ndarray) -> dict:
@@ -256,14 +299,19 @@ class CuttingEnvGym(gym.Env):
     """One scene (``CuttingVectorEnv`` with num_envs = 1) as a ``gymnasium.Env``; same arguments, unbatched
     spaces, observations and scalar reward / flags."""
 
-    metadata = {"render_modes": []}
+    metadata = {"render_modes": RENDER_MODES, "render_fps": RENDER_FPS}
 
     def __init__(self, **kwargs):
         kwargs["num_envs"] = 1
         self.vec = CuttingVectorEnv(**kwargs)
         self.action_space = self.vec.single_action_space
         self.observation_space = self.vec.single_observation_space
-        self.render_mode = None
+        self.render_mode = self.vec.render_mode
+
+    @property
+    def goal(self):
+        """The scene's goal (topocut.tasks.base.Goal: its pieces, planes and steps)."""
+        return None if self.vec.goal is None else self.vec.goal[0]
 
     @staticmethod
     def _one(d: dict) -> dict:
@@ -279,5 +327,58 @@ class CuttingEnvGym(gym.Env):
         obs, r, term, trunc, info = self.vec.step(np.asarray(action, np.float32)[None])
         return self._one(obs), float(r[0]), bool(term[0]), bool(trunc[0]), self._one(info)
 
+    def render(self) -> np.ndarray | None:
+        """render_mode "rgb_array": the scene's (H,W,3) uint8 frame (CuttingVectorEnv.render)."""
+        frames = self.vec.render()
+        return None if frames is None else frames[0]
+
     def close(self):
         self.vec.close()
+
+
+def check_render_mode(render_mode) -> None:
+    if render_mode is not None and render_mode not in RENDER_MODES:
+        raise ValueError(f"render_mode={render_mode!r}; valid: None, {', '.join(map(repr, RENDER_MODES))}")
+
+
+def protocol_task_config(task: str, max_cuts: int | None = None):
+    """The evaluation protocol's TaskConfig of ``task`` (conf/task/<task>.yaml: stick and dice push; the evaluation's
+    cut budget, eval.max_cuts, unless ``max_cuts``): what the registered TopoCut/<Task>-v0 ids run."""
+    from topocut.eval.config import EvalConfig
+    from topocut.eval.runner import task_configs
+
+    return task_configs([task], EvalConfig().max_cuts if max_cuts is None else int(max_cuts))[task]
+
+
+def _registered_kwargs(task: str, kwargs: dict) -> dict:
+    from topocut.eval.config import EvalConfig
+
+    if kwargs.get("task_cfg") is None:
+        kwargs["task_cfg"] = protocol_task_config(task, kwargs.get("max_cuts"))
+    kwargs.setdefault("objects", list(EvalConfig().seen))  # Table 1's seen objects, one drawn per scene and reset
+    return kwargs
+
+
+def make_env(task: str = "slice", **kwargs) -> CuttingEnvGym:
+    """Entry point of ``gymnasium.make("TopoCut/<Task>-v0", ...)``: CuttingEnvGym on the protocol's task config and,
+    unless given, Table 1's seen objects; every CuttingVectorEnv argument may be passed."""
+    return CuttingEnvGym(task=task, **_registered_kwargs(task, kwargs))
+
+
+def make_vector_env(task: str = "slice", num_envs: int = 2, **kwargs) -> CuttingVectorEnv:
+    """Entry point of ``gymnasium.make_vec("TopoCut/<Task>-v0", num_envs=B, ...)``: B scenes in one simulator batch
+    (CuttingVectorEnv), as make_env."""
+    return CuttingVectorEnv(task=task, num_envs=num_envs, **_registered_kwargs(task, kwargs))
+
+
+make_env.metadata = CuttingEnvGym.metadata  # gymnasium.make reads the render modes off the entry point
+make_vector_env.metadata = CuttingVectorEnv.metadata
+REGISTERED = {"TopoCut/Slice-v0": "slice", "TopoCut/Stick-v0": "stick", "TopoCut/Dice-v0": "dice"}  # Table 1's tasks
+
+
+def register_envs() -> None:
+    """Register REGISTERED with gymnasium (``import topocut.envs`` does; idempotent)."""
+    for env_id, task in REGISTERED.items():
+        if env_id not in gym.registry:
+            gym.register(env_id, entry_point="topocut.envs.vector:make_env",
+                         vector_entry_point="topocut.envs.vector:make_vector_env", kwargs={"task": task})

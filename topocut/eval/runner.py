@@ -240,7 +240,7 @@ def render_episodes(specs, policies, env, task_cfgs, out_dir, eval, reward, topo
     ``sequences.png``, the paper's cutting-sequence figure (a row per task: initial state, goal, each cut)."""
     from topocut.episode import env_board_z, run_episodes
     from topocut.eval.protocol import _episode, scoring_for
-    from topocut.sim.render import render_particles, render_sequences, write_gif
+    from topocut.sim.render import goal_colors, render_frames, render_sequences, write_gif
 
     name = next((n for n in policies if n.split("@")[0] == "pddp"), next(iter(policies)))
     sc = scoring_for(env, reward, topology, eval.min_fragment_points)
@@ -251,20 +251,16 @@ def render_episodes(specs, policies, env, task_cfgs, out_dir, eval, reward, topo
                             max_cuts=eval.max_cuts, observe_fn=observe_fn, stop_on_success=eval.stop_on_success,
                             spacing=spacing, frames=True)
         for spec, log in zip(chosen, logs):
-            frames, panels = [], []
-            x0 = log.frames[0][0]
-            limits = (x0.min(0) - 0.03, x0.max(0) + 0.03)
+            panels = []
             for i, (x, labels, what, knife) in enumerate(log.frames):  # knife: a cut's executed action
-                frames.append(render_particles(x, labels, out_dir / f"{spec.key}_{name}_{i}.png",
-                                               title=f"{name} {spec.key} {what}", limits=limits, size=6,
-                                               knife=knife, board_z=board_z))
                 if i == 0 or knife is not None:
                     panels.append((x, labels, knife, "initial" if i == 0 else what))
                 if i == 0 and log.goal is not None:
-                    panels.append((log.goal.points, log.goal.labels, None, "goal"))
-            write_gif(frames, out_dir / f"{spec.key}_{name}.gif", fps=1.5)
-            for f in frames:
-                f.unlink()
+                    panels.append((log.goal.points, goal_colors(log.goal.labels), None, "goal"))
+            # one view box over every frame of the episode: pieces pushed or turned away stay in view
+            gif = render_frames([dict(x=x, labels=labels, knife=knife, title=f"{name} {spec.key} {what}")
+                                 for x, labels, what, knife in log.frames], board_z=board_z)
+            write_gif(gif, out_dir / f"{spec.key}_{name}.gif", fps=1.5)
             if len(rows) < len(eval.tasks) and spec is chosen[0]:
                 rows.append((f"{task}: {spec.object}", panels))
     if rows:

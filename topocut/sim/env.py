@@ -53,6 +53,17 @@ class CutInfo:
     wall_time: float
     substeps_per_scene: np.ndarray | None = None  # B, each scene's own budget (travel + dwell); frozen after it
     split_time: float = 0.0  # [s] of wall_time on the host finding the pieces the cut makes (pieces.py)
+    snapshots: list | None = None  # [CutSnapshot] during the cut, with cut(..., record_every=k) (renders); else None
+
+
+@dataclass
+class CutSnapshot:
+    """The particles part-way through a cut (``CuttingEnv.cut(..., record_every=k)``): what a GIF of the cut shows."""
+
+    substep: int  # substeps of the cut done
+    x: np.ndarray  # B,n,3 f32 positions (rows past counts[b] are padding)
+    damage: np.ndarray  # B,n bool
+    knife_edge: np.ndarray  # B,3 the edge midpoint at that time (the knife's motion, knife.py)
 
 
 class CuttingEnv(Scenes, Primitives):
@@ -99,14 +110,16 @@ class CuttingEnv(Scenes, Primitives):
         at = np.full(self.B, NO_STEP) if at is None else np.asarray(at, np.int64)
         self.solver.frozen_at.from_numpy(np.where(self.dead, 0, np.minimum(at, NO_STEP)).astype(np.int32))
 
-    def simulate(self, substeps: int, t0: float = 0.0, contact: int = 0) -> None:
+    def simulate(self, substeps: int, t0: float = 0.0, contact: int = 0, on_record=None, record_every: int = 0) -> None:
         """Advance every scene by ``substeps`` substeps.
 
         An armed knife follows its motion from time t0; ``contact`` 0 treats it as a
         wedge, 1 as a solid body (sticky inside, sliding contact band).  Whole chunks of
         ``sim.fuse_substeps`` substeps go to one ``MPMSolver.advance`` call (a kernel graph),
         the rest to ``substep`` (same kernels, same result bit for bit); the host syncs only
-        for the divergence check, every ``check_every`` substeps and at the end.
+        for the divergence check, every ``check_every`` substeps and at the end.  ``on_record(i)`` (with
+        ``record_every`` k > 0) is called after the chunk that completes each multiple of k substeps (a host sync
+        each: off by default, so nothing else pays for it).
         """
         s = self._need()
         k, every = self.fuse, self.cfg.tuning.check_every
@@ -124,6 +137,8 @@ class CuttingEnv(Scenes, Primitives):
                 s.sort_by_cell(self.n)
             if i // every > (i - m) // every:
                 self._check()
+            if on_record is not None and record_every > 0 and i // record_every > (i - m) // record_every:
+                on_record(i)
         self._check()
 
     def _arm_knife(self, o, u, w, nrm, half, depth, speed, amp, direction=None, target=None, smooth=0,
@@ -191,8 +206,11 @@ class CuttingEnv(Scenes, Primitives):
         # n_fields never shrinks while the solver lives: fields past a smaller count would keep stale nodes the
         # clear no longer visits.  Empty fields cost a mass check per node.
 
-    def cut(self, action: KnifeAction | list[KnifeAction]) -> CutInfo:
+    def cut(self, action: KnifeAction | list[KnifeAction], record_every: int = 0) -> CutInfo:
         """One cut per scene (a single action goes to every scene), all scenes in one launch sequence.
+
+        ``record_every`` k > 0: ``CutInfo.snapshots`` holds the particles every k substeps (at the fused chunks'
+        ends: ``sim.tuning.fuse_substeps``) with the knife's edge, for GIFs of the cut in motion; 0 (default) none.
 
         Scene b runs its own budget, ceil(depth_b / (speed_b dt)) + dwell substeps, and is frozen
         (no phase touches it) for the rest of the batch's substeps, so its result does not depend on the
@@ -200,6 +218,8 @@ class CuttingEnv(Scenes, Primitives):
         """
         t_wall = time.perf_counter()
         cfg, s = self.cfg, self._need()
+        if record_every < 0:
+            raise ValueError(f"cut: record_every={record_every}; 0 records nothing, k > 0 every k substeps")
         acts = [action] * self.B if isinstance(action, KnifeAction) else list(action)
         if len(acts) != self.B:
             raise ValueError(f"cut got {len(acts)} actions for batch_size={self.B}")
@@ -245,12 +265,21 @@ class CuttingEnv(Scenes, Primitives):
         self._arm_knife(o0, [f[0] for f in frames], [f[1] for f in frames], [f[2] for f in frames],
                         [half] * self.B, depth, speed, cfg.osc_amplitude, sharp=1, on=(~idle).astype(np.int32))
         self._set_frozen(self.step_count + totals)  # scene b stops after its budget
+        om = 2 * math.pi * cfg.osc_frequency
+        snaps = [] if record_every > 0 else None
+
+        def record(i):  # the edge as knife.py moves it: along w at speed until depth, oscillating along u
+            te = np.minimum(i * self.dt, depth / np.maximum(speed, 1e-9))[:, None]  # B,1
+            edge = np.asarray(o0) + np.stack([f[1] for f in frames]) * speed[:, None] * te \
+                + np.stack([f[0] for f in frames]) * cfg.osc_amplitude * np.sin(om * te)  # B,3
+            snaps.append(CutSnapshot(i, s.x.to_numpy()[:, :self.n].copy(), s.damage.to_numpy()[:, :self.n].astype(bool),
+                                     edge))
         try:
-            self.simulate(total, contact=0 if cfg.knife_mode == "wedge" else 1)
+            self.simulate(total, contact=0 if cfg.knife_mode == "wedge" else 1, on_record=record if snaps is not None
+                          else None, record_every=record_every)
         finally:
             s.k_on.fill(0)
             self._set_frozen()  # outside a cut every scene moves (but a diverged one)
-        om = 2 * math.pi * cfg.osc_frequency
         ends = [o0[b] + w * depth[b] + u * cfg.osc_amplitude * math.sin(om * depth[b] / speed[b])
                 for b, (u, w, nrm) in enumerate(frames)]
         self.sweeps = [prev if i else [sw] for prev, sw, i in zip(self.sweeps, sweeps, idle)]
@@ -259,7 +288,8 @@ class CuttingEnv(Scenes, Primitives):
         return CutInfo(sweeps=sweeps, force=s.k_imp.to_numpy() / np.maximum(duration, self.dt)[:, None], peak_force=s.k_peak.to_numpy(),
                        work=s.k_work.to_numpy().astype(np.float64), knife_end=np.asarray(ends),
                        newly_damaged=s.damage.to_numpy()[:, :self.n].sum(1) - dmg0, substeps=total,
-                       wall_time=time.perf_counter() - t_wall, substeps_per_scene=totals, split_time=t_split)
+                       wall_time=time.perf_counter() - t_wall, substeps_per_scene=totals, split_time=t_split,
+                       snapshots=snaps)
 
 
 _ENV: dict = {}  # this process's shared simulator (stage=mppi's parts): {"key": (sim config, batch size), "env": CuttingEnv}
