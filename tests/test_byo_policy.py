@@ -19,7 +19,7 @@ from topocut.policies import registry
 
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLES = REPO / "examples"
-TOY = "my_policy:CentrePlanePolicy"
+TOY = "my_policy:GoalPlanePolicy"
 TINY = ["stage=eval", "device=cpu", "logger=none", "progress=false", "eval.seen=[cube]", "eval.unseen=[]",
         "eval.tasks=[slice]", "eval.episodes_per_cell=1", "eval.max_cuts=1", "eval.gifs=0", "eval.num_points=128",
         "eval.cpu_threads=1", "sim.n_grid=20", "sim.cut_substeps=40", "sim.dwell_time=0.0005", "sim.push_time=0.002",
@@ -77,13 +77,13 @@ def fake_module(tmp_path, monkeypatch):
 
 def test_import_path_entry_loads_the_class_and_passes_config(toy_on_path):
     ext = registry.load_external(TOY)
-    assert ext.cls.__name__ == "CentrePlanePolicy" and ext.display == "Centre plane (example)"
+    assert ext.cls.__name__ == "GoalPlanePolicy" and ext.display == "Goal plane (example)"
     assert EvalConfig(policies=["oracle", TOY], seen=["cube"], unseen=[]).validate()
-    assert registry.display_name(TOY) == "Centre plane (example)"
+    assert registry.display_name(TOY) == "Goal plane (example)"
     assert registry.display_name("nowhere.mod:MyPolicy") == "MyPolicy"  # not importable here: the class part
     from topocut.eval.report import DISPLAY
 
-    assert DISPLAY.get(TOY, TOY) == "Centre plane (example)" and DISPLAY.get("pddp") == "PDDP (Ours)"
+    assert DISPLAY.get(TOY, TOY) == "Goal plane (example)" and DISPLAY.get("pddp") == "PDDP (Ours)"
 
 
 def test_run_dir_is_filesystem_safe_and_deterministic():
@@ -98,11 +98,14 @@ def test_the_policy_sees_the_documented_obs_and_must_return_a_knife_action(toy_o
 
     policy = registry.load_external(TOY).build()
     policy.reset(goal=None, seed=3)
-    pts = np.random.default_rng(0).uniform(0.4, 0.6, (64, 3)).astype(np.float32)
-    obs = {"points": pts, "labels": np.zeros(64, np.int32), "history": np.zeros((3, 7), np.float32),
-           "goal": pts, "goal_labels": np.zeros(64, np.int32), "sim_state": object(), "cuts_done": 0}
-    action = policy.act(obs)
-    assert isinstance(action, KnifeAction) and abs(action.x - pts[:, 0].mean()) < 1e-6
+    pts = np.random.default_rng(0).uniform(0.4, 0.6, (256, 3)).astype(np.float32)
+    goal_labels = (pts[:, 0] > 0.55).astype(np.int32)  # one goal piece: the slab x > 0.55; 0 the rest
+    obs = {"points": pts, "labels": np.zeros(256, np.int32), "history": np.zeros((3, 7), np.float32),
+           "goal": pts, "goal_labels": goal_labels, "sim_state": object(), "cuts_done": 0}
+    action = policy.act(obs)  # the plane between the slab and the rest: x = 0.55, normal along x
+    assert isinstance(action, KnifeAction) and abs(action.x - 0.55) < 0.01 and abs(action.yaw) < 0.1, action
+    assert policy.act(obs) is None  # one goal piece, one cut: then it ends the episode
+    policy.reset(goal=None, seed=3)
     seen = {}
     policy.policy.act = lambda o: seen.update(o) or action
     policy.act(obs)
@@ -150,10 +153,10 @@ def test_bad_entry_on_the_command_line_exits_2(tmp_path):
     assert "Traceback" not in out, out[-3000:]
     assert "eval.policies: 'no_such_module_xyz:MyPolicy': cannot import module" in out, out[-3000:]
     assert "module.path:ClassName" in out
-    proc = topocut(tmp_path, *TINY, f"eval.policies=[oracle,{TOY}]", "+eval.policy_kwargs.CentrePlanePolicy={depth:1}")
+    proc = topocut(tmp_path, *TINY, f"eval.policies=[oracle,{TOY}]", "+eval.policy_kwargs.GoalPlanePolicy={depth:1}")
     out = proc.stdout + proc.stderr
     assert proc.returncode == 2 and "Traceback" not in out, out[-3000:]
-    assert "does not take eval.policy_kwargs.CentrePlanePolicy={'depth': 1}" in out, out[-3000:]
+    assert "does not take eval.policy_kwargs.GoalPlanePolicy={'depth': 1}" in out, out[-3000:]
 
 
 def test_smoke_evaluation_of_the_toy_policy_beside_the_oracle(tmp_path):
@@ -166,8 +169,11 @@ def test_smoke_evaluation_of_the_toy_policy_beside_the_oracle(tmp_path):
     with open(path / "results.csv") as f:
         rows = [r for r in csv.DictReader(f) if r["policy"] == TOY]
     assert rows and all(r["compared_to"] == "oracle" and r["episodes"] == "1" for r in rows)
-    assert "Centre plane (example)" in (path / "results.md").read_text()
+    # it cuts where the goal's first slab ends, so it earns some reward (the example once scored 0 everywhere)
+    (overall,) = [r for r in rows if r["task"] == "all"]
+    assert float(overall["R_mean"]) > 0, overall
+    assert "Goal plane (example)" in (path / "results.md").read_text()
     runs = json.loads((path / "policies.json").read_text())
-    assert runs[run]["policy"] == TOY and runs[run]["display"] == "Centre plane (example)"
+    assert runs[run]["policy"] == TOY and runs[run]["display"] == "Goal plane (example)"
     manifest = json.loads((path / "manifest.json").read_text())
     assert manifest["inputs"][run].startswith(f"policy/{TOY}@")  # its source keys the evaluation

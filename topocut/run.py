@@ -39,7 +39,10 @@ from topocut.utils.runtime import DeviceUnavailable, resolve_device, seed_everyt
 
 log = logging.getLogger("topocut")
 register_configs()
-CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
+REPO_ROOT = Path(__file__).resolve().parent.parent
+CONF_DIR = REPO_ROOT / "conf"
+OUTPUTS_ENV = "TOPOCUT_OUTPUTS"
+_OUTPUTS_NOTE = ""  # how a relative outputs root was resolved (absolute_outputs_root), said once by main()
 # A user's mistake, not a bug: a single run prints the message (which names the key or file and what is valid)
 # without a traceback and exits 2; status.json keeps the traceback.  Multirun jobs re-raise for Hydra's launcher.
 USER_ERRORS = (ConfigError, MissingArtifact, CorruptArtifact, ArtifactBusy, DeviceUnavailable, InvalidName,
@@ -118,6 +121,31 @@ def check_overrides(cfg: DictConfig, overrides: list[str]) -> None:
                           f"{fix}")
 
 
+def absolute_outputs_root(argv: list[str], environ) -> tuple[list[str], str]:
+    """A relative outputs root (``outputs_root=<dir>``, else ``$TOPOCUT_OUTPUTS``, else the default ``outputs``) made
+    absolute against the repository root, not the current directory: a stage run from another directory (docs/,
+    a notebook's) otherwise wrote a second outputs tree there, and the next stage, run from the repository, found
+    none of it (``latest`` is per tree).  The Makefile's ``clean-outputs`` and ``table2`` read the same path, as
+    they run in the repository root.  Returns (argv with an absolute ``outputs_root=``, the note to print; "" when
+    nothing was relative); ``environ`` gets an absolute TOPOCUT_OUTPUTS, which the config and every process this
+    one starts (joblib workers, Lightning's DDP ranks) read."""
+    argv = list(argv)
+    for i in reversed(range(len(argv))):
+        prefix, sep, value = argv[i].partition("outputs_root=")
+        if sep and prefix in ("", "+", "++"):
+            path = Path(os.path.expanduser(value))
+            if "${" in value or path.is_absolute():
+                return argv, ""
+            argv[i] = f"{prefix}outputs_root={os.path.abspath(REPO_ROOT / path)}"
+            return argv, f"outputs_root={value} is relative: taken from the repository root {REPO_ROOT}"
+    value = environ.get(OUTPUTS_ENV) or ""
+    path = Path(os.path.expanduser(value or "outputs"))
+    if path.is_absolute():
+        return argv, ""
+    environ[OUTPUTS_ENV] = os.path.abspath(REPO_ROOT / path)
+    return argv, (f"{OUTPUTS_ENV}={value} is relative: taken from the repository root {REPO_ROOT}" if value else "")
+
+
 @hydra.main(version_base="1.3", config_path="../conf", config_name="config")
 def main(cfg: DictConfig) -> None:
     from hydra.types import RunMode
@@ -125,6 +153,7 @@ def main(cfg: DictConfig) -> None:
     hc = HydraConfig.get()
     overrides = list(hc.overrides.task)
     single = hc.mode == RunMode.RUN
+    log.info("outputs: %s%s", cfg.outputs_root, f" ({_OUTPUTS_NOTE})" if _OUTPUTS_NOTE else "")
     if single:  # SIGTERM as Ctrl-C: status.json records it, one line, committed work kept
         import signal
 
@@ -187,7 +216,7 @@ def preflight(argv: list[str]) -> None:
 
 if __name__ == "__main__":
     os.environ.setdefault("HYDRA_FULL_ERROR", "0")
-    sys.argv[1:] = open_dict_overrides(sys.argv[1:])
+    sys.argv[1:], _OUTPUTS_NOTE = absolute_outputs_root(open_dict_overrides(sys.argv[1:]), os.environ)
     try:
         preflight(sys.argv[1:])
     except ConfigError as e:

@@ -231,29 +231,41 @@ def _name(policy: str, seeds: dict | None) -> str:
     return DISPLAY.get(policy, policy) + (f" ({k} seed{'s' if k > 1 else ''})" if k else "")
 
 
+def _shown(m, digits: int = 2) -> float | None:
+    """A mean as the table prints it (None where it prints "-")."""
+    return round(float(m), digits) if m is not None and math.isfinite(m) else None
+
+
+def best_shown(means, digits: int = 2) -> float | None:
+    """The value a Table-1 column bolds, among the compared policies' means (the reference row is not compared: it
+    holds raw R, not R̂): the highest as printed, and only when it is above 0.  A column where every compared
+    policy reads 0.00 has no best, so nothing there is bolded (a bold 0.00 read as a winner); equal printed
+    values share the bold."""
+    shown = [v for v in (_shown(m, digits) for m in means) if v is not None]
+    top = max(shown, default=None)
+    return top if top is not None and top > 0 else None
+
+
 def table1_markdown(table: dict, reference: str | None = None, title: str = "", note: str = "",
                     seeds: dict | None = None) -> str:
     """Paper layout from {policy: {(split, task): (R̂, N_C)}}, each a number or a (mean, lo, hi) triple; the
-    reference row shows raw R; best mean in bold; ``seeds`` {policy: training seeds pooled} labels the rows."""
+    reference row first, with raw R; in each column the best mean of the other rows in bold where it is above 0
+    (``best_shown``); ``seeds`` {policy: training seeds pooled} labels the rows."""
     cols = [(s, t) for s in ("in", "out") for t in TASKS]
     head = "| Algorithm | " + " | ".join(f"{SPLIT_SHORT[s]} {t} R̂ | {SPLIT_SHORT[s]} {t} N_C"
                                           for s, t in cols) + " |"
     lines = [f"### {title}" if title else "", note, "(ID: in-distribution / seen objects; OOD: out-of-distribution)",
              "", head, "|---" * (1 + 2 * len(cols)) + "|"]
     others = [p for p in table if p != reference]
-    best = {}
-    for c in cols:
-        for k in (0, 1):
-            vals = [_mean(table[p][c][k]) for p in others if c in table[p] and math.isfinite(_mean(table[p][c][k]))]
-            best[c, k] = max(vals) if vals else None
+    best = {(c, k): best_shown([_mean(table[p][c][k]) for p in others if c in table[p]]) for c in cols
+            for k in (0, 1)}
     for p in ([reference] if reference in table else []) + others:
         cells = []
         for c in cols:
             for k in (0, 1):
                 v = table[p].get(c, (math.nan, math.nan))[k]
                 s = format_interval(v)
-                m = _mean(v)
-                if p != reference and best[c, k] is not None and math.isfinite(m) and np.isclose(m, best[c, k]):
+                if p != reference and best[c, k] is not None and _shown(_mean(v)) == best[c, k]:
                     s = f"**{s}**"
                 cells.append(s)
         name = _name(p, seeds) + (" (reference, raw R)" if p == reference else "")
@@ -322,16 +334,20 @@ def aggregate_markdown(rows: list[dict], compare_to: str, title: str = "", note:
     return "\n".join(lines) + "\n"
 
 
-def plot_results(rows: list[dict], path, reference: str | None = None) -> None:
-    """Grouped bars: rows R̂ / N_C, columns in / out of distribution, groups = tasks, bars = policies; the error
-    bars are the bootstrap intervals (none where undefined)."""
+def plot_results(rows: list[dict], path, reference: str | None = None) -> dict:
+    """Grouped bars: rows R̂ / N_C, columns in / out of distribution, groups = tasks, bars = policies, the
+    reference first (hatched; its R̂ is its reward over its own mean, about 1, the scale the others are read
+    against: without it a smoke run's panels were bars of zero height only); the error bars are the bootstrap
+    intervals (none where undefined).  Returns the bars drawn: {(metric, split): {policy: [mean per task]}}."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     rows = _cells(rows)
-    policies = list(dict.fromkeys(r["policy"] for r in rows if r["policy"] != reference))
+    policies = list(dict.fromkeys(r["policy"] for r in rows))
+    policies.sort(key=lambda p: p != reference)  # stable: the reference first, the others in row order
+    drawn: dict = {}
     tasks = [t for t in TASKS if any(r["task"] == t for r in rows)]
     fig, axes = plt.subplots(2, 2, figsize=(11, 6.5), sharey="row", squeeze=False)
     width = 0.8 / max(len(policies), 1)
@@ -344,8 +360,11 @@ def plot_results(rows: list[dict], path, reference: str | None = None) -> None:
                 lo = np.array([cell[t][f"{metric}_lo"] if t in cell else np.nan for t in tasks], np.float64)
                 hi = np.array([cell[t][f"{metric}_hi"] if t in cell else np.nan for t in tasks], np.float64)
                 err = np.nan_to_num(np.stack([mean - lo, hi - mean]), nan=0.0).clip(min=0.0)
+                ref = p == reference
                 ax.bar(np.arange(len(tasks)) + (k - (len(policies) - 1) / 2) * width, mean, width, yerr=err,
-                       capsize=2, label=DISPLAY.get(p, p))
+                       capsize=2, label=DISPLAY.get(p, p) + (" (reference)" if ref else ""),
+                       hatch="//" if ref else None, edgecolor="0.3" if ref else None)
+                drawn.setdefault((metric, split), {})[p] = mean.tolist()
             ax.set_xticks(np.arange(len(tasks)), tasks)
             ax.set_title(f"{SPLIT_TITLES[split]} — {label}", fontsize=10)
             if j == 0:
@@ -354,6 +373,7 @@ def plot_results(rows: list[dict], path, reference: str | None = None) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+    return drawn
 
 
 def print_table(rows: list[dict], title: str = "Evaluation") -> None:
@@ -422,7 +442,8 @@ def write_report(out_dir, reference: str = "oracle", normalize_by: str = "task",
     ci = (f"{confidence:.0%} percentile-bootstrap intervals over episode specs ({n_resamples} resamples, "
           f"seed {seed})")
     note = (f"R̂ normalised by `{reference}` per {normalize_by.replace('_', ' and ')}; {len(episodes)} episodes; "
-            f"mean [{ci}]; a cell of one episode has no interval."
+            f"mean [{ci}]; a cell of one episode has no interval. Bold: a column's best mean among the policies "
+            "compared (not the reference row), where it is above 0."
             + (" Training seeds pooled (each seed's checkpoint runs every episode): "
                + ", ".join(f"{DISPLAY.get(p, p)} {k}" for p, k in pooled.items()) + "." if pooled else ""))
     ours = table1_markdown(rows_to_table(rows, reference), reference, title="TopoCut reimplementation", note=note,

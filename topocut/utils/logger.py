@@ -2,12 +2,25 @@
 from __future__ import annotations
 
 import csv
+import logging
 import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 LOGGERS = ("wandb", "csv", "none")
+log = logging.getLogger("topocut")
+
+
+def wandb_location(run, mode: str) -> str:
+    """One line on where a wandb run goes: its offline directory (and how to upload it) or its page; "" when
+    disabled."""
+    if mode == "disabled" or getattr(run, "disabled", False):
+        return ""
+    if mode == "offline" or getattr(run, "offline", False):
+        where = run.settings.sync_dir
+        return f"wandb: offline run written to {where} (upload it with `wandb sync {where}`)"
+    return f"wandb: run {run.url}"
 
 
 @dataclass
@@ -28,13 +41,20 @@ class RunLogger:
         self.kind, self.run_dir, self.name = kind, Path(run_dir), name
         self.project, self.mode, self.entity = project, mode, entity
         self._wandb = None
+        self.where = ""  # wandb: where the run went (wandb_location)
         self._csv_path = self.run_dir / "metrics.csv"
         if kind == "wandb":
             import wandb
 
             mode = os.environ.get("WANDB_MODE", mode)
+            # silent: wandb's banner and run summary are ~30 lines a stage (and around every stage of stage=all);
+            # the one line below says where the run went, which is what that banner was for
             self._wandb = wandb.init(project=project, entity=entity, name=name, mode=mode,
-                                     dir=str(self.run_dir), config=config or {}, reinit="finish_previous")
+                                     dir=str(self.run_dir), config=config or {}, reinit="finish_previous",
+                                     settings=wandb.Settings(silent=True))
+            self.where = wandb_location(self._wandb, mode)
+            if self.where:
+                log.info("%s", self.where)
 
     def log(self, metrics: dict[str, Any], step: int | None = None) -> None:
         if self.kind == "wandb":

@@ -65,9 +65,18 @@ def print_summary(title: str, summary: dict) -> None:
     """A two-column rich table of a stage's summary (nested dicts flattened with '/')."""
     from rich.table import Table
 
+    flat = flatten(summary)
+    out = console()
     table = Table(title=title, show_header=True, header_style="bold")
-    table.add_column("key")
+    # A key is never cut short (rich shrank it to fit a long path beside it: "val/cluster_err_re…", a name no doc
+    # could be searched for); the value folds onto further lines instead.  Only where even the keys leave no room
+    # for a value (a very narrow terminal) does the key fold too, still whole.
+    longest = max((len(k) for k in flat), default=3)
+    if longest + 20 <= out.width:
+        table.add_column("key", no_wrap=True, min_width=longest)
+    else:
+        table.add_column("key", overflow="fold")
     table.add_column("value", overflow="fold")
-    for k, v in flatten(summary).items():
+    for k, v in flat.items():
         table.add_row(k, f"{v:.4g}" if isinstance(v, float) else str(v))
-    console().print(table)
+    out.print(table)

@@ -134,6 +134,20 @@ def route_lightning_logs() -> None:
         lg.propagate = True
 
 
+class EpochLines(Callback):
+    """One log line per epoch, every metric under its whole name, in place of Lightning's progress bar where the
+    output is not a terminal (a log file, a CI log): the bar's last frame landed there squeezed into a narrow
+    column, names cut short (``val/cluster_err_re…  -231.000``) and no line per epoch."""
+
+    def on_train_epoch_end(self, trainer, pl_module) -> None:  # after the epoch's validation
+        if trainer.sanity_checking or not trainer.is_global_zero:
+            return
+        metrics = epoch_metrics(trainer.callback_metrics)
+        logging.getLogger("topocut.progress").info(
+            "epoch %d/%d: %s", trainer.current_epoch + 1, trainer.max_epochs,
+            ", ".join(f"{k} {v:.4g}" for k, v in metrics.items()))
+
+
 def build_trainer(trainer_cfg, max_epochs: int, ckpt_dir: Path, logger=False, progress: bool = True,
                   callbacks=(), gradient_clip_val: float | None = None):
     """A Lightning Trainer from the `trainer` config group (accelerator, devices, strategy, precision).
@@ -143,8 +157,11 @@ def build_trainer(trainer_cfg, max_epochs: int, ckpt_dir: Path, logger=False, pr
     """
     import lightning as L
     from lightning.pytorch.callbacks import ModelCheckpoint
+    from rich.console import Console
 
     route_lightning_logs()
+    if progress and not Console().is_terminal:  # a log: lines per epoch, not a bar's last frame (EpochLines)
+        progress, callbacks = False, [*callbacks, EpochLines()]
     ckpt = ModelCheckpoint(dirpath=str(ckpt_dir), filename="last", monitor=None, save_top_k=1, every_n_epochs=1,
                            enable_version_counter=False)
     return L.Trainer(accelerator=trainer_cfg.accelerator, devices=trainer_cfg.devices, strategy=trainer_cfg.strategy,
