@@ -25,6 +25,7 @@ import argparse
 import time
 
 import numpy as np
+import yaml
 
 POSES = [(0.5, 0.5, 0.0, 1.0), (0.52, 0.48, 0.2, 0.8), (0.48, 0.515, -0.25, 1.2), (0.505, 0.49, 0.1, 1.0)]
 
@@ -81,7 +82,8 @@ def simulated(args):
     from topocut.tasks import TaskConfig
 
     init_taichi(args.device)
-    sim = SimConfig(n_grid=args.n_grid, arch=args.device)
+    overrides = {k: yaml.safe_load(v) for k, v in (a.split("=", 1) for a in args.sim)}
+    sim = SimConfig(n_grid=args.n_grid, arch=args.device, **overrides)
     env = CuttingEnv(sim, batch_size=1)
     reward_cfg = RewardConfig()
     dev = args.topology_device or ("cuda" if args.device == "cuda" else "cpu")
@@ -201,6 +203,8 @@ def main():
     ap.add_argument("--ideal", action="store_true", help="no physics: the steps on the ideal particle set")
     ap.add_argument("--topology-device", default="", help="where discovery runs (default: the simulator's device)")
     ap.add_argument("--compare-cpu", action="store_true", help="also discover each state on the CPU")
+    ap.add_argument("--sim", nargs="*", default=[], metavar="KEY=VALUE",
+                    help="simulator settings (SimConfig keys), e.g. --sim kerf_half_width=0.006")
     ap.add_argument("--summary", default="", help="summarise the oracle episodes of this evaluation artifact")
     args = ap.parse_args()
     if args.summary:

@@ -29,7 +29,8 @@ CASES128 = [(t, o, (i + j) % len(POSES)) for j, t in enumerate(("slice", "stick"
 
 def execute_reference(task, obj, pose, n_grid, size, max_cuts=5):
     spacing = 0.5 / n_grid
-    cfg = TaskConfig(name=task, thickness=size, width=size, size=size, max_cuts=max_cuts)
+    # the protocol's settings: stick and dice push after each cut (conf/task), so their plans are push-safe
+    cfg = TaskConfig(name=task, thickness=size, width=size, size=size, max_cuts=max_cuts, push=task != "slice")
     goal = get_task(task).make_goal(cfg, obj, pose, spacing, board_z=0.05, seed=SEED)
     pts, _ = sample_object(obj, pose, spacing, seed=SEED, board_z=0.05)
     run = ideal.execute(pts.astype(np.float64), goal.steps, ideal.sim_config_for(spacing, 0.05))
@@ -173,3 +174,48 @@ def test_the_batched_reward_counts_planned_offcuts_as_the_single_one_does():
         assert a.total == pytest.approx(b.total) == pytest.approx(c.total)
         assert a.offcuts == b.offcuts == c.offcuts
     assert single[0].total >= 0.99 and single[1].total < single[0].total
+
+
+def _cube_and_cuts():
+    from topocut.sim.action import KnifeAction
+    from topocut.tasks.base import Cut
+
+    spacing = 0.5 / 48
+    pts, _ = sample_object("cube", ObjectPose(), spacing, seed=SEED, board_z=0.05)
+    x = pts.astype(np.float64)
+    hi = x[:, 0].max()
+    cut = lambda n, at: Cut(KnifeAction.from_plane(np.asarray(n, float), at, 0.05))  # noqa: E731
+    near = cut([1, 0, 0], [hi - 0.06, 0.5, 0.05])  # two slices off the +x end: 6 cm and 3 cm in
+    far = cut([1, 0, 0], [hi - 0.03, 0.5, 0.05])
+    across = cut([0, 1, 0], [0.5, 0.5, 0.05])
+    return x, ideal.sim_config_for(spacing, 0.05), near, far, across
+
+
+def test_push_conflicts_counts_cuts_through_pushed_material():
+    """Two slices off one end.  Cutting 6 cm in first cuts off the smaller +x side (both slices), which the push
+    slides along +x, and the 3 cm cut then splits that pushed piece: one conflict.  Cutting 3 cm in first pushes
+    only the end slice, which no later cut crosses: none.  A cut square to the push (normal y) through pushed
+    material is no conflict: a slide along x moves nothing across it."""
+    x, sim_cfg, near, far, across = _cube_and_cuts()
+    assert ideal.push_conflicts(x, [near, far], sim_cfg) == 1
+    assert ideal.push_conflicts(x, [far, near], sim_cfg) == 0
+    assert ideal.push_conflicts(x, [near, across], sim_cfg) == 0
+    assert ideal.push_safe(x, [near, far], sim_cfg) == [far, near]  # the run of parallel cuts reversed
+    assert ideal.push_safe(x, [far, near, across], sim_cfg) == [far, near, across]  # already safe: as planned
+
+
+@pytest.mark.parametrize("obj,pose", [("cube", 0), ("cube", 2), ("ditto", 0), ("potato", 2)])
+def test_dice_plans_at_128_push_nothing_a_later_cut_crosses(obj, pose):
+    """At 128^3 with 3 cm dice the chops were planned from the inner face outwards: the first chop's push slid
+    the outer dice row along the next chop's normal, so one plane crossed two sticks moved apart (GPU run,
+    docs/results.md).  With task.push the plan is ordered so that no cut splits pushed material."""
+    spacing = 0.5 / 128
+    sim_cfg = ideal.sim_config_for(spacing, 0.05)
+    pts, _ = sample_object(obj, POSES[pose], spacing, seed=SEED, board_z=0.05)
+    x = pts.astype(np.float64)
+    kw = dict(name="dice", size=0.03, max_cuts=5)
+    planned = get_task("dice").make_goal(TaskConfig(**kw, push=False), obj, POSES[pose], spacing, seed=SEED)
+    safe = get_task("dice").make_goal(TaskConfig(**kw, push=True), obj, POSES[pose], spacing, seed=SEED)
+    assert ideal.push_conflicts(x, planned.steps, sim_cfg) >= 1
+    assert ideal.push_conflicts(x, safe.steps, sim_cfg) == 0
+    assert len(safe.fragments) == len(planned.fragments)  # the same goal pieces, cut in another order

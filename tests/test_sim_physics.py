@@ -106,12 +106,18 @@ def _signed(x, a, board_z):
 
 
 def test_cut_damages_a_band_around_each_blade_plane(env, cut):
+    """The blade damages its kerf (docs/sim.md, "Contact"): the particles within ``kerf`` of its plane, half a
+    particle spacing at this grid (wider than the 2 mm blade), and next to nothing a few spacings away."""
     x0, info, st = cut
-    dx = env.cfg.dx
+    kerf, h = env.cfg.kerf, env.cfg.spacing
+    assert kerf == max(env.cfg.knife_half_thickness, 0.5 * h)
     for b, a in enumerate(ACTIONS):  # each scene around its own plane
         d = np.abs(_signed(x0, a, env.cfg.board_z))
-        assert st.damage[b][d < 0.75 * dx].mean() > 0.6
-        assert st.damage[b][d > 4 * dx].mean() < 0.05
+        assert (d <= 0.9 * kerf).sum() > 20
+        assert st.damage[b][d <= 0.9 * kerf].mean() > 0.9
+        # not the contact's inflated box (half a cell more on each side): that made 40% of a 3 cm slab mush
+        assert st.damage[b][(d > kerf + 0.25 * h) & (d <= kerf + 2 * h)].mean() < 0.05
+        assert st.damage[b][d > kerf + 3 * h].mean() < 0.05
         assert info.newly_damaged[b] == st.damage[b].sum()
         assert info.work[b] > 0 and info.peak_force[b] > 0
 

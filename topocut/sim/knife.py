@@ -98,13 +98,17 @@ class Knife:
 
     @ti.func
     def blade_damage(self, b, p, t):
-        """During a cut the blade destroys the material it occupies: particles inside it are damaged.  They are
-        not moved: the velocity fields already keep each piece on its side (moving them out of the inflated
-        blade would pack half a cell of material into a layer on each face)."""
+        """During a cut the blade destroys the material in its kerf: particles within ``cfg.kerf`` of its plane,
+        inside its length and above its edge, are damaged.  The kerf is the blade's own thickness, not the
+        contact's inflated box: the inflation is half a cell, so a 3 cm slab at 128^3 (5 cm at 64^3) lost 40%
+        of its particles to damage and sagged.  They are not moved: the velocity fields already keep each piece
+        on its side (moving them out of the blade would pack material into a layer on each face)."""
         if self.k_on[b] == 1 and self.k_sharp[b] == 1:
             edge, _ = self.knife_motion(b, t)
-            sd, _ = self.knife_sdf(b, self.x[b, p], edge)
-            if sd < 0:
+            half = self.k_half[b]
+            d = self.x[b, p] - (edge - self.k_w[b] * half[1])
+            if (ti.abs(d.dot(self.k_u[b])) <= half[0] and ti.abs(d.dot(self.k_w[b])) <= half[1]
+                    and ti.abs(d.dot(self.k_n[b])) <= ti.static(self.cfg.kerf)):
                 self.damage[b, p] = 1
 
     # -- contact between the velocity fields of one node (pieces) --------------------------------------------

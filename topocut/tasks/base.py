@@ -168,7 +168,10 @@ class KnifeTask(ABC):
         pad = -object_sdf(object, p64, pose, board_z)  # each particle's depth below the surface
         steps, cells = self.pieces(cfg, p64, axes, pad, spacing, board_z)
         # what the plan's steps make (a cut that separates nothing is left out)
-        steps, run = ideal.effective_steps(p64, steps, ideal.sim_config_for(spacing, board_z))
+        sim_cfg = ideal.sim_config_for(spacing, board_z)
+        if cfg.push:  # parallel cuts in the order whose pushes slide aside only what no later cut crosses
+            steps = ideal.push_safe(p64, steps, sim_cfg)
+        steps, run = ideal.effective_steps(p64, steps, sim_cfg)
         goal_ids, offcut_ids, _ = ideal.roles(run.piece, cells)
         if not goal_ids:
             from topocut.config import ConfigError  # a ValueError: the user's to fix (exit 2 from a stage)

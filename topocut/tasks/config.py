@@ -62,7 +62,7 @@ class TaskConfig:
     # the least total spectral reward (in [0, r_max]) a success needs: knife tasks also need every goal piece made
     # (N_C = G; KnifeTask.success, docs/tasks.md#success); cream writing and scooping the total alone (their yaml: 0.95)
     success_threshold: float = 0.5
-    push: bool = False  # gentle downward push after each cut (stick and dice in the paper)
+    push: bool = False  # after each cut the blade slides the cut-off side aside (stick and dice in the paper)
     num_goal_points: int = 2048  # Goal.points/labels are FPS-downsampled to this many points (0: keep all)
     sample_tilt: bool = False  # MPPI also samples the knife tilt (pyramid: the goal plane is tilted)
     # -- cream writing -----------------------------------------------------------

@@ -96,6 +96,73 @@ def effective_steps(points: np.ndarray, steps, sim_cfg) -> tuple[list, IdealRun]
     return out, execute(points, out, sim_cfg)
 
 
+def push_conflicts(points: np.ndarray, steps, sim_cfg, pairs=None) -> int:
+    """How many of the plan's cuts split a piece that an earlier cut's push slid aside.
+
+    After each cut the simulator's push slides the cut-off side (``topocut.sim.pieces.cut_off_side``: of the pieces
+    the cut split, the side with fewer particles) a couple of centimetres along the blade's normal; a Turn lays
+    its piece where the plan says, which undoes that.  A later plane that crosses pushed material finds it moved
+    (and, when the plane crosses several pieces, each moved differently: no one plane cuts them all where the
+    plan meant).  A push along a direction square to the later plane moves nothing across it, so only
+    displacement along the later plane's normal counts."""
+    from topocut.sim import pieces as P
+    from topocut.sim.primitives import nearest_piece, turned_positions
+
+    x = np.asarray(points, np.float64).copy()
+    pairs = P.bonds(x, sim_cfg.spacing) if pairs is None else pairs
+    piece = np.zeros(len(x), np.int32)
+    moved = np.zeros((len(x), 3))  # N,3 each particle's pushes so far, in push lengths
+    conflicts = 0
+    for step in steps:
+        if getattr(step, "kind", "cut") == "turn":
+            sel = piece == nearest_piece(x, piece, step.center)
+            x[sel] = turned_positions(x[sel], step, sim_cfg)
+            moved[sel] = 0.0
+            continue
+        sweep, _, _ = P.blade_sweep(step.action, x, sim_cfg)
+        after = P.split(x, piece, sweep, sim_cfg.spacing, pairs)
+        parents = [p for p in np.unique(piece) if len(np.unique(after[piece == p])) > 1]
+        cut = np.isin(piece, parents)
+        conflicts += int(cut.any() and np.abs(moved[cut] @ step.action.normal).max() > 0.1)
+        side = P.cut_off_side(x, piece, after, sweep)
+        if side:
+            o, _, _, n = sweep.as_arrays()
+            h = np.array([n[0], n[1], 0.0]) / max(float(np.hypot(n[0], n[1])), 1e-9)  # the push is horizontal
+            moved[cut & ((((x - o) @ n) >= 0) == (side > 0))] += side * h
+        piece = after
+    return conflicts
+
+
+def push_safe(points: np.ndarray, steps, sim_cfg) -> list:
+    """``steps`` with each run of parallel cuts (consecutive Cut steps, normals parallel) in the order, as planned
+    or reversed, whose pushes move the least material a later cut crosses (``push_conflicts``): a cook slices
+    from the end, sliding each slice away from where the knife goes next (docs/tasks.md#pushes)."""
+    from topocut.sim import pieces as P
+
+    steps = list(steps)
+    runs, i = [], 0
+    while i < len(steps):
+        j = i
+        while (j + 1 < len(steps) and all(getattr(s, "kind", "cut") == "cut" for s in steps[i:j + 2])
+               and abs(float(np.dot(steps[i].action.normal, steps[j + 1].action.normal))) > 0.999):
+            j += 1
+        if j > i:
+            runs.append((i, j + 1))
+        i = j + 1
+    if not runs:
+        return steps
+    pairs = P.bonds(np.asarray(points, np.float64), sim_cfg.spacing)
+    best = push_conflicts(points, steps, sim_cfg, pairs)
+    for a, b in runs:
+        if best == 0:
+            break
+        cand = steps[:a] + steps[a:b][::-1] + steps[b:]
+        c = push_conflicts(points, cand, sim_cfg, pairs)
+        if c < best:
+            steps, best = cand, c
+    return steps
+
+
 def _anchor(x0, x, before, after, action) -> Anchor:
     """The particles nearest the cut's plane on the pieces it splits (all pieces it touches if it splits none),
     half of them on each side."""
