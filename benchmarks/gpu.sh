@@ -155,6 +155,19 @@ PY
       tar -czf "$OUT/oracle$grid.tgz" -C "$d" episodes
     done
     mps_stop ;;
+  mppi-check)  # #47: MPPI at the demonstration settings (K=16, 2 iterations, horizon 1) beside the oracle, 64^3 with 5 cm
+    # pieces, EPC episodes a cell (default 2: 54 each); a reward the planner beats the answer key on is one it games
+    mps_start
+    t0=$(date +%s)
+    timeout ${LIMIT:-560} python3 -m topocut.run stage=eval scale=paper device=cuda reward=torch sim.n_grid=64 \
+      planner.iterations=2 planner.horizon=1 "eval.policies=[oracle,mppi]" eval.train_seeds=1 \
+      eval.jobs=${EVAL_JOBS:-12} eval.gifs=0 eval.episodes_per_cell=${EPC:-2} eval.name=mppi64 logger=none \
+      progress=false outputs_root=/tmp/o \
+      "eval.task_overrides={slice:{thickness:0.05},stick:{thickness:0.05,width:0.05},dice:{thickness:0.05,width:0.05,size:0.05}}" \
+      2>&1 | grep -v -i warn | grep -v ticache | tail -40 | tee -a "$OUT/mppi_check.txt"
+    echo "== wall $(( $(date +%s) - t0 )) s" | tee -a "$OUT/mppi_check.txt"
+    d=$(ls -d /tmp/o/eval/mppi64/v* | tail -1) && tar -czf "$OUT/mppi64.tgz" -C "$d" episodes
+    mps_stop ;;
   demos)  # MPPI demonstrations through stage=mppi at 64^3, K=16, 2 iterations, horizon 1 (#31's per-cut figure)
     timeout ${LIMIT:-560} python3 -m topocut.run stage=mppi task=slice object=cake device=cuda sim.n_grid=64 \
       sim.batch_size=16 planner.num_samples=16 planner.iterations=2 planner.horizon=1 reward=torch \
