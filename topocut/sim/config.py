@@ -31,6 +31,7 @@ class TuningConfig:
     grid_layout: str = "auto"  # grid nodes: aos (one struct each) | soa (an array per component) | auto = soa on cuda
     scatter_block_dim: int = 0  # CUDA threads per block of the scatter (caps its registers); 0 = auto
     gather_block_dim: int = 0  # likewise for the gather (g2p); 0 = auto
+    device_split: str = "off"  # a cut's pieces found by kernels (pieces_device.py): on | off | auto = off for now
 
     def core_rotation_method(self, arch: str) -> str:
         """'svd' on a GPU: skin and core particles share warps, which would otherwise run both the SVD
@@ -88,6 +89,16 @@ class TuningConfig:
             return self.resort_every
         return 64 if self.warp_scatter_enabled(arch) else 0
 
+    def device_split_enabled(self, arch: str) -> bool:
+        """Find a cut's pieces in Taichi kernels (topocut/sim/pieces_device.py: the same labels as the host's
+        pieces.split) rather than with scipy on the host, where the split is 40% of a cut's simulation time at 128^3
+        on a GPU.  auto stays off until the device split is timed on a GPU (benchmarks/split_device.py); it is
+        meant to turn on for cuda then.  On a 2-core CPU it wins for one scene and loses for a batch whose scenes
+        hold the same particles (MPPI's rollouts), where the host shares one neighbour search between them."""
+        if self.device_split != "auto":
+            return self.device_split == "on"
+        return False
+
     def validate(self, arch: str, batch_size: int, n_grid: int, n_fields: int) -> TuningConfig:
         """Checks of the switches against the sim they tune; a ValueError naming ``sim.tuning.<key>``."""
         def bad(key, msg):
@@ -108,6 +119,8 @@ class TuningConfig:
         if self.warp_scatter_enabled(arch) and batch_size * n_fields * n_grid ** 3 >= 2 ** 31:
             bad("warp_scatter", f"run keys (scene, cell) overflow 32 bits at batch_size={batch_size}, "
                                 f"n_grid={n_grid}; use fewer scenes or sim.tuning.warp_scatter=off")
+        if self.device_split not in SWITCHES:
+            bad("device_split", f"{self.device_split!r}; valid: {', '.join(SWITCHES)}")
         if self.grid_layout not in LAYOUTS:
             bad("grid_layout", f"{self.grid_layout!r}; valid: {', '.join(LAYOUTS)}")
         for key in ("scatter_block_dim", "gather_block_dim"):

@@ -173,8 +173,18 @@ class CuttingEnv(Scenes, Primitives):
         reach = cfg.knife_half_thickness + cfg.margin + 2 * cfg.dx  # where the wedge acts on a node's fields
         searched = []  # scenes whose neighbour search ran; a scene holding the same particles reuses it
         idle = np.zeros(self.B, bool) if idle is None else idle
+        counts = self.counts
+        on_device = cfg.tuning.device_split_enabled(cfg.arch)
+        if on_device:  # sim.tuning.device_split: every scene's split in one batch of kernels, the same labels
+            from topocut.sim.pieces_device import split_batch
+
+            xs = np.zeros((self.B, self.n, 3))
+            for b in range(self.B):
+                xs[b, :counts[b]] = x[b]
+            split = split_batch(xs, counts, self.piece[:, :self.n], [None if i else sw for sw, i in zip(sweeps, idle)],
+                                cfg.spacing)
         for b in range(self.B):
-            if idle[b]:
+            if idle[b] or on_device:
                 continue
             key = next((c for c in searched if x[c].shape == x[b].shape and np.array_equal(x[c], x[b])), None)
             if key is None:
@@ -183,11 +193,9 @@ class CuttingEnv(Scenes, Primitives):
             else:
                 bonds[b] = bonds[key]
 
-        counts = self.counts
-
         def one(b):  # numpy / scipy release the GIL in the large array work: scenes run in threads
             before, sw = self.piece[b, :counts[b]], sweeps[b]
-            after = P.split(x[b], before, sw, cfg.spacing, bonds[b])
+            after = split[b, :counts[b]] if on_device else P.split(x[b], before, sw, cfg.spacing, bonds[b])
             field, conflicts = P.colour(x[b], after, cfg.n_grid, cfg.fields)
             return after, field, conflicts, P.cut_off_side(x[b], before, after, sw), \
                 P.field_sides(x[b], field, cfg.fields, sw, reach)
