@@ -155,6 +155,9 @@ PY
       tar -czf "$OUT/oracle$grid.tgz" -C "$d" episodes
     done
     mps_stop ;;
+  split-bench)  # #49: a cut's split on the host against the Taichi kernels (benchmarks/split_device.py), 128^3 cake
+    python3 benchmarks/split_device.py --device cuda --n-grid ${GRID:-128} --batch ${BATCH:-16} 2>&1 \
+      | grep -v -i warn | tee -a "$OUT/split_bench.txt" ;;
   mppi-check)  # #47: MPPI at the demonstration settings (K=16, 2 iterations, horizon 1) beside the oracle, 64^3 with 5 cm
     # pieces, EPC episodes a cell (default 2: 54 each); a reward the planner beats the answer key on is one it games
     mps_start
