@@ -157,7 +157,7 @@ def test_env_cut_with_the_device_split_equals_the_host_split():
 
 
 def test_switch_values_are_checked():
-    assert not TuningConfig().device_split_enabled("cuda")  # auto is off until measured on a GPU
+    assert TuningConfig().device_split_enabled("cuda") and not TuningConfig().device_split_enabled("cpu")  # auto
     assert TuningConfig(device_split="on").device_split_enabled("cpu")
     with pytest.raises(ValueError, match=r"^sim\.tuning\.device_split: 'yes'; valid: auto, on, off$"):
         TuningConfig(device_split="yes").validate("cpu", 1, 64, 8)

@@ -31,7 +31,7 @@ class TuningConfig:
     grid_layout: str = "auto"  # grid nodes: aos (one struct each) | soa (an array per component) | auto = soa on cuda
     scatter_block_dim: int = 0  # CUDA threads per block of the scatter (caps its registers); 0 = auto
     gather_block_dim: int = 0  # likewise for the gather (g2p); 0 = auto
-    device_split: str = "off"  # a cut's pieces found by kernels (pieces_device.py): on | off | auto = off for now
+    device_split: str = "auto"  # a cut's pieces found by kernels (pieces_device.py): on | off | auto = on with cuda
 
     def core_rotation_method(self, arch: str) -> str:
         """'svd' on a GPU: skin and core particles share warps, which would otherwise run both the SVD
@@ -92,12 +92,12 @@ class TuningConfig:
     def device_split_enabled(self, arch: str) -> bool:
         """Find a cut's pieces in Taichi kernels (topocut/sim/pieces_device.py: the same labels as the host's
         pieces.split) rather than with scipy on the host, where the split is 40% of a cut's simulation time at 128^3
-        on a GPU.  auto stays off until the device split is timed on a GPU (benchmarks/split_device.py); it is
-        meant to turn on for cuda then.  On a 2-core CPU it wins for one scene and loses for a batch whose scenes
-        hold the same particles (MPPI's rollouts), where the host shares one neighbour search between them."""
+        on a GPU.  auto: on with cuda (one H200 at 128^3 spacing: 27x for one scene, 16.5x for 16, the same labels;
+        benchmarks/split_device.py), off on a CPU, where it wins for one scene and loses for a batch whose scenes
+        hold the same particles (MPPI's rollouts): the host shares one neighbour search between them."""
         if self.device_split != "auto":
             return self.device_split == "on"
-        return False
+        return arch == "cuda"
 
     def validate(self, arch: str, batch_size: int, n_grid: int, n_fields: int) -> TuningConfig:
         """Checks of the switches against the sim they tune; a ValueError naming ``sim.tuning.<key>``."""
