@@ -161,3 +161,24 @@ def test_switch_values_are_checked():
     assert TuningConfig(device_split="on").device_split_enabled("cpu")
     with pytest.raises(ValueError, match=r"^sim\.tuning\.device_split: 'yes'; valid: auto, on, off$"):
         TuningConfig(device_split="yes").validate("cpu", 1, 64, 8)
+
+
+def test_row_counts_that_change_between_calls_reuse_the_fields_while_they_fit():
+    """The env's rows are its largest scene's count, which changes every episode: the device fields only grow
+    (a new field tree recompiles the kernels), and every call still equals the host split."""
+    from topocut.sim import pieces_device as D
+
+    cfg, x = scene("cube", 32)
+    sweep, _, _ = P.blade_sweep(KnifeAction(x=0.5, y=0.5), x, cfg)
+    host = P.split(x, np.zeros(len(x), np.int32), sweep, cfg.spacing)
+    trees = []
+    for n in (len(x) + 100, len(x) + 40, len(x) + 3000, len(x) + 10):  # rows of padding past the scene's count
+        xs, ps = np.zeros((2, n, 3)), np.zeros((2, n), np.int32)
+        xs[:, :len(x)] = x
+        out = D.split_batch(xs, [len(x), len(x)], ps, [sweep, None], cfg.spacing)
+        assert out.shape == (2, n)
+        np.testing.assert_array_equal(out[0, :len(x)], host)
+        np.testing.assert_array_equal(out[1], 0)  # the idle scene keeps its labels
+        trees.append(id(D._CACHE[2]))
+    assert trees[0] == trees[1] and trees[2] == trees[3]  # fits: reused; grown past its capacity: one new tree
+    assert D._CACHE[2].n >= len(x) + 3000
