@@ -52,7 +52,7 @@ class CutInfo:
     substeps: int  # substeps the batch ran: the largest of substeps_per_scene
     wall_time: float
     substeps_per_scene: np.ndarray | None = None  # B, each scene's own budget (travel + dwell); frozen after it
-    split_time: float = 0.0  # [s] of wall_time on the host finding the pieces the cut makes (pieces.py)
+    split_time: float = 0.0  # [s] of wall_time finding the pieces the cut makes (pieces.py, or pieces_device.py)
     snapshots: list | None = None  # [CutSnapshot] during the cut, with cut(..., record_every=k) (renders); else None
 
 
