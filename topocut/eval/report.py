@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from topocut.eval import stats
+from topocut.eval import aggregates, stats
 from topocut.eval.config import TASKS
 from topocut.policies import registry
 
@@ -115,7 +115,8 @@ def _prepare(episodes: list[dict], reference: str, normalize_by: str) -> list[di
         spec = e["spec"]
         prepared.append(dict(policy=policy, train_seed=e.get("train_seed", seed), task=spec["task"],
                              split=spec["split"], object=spec.get("object", "?"), unit=_unit(spec),
-                             R=float(e["final_reward"]), N_C=float(e["final_cut_count"]), ok=e["status"] == "ok"))
+                             R=float(e["final_reward"]), N_C=float(e["final_cut_count"]), ok=e["status"] == "ok",
+                             success=bool(e.get("success", False))))
     ref_eps = [e for e in prepared if e["policy"] == reference]
     ref_means = {}
     for e in prepared:
@@ -426,14 +427,14 @@ def write_report(out_dir, reference: str = "oracle", normalize_by: str = "task",
                  compare_to: str | None = None, confidence: float = stats.CONFIDENCE,
                  n_resamples: int = stats.RESAMPLES, seed: int = stats.SEED) -> dict:
     """results.csv (Table-1 cells and aggregates), results_objects.csv (per object), results.md (ours with
-    intervals, the paired differences, the aggregates, then the paper's Table 1), results.png, from
-    out_dir/episodes."""
+    intervals, the paired differences, the aggregates, the IQM / P(improvement) / success table of
+    ``topocut.eval.aggregates``, the paper's Table 1), results.png, profile.png, from out_dir/episodes."""
     out_dir = Path(out_dir)
     episodes = load_episodes(out_dir)
     if not episodes:
         raise FileNotFoundError(f"no episode JSONs under {out_dir / 'episodes'}")
     compare_to = compare_to or reference
-    kw = dict(compare_to=compare_to, confidence=confidence, n_resamples=n_resamples, seed=seed)
+    kw = dict(compare_to=compare_to, **(boot := dict(confidence=confidence, n_resamples=n_resamples, seed=seed)))
     rows = summarize(episodes, reference, normalize_by, **kw)
     write_csv(rows, out_dir / "results.csv")
     write_csv(summarize(episodes, reference, normalize_by, levels=("object",), **kw), out_dir / "results_objects.csv")
@@ -455,12 +456,16 @@ def write_report(out_dir, reference: str = "oracle", normalize_by: str = "task",
                                note=dnote)
     agg = aggregate_markdown(rows, compare_to, title="Aggregates (both splits; all = every task)",
                              note=f"R̂ [{ci}]; ΔR̂ against `{compare_to}`, paired as above (≈: tie).")
+    prepared, name = _prepare(episodes, reference, normalize_by), lambda p: _name(p, seeds)
+    scores = aggregates.markdown(prepared, reference, name, **boot)
     paper = table1_markdown(PAPER_TABLE1, PAPER_REFERENCE, title="Paper (Table 1)",
                             note="R̂ normalised by human teleoperation per cut mode.")
-    (out_dir / "results.md").write_text(ours + "\n" + diff + "\n" + agg + "\n" + paper)
+    (out_dir / "results.md").write_text(ours + "\n" + diff + "\n" + agg + "\n" + scores + "\n" + paper)
     plot_results(rows, out_dir / "results.png", reference)
+    aggregates.plot_profiles(prepared, out_dir / "profile.png", reference, name)
     if console:
         print_table(rows, title=f"Table 1 (reference: {reference}; Δ against {compare_to})")
     logged = log_wandb_table(rows)
     return {"rows": rows, "csv": out_dir / "results.csv", "objects_csv": out_dir / "results_objects.csv",
-            "md": out_dir / "results.md", "png": out_dir / "results.png", "wandb": logged}
+            "md": out_dir / "results.md", "png": out_dir / "results.png", "profile": out_dir / "profile.png",
+            "wandb": logged}
