@@ -182,3 +182,20 @@ def test_row_counts_that_change_between_calls_reuse_the_fields_while_they_fit():
         trees.append(id(D._CACHE[2]))
     assert trees[0] == trees[1] and trees[2] == trees[3]  # fits: reused; grown past its capacity: one new tree
     assert D._CACHE[2].n >= len(x) + 3000
+
+
+def test_two_batch_sizes_keep_their_own_fields():
+    """Two envs of different batch sizes in one process (MPPI's rollouts beside an evaluation's scenes) each keep
+    their fields: alternating between them builds no new tree (which would recompile the kernels)."""
+    from topocut.sim import pieces_device as D
+
+    cfg, x = scene("cube", 32)
+    sweep, _, _ = P.blade_sweep(KnifeAction(x=0.5, y=0.5), x, cfg)
+    host = P.split(x, np.zeros(len(x), np.int32), sweep, cfg.spacing)
+    seen = {}
+    for B in (1, 3, 1, 3):
+        xs, ps = np.repeat(x[None], B, 0), np.zeros((B, len(x)), np.int32)
+        out = D.split_batch(xs, [len(x)] * B, ps, [sweep] * B, cfg.spacing)
+        for b in range(B):
+            np.testing.assert_array_equal(out[b], host)
+        assert seen.setdefault(B, id(D._CACHE[B])) == id(D._CACHE[B])

@@ -302,9 +302,10 @@ def split_batch(x: np.ndarray, counts, piece: np.ndarray, sweeps, spacing: float
         return piece.astype(np.int32, copy=True)
     ds = _CACHE.get(B)
     if ds is None or ds.n < n:
-        for old in _CACHE.values():  # one tree at a time: a new one frees the last (as a grown solver does)
-            old.destroy()
-        _CACHE.clear()
+        # a tree per batch size (a process may hold several envs, e.g. MPPI's rollouts beside an evaluation's
+        # scenes: alternating between them must not recompile); a grown one frees its predecessor
+        if ds is not None:
+            ds.destroy()
         ds = _CACHE[B] = DeviceSplit(B, _capacity(n))
     if ds.n > n:  # rows past counts[b] are padding the kernels skip
         xp, pp = np.zeros((B, ds.n, 3)), np.zeros((B, ds.n), np.int32)
