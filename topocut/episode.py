@@ -462,11 +462,14 @@ def run_episodes(env, episodes: list[Episode], policy, scoring: Scoring, max_cut
             if getattr(policy, "privileged", False):  # the oracle reads the scene itself (planning/oracle.py)
                 for b in live:
                     obs[b]["particles"] = engine.xs[b]  # N,3
+            saved = None
             if alone and hasattr(env, "get_state"):  # one episode in every scene: a planner (MPPI) may roll
                 obs[0]["sim_state"] = env.get_state(0)  # out from its state (batched episodes: no planner)
+                saved = env.save_scene(0, "episode") if hasattr(env, "save_scene") else None
             acts = _act(pols, obs, batched, engine)
-            if "sim_state" in obs.get(0, {}) and hasattr(env, "set_state"):
-                env.set_state(obs[0]["sim_state"], b=None)  # the rollouts moved the scenes: restore them
+            if "sim_state" in obs.get(0, {}) and hasattr(env, "set_state"):  # the rollouts moved the scenes:
+                if saved is None or not env.restore_scene(saved):  # restore them (on the device where kept)
+                    env.set_state(obs[0]["sim_state"], b=None)
             if not any(a is not None for a in acts):
                 break
             engine.step(acts)

@@ -158,6 +158,16 @@ def make_sim_rollout(env, state_dict: dict, goal, reward_cfg=None, topo_cfg=None
     B = int(getattr(env, "batch_size", 1))
     Diverged = simulation_diverged_error()
     labels0 = None if labels is None else np.asarray(labels, np.int32)
+    x0 = np.asarray(state_dict["x"], np.float32).reshape(-1, 3)  # N,3 what set_state loads
+    saved = []  # the start kept on the device after its first load (CuttingEnv.save_scene), for every later chunk
+
+    def start() -> None:
+        """Every scene at ``state_dict``: restored on the device where it was saved, else loaded and saved."""
+        if saved and env.restore_scene(saved[0]):
+            return
+        env.set_state(state_dict, b=None)
+        if hasattr(env, "save_scene"):
+            saved[:] = [env.save_scene(0, "rollout")]
 
     def rollout(seqs: np.ndarray) -> np.ndarray:
         seqs = np.asarray(seqs, np.float64)  # K,H,4
@@ -168,8 +178,7 @@ def make_sim_rollout(env, state_dict: dict, goal, reward_cfg=None, topo_cfg=None
             n = len(chunk)
             if n < B:  # pad the last chunk by repeating its final sequence; padded scenes are ignored
                 chunk = np.concatenate([chunk, np.repeat(chunk[-1:], B - n, axis=0)])
-            env.set_state(state_dict, b=None)
-            x0 = np.asarray(env.state().x[0])  # N,3 (the restored state; no assumption on the dict's keys)
+            start()
             lab0 = np.zeros(len(x0), np.int32) if labels0 is None else labels0
             labs = [lab0.copy() for _ in range(n)]
             xs = [x0] * n

@@ -147,7 +147,19 @@ class MPMSolver(Materials, Knife):
         self._graphs = {}  # k -> compiled ti.graph of k substeps
 
     def destroy(self) -> None:
+        for slot in getattr(self, "_slots", {}).values():
+            slot.destroy()
         self.tree.destroy()
+
+    def slot(self, name: str):
+        """The SceneSlot ``name`` (topocut.sim.slots: one scene's particle fields on the device), made on first
+        use and freed with the solver."""
+        from topocut.sim.slots import SceneSlot
+
+        slots = self.__dict__.setdefault("_slots", {})
+        if name not in slots:
+            slots[name] = SceneSlot(self)
+        return slots[name]
 
     @ti.func
     def base_node(self, xp):

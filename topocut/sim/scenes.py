@@ -36,6 +36,19 @@ class SimState:
         return self.x[b, :n], self.damage[b, :n]
 
 
+@dataclass
+class SavedScene:
+    """A scene kept on the device by ``Scenes.save_scene``: the slot's name and token, and the host's part."""
+
+    name: str
+    token: object
+    n: int
+    piece: np.ndarray  # n, i32
+    sweeps: list
+    object: object
+    n_fields: int
+
+
 def cell_order(x: np.ndarray, n_grid: int) -> np.ndarray:
     """Indices that order particles (N,3) by base cell, then by sampling order (a stable sort).
 
@@ -116,16 +129,55 @@ class Scenes:
                         piece=self.piece.copy(), counts=self.counts)
 
     def get_state(self, b: int = 0) -> dict:
+        """Scene b as numpy arrays (only its rows cross to the host: copied on the device into a SceneSlot first)."""
         s = self._need()
         if not 0 <= b < self.B:
             raise ValueError(f"scene b={b} out of range [0, {self.B})")
         n = int(self.counts[b])
         obj = self.object[b] if isinstance(self.object, list) else self.object
-        return {"x": s.x.to_numpy()[b, :n], "v": s.v.to_numpy()[b, :n], "C": s.C.to_numpy()[b, :n],
-                "F": s.F.to_numpy()[b, :n], "sigma_y": s.sigma_y.to_numpy()[b, :n],
-                "damage": s.damage.to_numpy()[b, :n].astype(bool), "material": s.material.to_numpy()[b, :n],
+        slot = s.slot("export")
+        slot.save(b)
+        a = slot.to_numpy(n)
+        return {"x": a["x"], "v": a["v"], "C": a["C"], "F": a["F"], "sigma_y": a["sigma_y"],
+                "damage": a["damage"].astype(bool), "material": a["material"],
                 "sweeps": [w.asdict() for w in self.sweeps[b]], "object": obj,
-                "piece": self.piece[b, :n].copy(), "body": s.body.to_numpy()[b, :n]}
+                "piece": self.piece[b, :n].copy(), "body": a["body"]}
+
+    def save_scene(self, b: int = 0, name: str = "saved") -> SavedScene:
+        """Keep scene b on the device (the solver's SceneSlot ``name``, topocut.sim.slots) with its host-side
+        labels: ``restore_scene`` puts it into every scene with one kernel, no round trip through numpy."""
+        s = self._need()
+        if not 0 <= b < self.B:
+            raise ValueError(f"scene b={b} out of range [0, {self.B})")
+        slot = s.slot(name)
+        slot.save(b)
+        slot.token = token = object()
+        n = int(self.counts[b])
+        obj = self.object[b] if isinstance(self.object, list) else self.object
+        return SavedScene(name, token, n, self.piece[b, :n].copy(), list(self.sweeps[b]), obj,
+                          int(s.n_fields[None]))
+
+    def restore_scene(self, saved: SavedScene) -> bool:
+        """Load ``saved`` (save_scene) into every scene, as ``set_state(get_state(b), b=None)`` would, but J_p
+        stays the solver's own; False (nothing changed) where the slot no longer holds it (a later save under
+        the same name, or a new solver): then load the state through ``set_state``."""
+        s = self.solver
+        slot = None if s is None else getattr(s, "_slots", {}).get(saved.name)
+        if slot is None or getattr(slot, "token", None) is not saved.token:
+            return False
+        slot.load()
+        self.n, self.scene_n = saved.n, None
+        self.piece = np.tile(saved.piece, (self.B, 1))
+        self.sweeps = [list(saved.sweeps) for _ in range(self.B)]
+        self.object = saved.object
+        self.dead[:] = False
+        s.sort_by_cell(self.n, self.resort > 0)
+        self.push_side[:] = 0
+        s.n_fields[None] = max(int(s.n_fields[None]), saved.n_fields)
+        s.bad_step.fill(NO_STEP)
+        s.k_on.fill(0)
+        self._set_frozen()
+        return True
 
     def set_state(self, state: dict, b: int | None = None) -> None:
         """Load a get_state() dict into scene b (None: every scene). Missing C/F/sigma_y/damage mean rest state,
