@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import cProfile
+import pstats
 import time
 from collections import defaultdict
 
@@ -125,9 +127,17 @@ def demo_cuts(args, batch_scenes: bool) -> dict:
         def progress(n, info="", cuts=cuts):
             cuts.append((time.perf_counter(), dict(TIMES)))
 
+        prof = cProfile.Profile() if args.profile and rep == 1 else None
         t0 = time.perf_counter()
+        if prof is not None:
+            prof.enable()
         run_episode(env, goal, MPPIPolicy(planner, factory, seed=0), rcfg, topo, task.max_cuts, task.push,
                     progress=progress, seed=0, success_fn=lambda r: False)
+        if prof is not None:
+            prof.disable()
+            prof.dump_stats(args.profile)
+            print(f"profile of the measured episode ({args.profile}), by cumulative time:")
+            pstats.Stats(prof).sort_stats("cumulative").print_stats(r"topocut|numpy|scipy|torch|taichi|warp", 60)
         if rep == 0:
             continue
         prev_t, prev = t0, {}
@@ -251,6 +261,8 @@ def main() -> None:
     p.add_argument("--eval-episodes", type=int, default=32)
     p.add_argument("--ref-episodes", type=int, default=4, help="episodes of the one-at-a-time reference")
     p.add_argument("--only", choices=("demo", "eval", "policy"), nargs="*", default=None)
+    p.add_argument("--profile", default="", help="demo: cProfile the measured episode into this file and print the "
+                   "60 entries of most cumulative time (on CUDA a host sync books the queued work's wait)")
     args = p.parse_args()
     from topocut.sim.mpm import init_taichi
 
