@@ -258,3 +258,21 @@ def test_rewards_of_many_scenes_equal_one_scene_at_a_time(backend):
         assert r.matching == alone.matching and r.cut_count == alone.cut_count
         np.testing.assert_allclose(r.distances, alone.distances, rtol=1e-6)
     assert batched[1].total == 0.0 and batched[0].per_goal[0] > 0.5 and batched[2].per_goal[1] > 0.9
+
+
+def test_spacing_of_a_large_piece_from_sampled_queries_matches_every_particles_median():
+    """particle_spacing queries SPACING_QUERIES particles of a larger piece (against all of them): the lattice
+    spacing within 2% (NN_RATIO's calibration), and within 0.2% of the median over every particle (own KD-tree);
+    a piece of at most SPACING_QUERIES particles is measured on all of them, exactly as before."""
+    from scipy.spatial import cKDTree
+
+    from topocut.reward.size import NN_K, NN_RATIO, SPACING_QUERIES, particle_spacing
+
+    big = box(0.2, 0.16, 0.08)  # 50 x 40 x 20 = 40,000 particles
+    assert len(big) > 4 * SPACING_QUERIES
+    full = np.median(cKDTree(big).query(big, NN_K + 1)[0][:, 1:]) / NN_RATIO
+    got = particle_spacing(big)
+    assert abs(got / H - 1) < 0.02
+    assert abs(got / full - 1) < 0.002
+    small = big[:SPACING_QUERIES]
+    assert particle_spacing(small) == np.median(cKDTree(small).query(small, NN_K + 1)[0][:, 1:]) / NN_RATIO

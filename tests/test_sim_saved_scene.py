@@ -89,3 +89,20 @@ def test_rollouts_from_the_saved_start_equal_those_loaded_through_numpy(monkeypa
         assert len(calls) == (4 if refuse else 1)  # 2 chunks x 2 iterations, or only the first load
     np.testing.assert_array_equal(out[0], out[1])
     assert np.isfinite(out[0]).all()
+
+
+def test_a_demonstration_plans_from_the_engines_saved_scene_without_loading_through_numpy(monkeypatch):
+    """run_episode (MPPI, K = 2 scenes, 2 iterations): the engine keeps the scene on the device before planning
+    (obs["sim_saved"]); the rollouts and the restore after planning use it, so nothing goes through set_state."""
+    from topocut.planning import MPPIConfig, MPPIPolicy, run_episode, sim_rollout_factory
+    from topocut.tasks import TaskConfig, make_goal
+
+    env = _env(2)
+    goal = make_goal(TaskConfig(name="slice"), "cube", ObjectPose(), env.cfg.spacing, board_z=env.cfg.board_z)
+    calls = []
+    monkeypatch.setattr(env, "set_state", lambda *a, _f=env.set_state, **k: calls.append(1) or _f(*a, **k))
+    factory = sim_rollout_factory(env, board_z=env.cfg.board_z)
+    steps, summary = run_episode(env, goal, MPPIPolicy(MPPIConfig(num_samples=2, iterations=2, horizon=1), factory,
+                                                       seed=0), max_cuts=1, seed=0)
+    assert summary["status"] != "failed" and len(steps) == 1
+    assert calls == []

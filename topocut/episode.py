@@ -466,6 +466,8 @@ def run_episodes(env, episodes: list[Episode], policy, scoring: Scoring, max_cut
             if alone and hasattr(env, "get_state"):  # one episode in every scene: a planner (MPPI) may roll
                 obs[0]["sim_state"] = env.get_state(0)  # out from its state (batched episodes: no planner)
                 saved = env.save_scene(0, "episode") if hasattr(env, "save_scene") else None
+                if saved is not None:  # the same state kept on the device: rollouts in this env start from it
+                    obs[0]["sim_saved"] = saved
             acts = _act(pols, obs, batched, engine)
             if "sim_state" in obs.get(0, {}) and hasattr(env, "set_state"):  # the rollouts moved the scenes:
                 if saved is None or not env.restore_scene(saved):  # restore them (on the device where kept)

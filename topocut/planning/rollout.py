@@ -146,20 +146,23 @@ def execute_turns(env, turns: list, scorer: Scorer, labels: list, xs: list) -> i
 
 
 def make_sim_rollout(env, state_dict: dict, goal, reward_cfg=None, topo_cfg=None, board_z: float = 0.05,
-                     labels=None, push: bool = False, scorer: Scorer | None = None, cuts_done: int = 0):
+                     labels=None, push: bool = False, scorer: Scorer | None = None, cuts_done: int = 0,
+                     saved=None):
     """A batched MPPI cost: sequences (K,H,4) -> -(spectral reward after executing them) (K,).
 
     Every chunk of env.batch_size sequences starts from ``state_dict`` (one
     scene, env.get_state(0)); a chunk that diverges, or whose turn cannot be made, costs +inf (weight 0).
     ``cuts_done``: the episode's cuts before ``state_dict``, so that the goal's turn after its k-th cut happens
-    between the rollout's cuts where the episode's would.
+    between the rollout's cuts where the episode's would.  ``saved``: the same state kept on the device
+    (CuttingEnv.save_scene; the episode engine's ``obs["sim_saved"]``): chunks restore it with one kernel where
+    it is this env's; otherwise the first chunk loads ``state_dict`` and keeps it on the device for the others.
     """
     scorer = scorer or Scorer(goal, reward_cfg, topo_cfg, device=topology_device(env))
     B = int(getattr(env, "batch_size", 1))
     Diverged = simulation_diverged_error()
     labels0 = None if labels is None else np.asarray(labels, np.int32)
     x0 = np.asarray(state_dict["x"], np.float32).reshape(-1, 3)  # N,3 what set_state loads
-    saved = []  # the start kept on the device after its first load (CuttingEnv.save_scene), for every later chunk
+    saved = [] if saved is None else [saved]  # the start kept on the device (CuttingEnv.save_scene)
 
     def start() -> None:
         """Every scene at ``state_dict``: restored on the device where it was saved, else loaded and saved."""
@@ -235,7 +238,8 @@ def sim_rollout_factory(env, reward_cfg=None, topo_cfg=None, board_z: float = 0.
         else:
             do_push = bool(push)
         return make_sim_rollout(env, obs["sim_state"], goal, reward_cfg, topo_cfg, board_z,
-                                labels=obs["particle_labels"], push=do_push, cuts_done=int(obs.get("cuts_done", 0)))
+                                labels=obs["particle_labels"], push=do_push, cuts_done=int(obs.get("cuts_done", 0)),
+                                saved=obs.get("sim_saved"))
 
     return factory
 

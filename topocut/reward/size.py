@@ -40,17 +40,23 @@ from scipy.spatial import cKDTree
 
 NN_RATIO = 0.97  # median 4-NN distance / lattice spacing on a jittered lattice (jitter 0.25 spacing)
 NN_K = 4
+SPACING_QUERIES = 8192  # particles whose neighbour distances estimate the spacing (all of a smaller piece)
 PROFILE_QUANTILES = 8
 PROFILE_ASPECT = 1.5  # the profile term counts when the goal piece's e_2 >= 1.5 e_1 (a slab)
 
 
 def particle_spacing(points: np.ndarray) -> float:
-    """The lattice spacing the particles were sampled at, from their nearest-neighbour distances."""
+    """The lattice spacing the particles were sampled at, from their nearest-neighbour distances: the median
+    over every particle, or over SPACING_QUERIES of them drawn from a larger piece (a fixed seed; each against all
+    particles; a stride would alias with the lattice and over-count the boundary layers).  At 128³ the uncut stock holds ~10^5 particles and querying them all was most of
+    the reward's time; the sampled median is within 0.2% of the full one (tests/test_reward.py)."""
     p = np.asarray(points, np.float64)
     if len(p) < 2:
         return 0.0
     k = min(NN_K, len(p) - 1)
-    d = cKDTree(p).query(p, k + 1)[0][:, 1:]
+    queries = p if len(p) <= SPACING_QUERIES else p[np.random.default_rng(0).choice(len(p), SPACING_QUERIES,
+                                                                                 replace=False)]
+    d = cKDTree(p).query(queries, k + 1)[0][:, 1:]
     return float(np.median(d) / NN_RATIO)
 
 
