@@ -102,7 +102,9 @@ def train_seeds(config: dict) -> list[int]:
 def _timed_stage(cfg, run_dir: Path, overrides: list[str]) -> tuple[dict, float]:
     """run_stage in a joblib worker: (its summary, its wall seconds)."""
     from topocut.run import run_stage
+    from topocut.utils.devices import bind_worker
 
+    bind_worker()  # this worker's own GPU of the node, before anything touches CUDA (topocut.utils.devices)
     started = time.time()
     return run_stage(cfg, run_dir, overrides), round(time.time() - started, 1)
 
@@ -154,8 +156,12 @@ def run(ctx: RunContext, sequence: list[str], trainer=None) -> dict:
         their summaries in ``todo``'s order."""
         from joblib import Parallel, delayed
 
+        from topocut.utils.devices import share_gpus
+
         if jobs <= 1:
             return [one(name, label, own) for label, own in todo]
+        if ctx.device == "cuda":
+            share_gpus()  # the workers spread over every GPU of the node
         runs = []
         for label, own in todo:
             overrides = overrides_of(name, own)

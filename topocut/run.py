@@ -153,6 +153,10 @@ def main(cfg: DictConfig) -> None:
     hc = HydraConfig.get()
     overrides = list(hc.overrides.task)
     single = hc.mode == RunMode.RUN
+    if not single:  # a multirun job in a launcher's worker process: its own GPU of the node (topocut.utils.devices)
+        from topocut.utils.devices import bind_worker
+
+        bind_worker()
     log.info("outputs: %s%s", cfg.outputs_root, f" ({_OUTPUTS_NOTE})" if _OUTPUTS_NOTE else "")
     if single:  # SIGTERM as Ctrl-C: status.json records it, one line, committed work kept
         import signal
@@ -222,4 +226,8 @@ if __name__ == "__main__":
     except ConfigError as e:
         print(f"ConfigError: {e}", file=sys.stderr)
         sys.exit(2)
+    if "-m" in sys.argv[1:] or "--multirun" in sys.argv[1:]:  # the launcher's workers spread over the node's GPUs
+        from topocut.utils.devices import share_gpus
+
+        share_gpus()
     main()

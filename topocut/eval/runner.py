@@ -172,6 +172,10 @@ def evaluate_in_processes(specs, jobs: int, batch: int, ctx: RunContext, out_dir
     # loky keeps its workers between calls of one parent (a multirun, the tests): a key new to this call makes
     # each worker set up once for it, never reuse another call's simulator or policies
     key = uuid.uuid4().hex
+    if ctx.device == "cuda":
+        from topocut.utils.devices import share_gpus
+
+        share_gpus()  # the workers spread over every GPU of the node (topocut.utils.devices)
     setup_args = (str(ctx.store.root), str(out_dir), ctx.device, ctx.seed, eval, sim, topology, reward, planner,
                   observation, sampler, task_cfgs)
     # batch_size=1: one task per dispatch, so a worker that finishes early takes the next task instead of
@@ -193,7 +197,10 @@ def _evaluate_task(name: str, specs, key: str, store_root: str, out_dir: str, de
     """One task of evaluate_in_processes in a worker: run_evaluation of eval.policies entry ``name`` (all its runs:
     one per training seed) on ``specs``; returns how many episodes it wrote (those already there are resumed)."""
     from topocut.eval.protocol import episode_path, run_evaluation
+    from topocut.utils.devices import bind_worker
     from topocut.utils.runtime import seed_everything_all
+
+    bind_worker()  # this worker's own GPU of the node, before Taichi touches CUDA
 
     if _WORKER.get("key") != key:  # this worker's first task of the call: Taichi and the policies, once
         from topocut.data.store import ArtifactStore
