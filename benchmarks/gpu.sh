@@ -171,6 +171,41 @@ PY
     echo "== wall $(( $(date +%s) - t0 )) s" | tee -a "$OUT/mppi_check.txt"
     d=$(ls -d /tmp/o/eval/mppi64/v* | tail -1) && tar -czf "$OUT/mppi64.tgz" -C "$d" episodes
     mps_stop ;;
+  multi-gpu)  # #53: PART=eval (the oracle's evaluation, EVAL_JOBS processes) or PART=demos (a stage=mppi multirun on the
+    # joblib launcher, 12 cells) on GPU 0 alone and on every GPU of the node, nvidia-smi sampling each GPU's
+    # utilisation every second beside them; PART=ddp: stage=pretrain on the demos' merged dataset, one GPU and DDP on all
+    mps_start
+    ngpu=$(nvidia-smi -L | wc -l); all=$(seq -s, 0 $((ngpu - 1)))
+    sets="0 $all"; [ "${PART:-eval}" = ddp ] && sets="$all"
+    for vis in $sets; do
+      nvidia-smi --query-gpu=index,utilization.gpu --format=csv,noheader,nounits -lms 500 > /tmp/util.txt &
+      mon=$!; t0=$(date +%s); tag=g${vis//,/}
+      case "${PART:-eval}" in
+        eval) CUDA_VISIBLE_DEVICES=$vis timeout ${LIMIT:-280} python3 -m topocut.run stage=eval scale=paper device=cuda \
+            reward=torch sim.n_grid=64 sim.batch_size=4 "eval.policies=[oracle]" eval.train_seeds=1 \
+            eval.jobs=${EVAL_JOBS:-12} eval.gifs=0 eval.episodes_per_cell=${EPC:-2} eval.name=$tag logger=none \
+            progress=false outputs_root=/tmp/o \
+            "eval.task_overrides={slice:{thickness:0.05},stick:{thickness:0.05,width:0.05},dice:{thickness:0.05,width:0.05,size:0.05}}" \
+            2>&1 | grep -v -i warn | tail -3 ;;
+        demos) CUDA_VISIBLE_DEVICES=$vis timeout ${LIMIT:-280} python3 -m topocut.run -m stage=mppi \
+            task=slice,stick,dice object=cake,cube,potato,ham hydra/launcher=joblib hydra.launcher.n_jobs=${JOBS:-12} \
+            device=cuda sim.n_grid=64 sim.batch_size=16 planner.num_samples=16 planner.iterations=2 \
+            planner.horizon=1 reward=torch data.episodes=${EPISODES:-3} task.max_cuts=5 logger=none progress=false \
+            outputs_root=/tmp/d$tag 2>&1 | grep -v -i warn | tail -3 ;;
+        ddp) python3 -m topocut.run stage=merge outputs_root=/tmp/dg${all//,/} logger=none progress=false 2>&1 | tail -2
+          for tr in "trainer=gpu" "trainer=ddp trainer.devices=$ngpu"; do
+            t1=$(date +%s)
+            CUDA_VISIBLE_DEVICES=$vis timeout ${LIMIT:-250} python3 -m topocut.run stage=pretrain $tr \
+              trainer.max_epochs=${EPOCHS:-5} trainer.num_workers=2 logger=none progress=false \
+              outputs_root=/tmp/dg${all//,/} 2>&1 | grep -v -i warn | grep -i "summary\|error" | tail -3
+            echo "== pretrain $tr: wall $(( $(date +%s) - t1 )) s"
+          done ;;
+      esac
+      kill $mon
+      echo "== ${PART:-eval} on GPUs $vis: wall $(( $(date +%s) - t0 )) s; mean utilisation % per GPU (samples > 0):" \
+        $(awk -F', ' '{s[$1]+=$2; n[$1]++; if ($2 > 0) b[$1]++} END {for (g in s) printf "GPU%s %.0f (%d/%d) ", g, s[g]/n[g], b[g], n[g]}' /tmp/util.txt)
+    done 2>&1 | tee -a "$OUT/multi_gpu.txt"
+    mps_stop ;;
   demos)  # MPPI demonstrations through stage=mppi at 64^3, K=16, 2 iterations, horizon 1 (#31's per-cut figure)
     timeout ${LIMIT:-560} python3 -m topocut.run stage=mppi task=slice object=cake device=cuda sim.n_grid=64 \
       sim.batch_size=16 planner.num_samples=16 planner.iterations=2 planner.horizon=1 reward=torch \
