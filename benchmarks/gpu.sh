@@ -176,7 +176,7 @@ PY
     # utilisation every second beside them; PART=ddp: stage=pretrain on the demos' merged dataset, one GPU and DDP on all
     mps_start
     ngpu=$(nvidia-smi -L | wc -l); all=$(seq -s, 0 $((ngpu - 1)))
-    sets="0 $all"; [ "${PART:-eval}" = ddp ] && sets="$all"
+    sets="0 $all"; [ "${PART:-eval}" = ddp ] || [ "$ngpu" = 1 ] && sets="$all"
     for vis in $sets; do
       nvidia-smi --query-gpu=index,utilization.gpu --format=csv,noheader,nounits -lms 500 > /tmp/util.txt &
       mon=$!; t0=$(date +%s); tag=g${vis//,/}
