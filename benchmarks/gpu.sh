@@ -129,7 +129,7 @@ PY
     t0=$(date +%s)
     timeout ${LIMIT:-560} python3 -m topocut.run stage=eval scale=paper device=cuda sim.n_grid=${GRID:-64} \
       reward=torch "eval.policies=[${POLICIES:-oracle,heuristic}]" eval.train_seeds=1 eval.jobs=${EVAL_JOBS:-1} \
-      eval.gifs=0 logger=none progress=false outputs_root=/tmp/o ${EVAL_ARGS:-} 2>&1 | grep -v -i warn | tail -40 \
+      eval.gifs=0 eval.videos=0 logger=none progress=false outputs_root=/tmp/o ${EVAL_ARGS:-} 2>&1 | grep -v -i warn | tail -40 \
       | tee -a "$OUT/protocol.txt"
     echo "wall $(( $(date +%s) - t0 )) s; episodes written: $(find /tmp/o/eval -name '*.json' -path '*episodes*' | wc -l)" \
       | tee -a "$OUT/protocol.txt"
@@ -146,7 +146,7 @@ PY
       [ "$grid" = 128 ] && extra="eval.name=oracle128"
       t0=$(date +%s)
       timeout ${LIMIT:-560} python3 -m topocut.run stage=eval scale=paper device=cuda reward=torch sim.n_grid=$grid \
-        sim.batch_size=4 "eval.policies=[oracle]" eval.train_seeds=1 eval.jobs=${EVAL_JOBS:-12} eval.gifs=0 \
+        sim.batch_size=4 "eval.policies=[oracle]" eval.train_seeds=1 eval.jobs=${EVAL_JOBS:-12} eval.gifs=0 eval.videos=0 \
         eval.episodes_per_cell=${EPC:-5} logger=none progress=false outputs_root=/tmp/o $extra 2>&1 \
         | grep -v -i warn | tail -5 | tee -a "$OUT/oracle_check.txt"
       echo "== ${grid}^3: wall $(( $(date +%s) - t0 )) s" | tee -a "$OUT/oracle_check.txt"
@@ -164,7 +164,7 @@ PY
     t0=$(date +%s)
     timeout ${LIMIT:-560} python3 -m topocut.run stage=eval scale=paper device=cuda reward=torch sim.n_grid=64 \
       planner.iterations=2 planner.horizon=1 "eval.policies=[oracle,mppi]" eval.train_seeds=1 \
-      eval.jobs=${EVAL_JOBS:-12} eval.gifs=0 eval.episodes_per_cell=${EPC:-2} eval.name=mppi64 logger=none \
+      eval.jobs=${EVAL_JOBS:-12} eval.gifs=0 eval.videos=0 eval.episodes_per_cell=${EPC:-2} eval.name=mppi64 logger=none \
       progress=false outputs_root=/tmp/o \
       "eval.task_overrides={slice:{thickness:0.05},stick:{thickness:0.05,width:0.05},dice:{thickness:0.05,width:0.05,size:0.05}}" \
       2>&1 | grep -v -i warn | grep -v ticache | tail -40 | tee -a "$OUT/mppi_check.txt"
@@ -183,7 +183,7 @@ PY
       case "${PART:-eval}" in
         eval) CUDA_VISIBLE_DEVICES=$vis timeout ${LIMIT:-280} python3 -m topocut.run stage=eval scale=paper device=cuda \
             reward=torch sim.n_grid=64 sim.batch_size=4 "eval.policies=[oracle]" eval.train_seeds=1 \
-            eval.jobs=${EVAL_JOBS:-12} eval.gifs=0 eval.episodes_per_cell=${EPC:-2} eval.name=$tag logger=none \
+            eval.jobs=${EVAL_JOBS:-12} eval.gifs=0 eval.videos=0 eval.episodes_per_cell=${EPC:-2} eval.name=$tag logger=none \
             progress=false outputs_root=/tmp/o \
             "eval.task_overrides={slice:{thickness:0.05},stick:{thickness:0.05,width:0.05},dice:{thickness:0.05,width:0.05,size:0.05}}" \
             2>&1 | grep -v -i warn | tail -3 ;;

@@ -7,14 +7,18 @@ Policies: ``oracle`` (the goal's ideal planes for the true pose: the R̂ referen
 run trained with seeds ``seed .. seed+k-1``, each evaluated as ``<policy>@s<seed>`` and pooled by the report),
 and ``module.path:ClassName`` entries: your own Policy class, imported (topocut.policies.registry.load_external).
 Episodes are committed one by one; an interrupted evaluation resumes.  ``eval.jobs=J`` runs them in J worker
-processes (topocut.eval.runner.eval_tasks: batches, MPPI's specs one by one), then the report as usual.
+processes (topocut.eval.runner.eval_tasks: batches, MPPI's specs one by one), then the report as usual.  Renders:
+``eval.gifs`` (GIFs of one policy's first episodes per task, the cutting-sequence figure) and ``eval.videos`` (an MP4
+of every policy run's first episodes, each cut in motion: topocut.eval.videos).
 """
 from __future__ import annotations
 
 import dataclasses
+import logging
 
 from pipelines._common import as_dict
 from topocut.eval.runner import evaluate_in_processes, render_episodes, setup, task_configs
+from topocut.eval.videos import film_episodes
 from topocut.utils.context import RunContext
 
 
@@ -30,6 +34,10 @@ def artifact_config(eval, sim, topology, reward, planner, observation, sampler, 
     if not eval.policy_kwargs:  # evaluations from before the key keep their artifact key
         out["eval"].pop("policy_kwargs", None)
     out["eval"].pop("jobs", None)  # how many processes, not what is evaluated
+    # which episodes are filmed changes none of them; evaluations from before the videos keep their key (and pieces
+    # filmed differently still combine: experiments/table1.py compares the keyed config)
+    for key in ("videos", "video_frames_per_cut"):
+        out["eval"].pop(key, None)
     return out
 
 
@@ -55,6 +63,10 @@ def run(ctx: RunContext, eval, sim, topology, reward, planner, observation, data
     writer, existing = ctx.store.begin("eval", eval.name, config, inputs, extra={"seed": ctx.seed,
                                                                                 "device": ctx.device})
     if existing is not None:
+        if eval.videos > 0 and not any((existing / "videos").glob("*/*.mp4")):
+            logging.getLogger("topocut").warning(
+                "eval: reusing %s, which holds no videos (eval.videos does not key the evaluation); a new eval.name "
+                "evaluates and films anew", existing)
         return {"eval": str(existing), "reused": True}
     write_json_atomic(writer.path / RUNS_FILE, runs)  # run name -> policy and training seed, for the report
     if eval.jobs > 1:  # the episodes in worker processes; the run below then finds them all written (resume)
@@ -70,6 +82,9 @@ def run(ctx: RunContext, eval, sim, topology, reward, planner, observation, data
     if eval.gifs > 0:
         render_episodes(specs, policies, env, task_cfgs, writer.path / "gifs", eval, reward, topology,
                         observe_fn, sim.spacing)
+    if eval.videos > 0:  # MP4s of every policy's first eval.videos episodes, each cut in motion
+        film_episodes(specs, policies, env, task_cfgs, writer.path / "videos", eval, reward, topology, observe_fn,
+                      sim.spacing)
     report = write_report(writer.path, reference=eval.reference, normalize_by=eval.normalize_by,
                           compare_to=eval.comparison, confidence=eval.confidence,
                           n_resamples=eval.bootstrap_resamples, seed=eval.bootstrap_seed)
@@ -78,8 +93,9 @@ def run(ctx: RunContext, eval, sim, topology, reward, planner, observation, data
     for r in runs.values():
         if r["train_seed"] is not None:
             seeds.setdefault(r["policy"], []).append(r["train_seed"])
+    videos = sorted(str(p.relative_to(writer.path)) for p in writer.path.glob("videos/*/*.mp4"))
     path = writer.commit({"episodes": len(specs) * len(policies) + len(teleop), "policies": list(policies),
-                          "train_seeds": seeds})
+                          "train_seeds": seeds, "videos": videos})
     ctx.logger.log_image("eval/results", path / "results.png")
     print((path / "results.md").read_text())
     return {"eval": str(path), "episodes": len(specs) * len(policies) + len(teleop), "rows": len(rows),

@@ -18,7 +18,7 @@ from topocut.tasks import TaskConfig, get_task
 def test_oracle_through_the_eval_stage_scores_full_marks(tmp_path):
     proc = _ok(topocut(tmp_path, "stage=eval", "scale=smoke", "sim.n_grid=64", "eval.policies=[oracle]",
                        "eval.tasks=[slice,stick,dice]", "eval.seen=[cube,potato]", "eval.unseen=[donut]",
-                       "eval.max_cuts=5", "eval.gifs=0", "eval.jobs=2", "logger=none", "progress=false",
+                       "eval.max_cuts=5", "eval.gifs=0", "eval.videos=0", "eval.jobs=2", "logger=none", "progress=false",
                        timeout=1200))  # two processes: 200 s on the 2-core CPU against 285 s in one
     episodes = sorted(tmp_path.glob("eval/table1/v001/episodes/oracle/*.json"))
     assert len(episodes) == 9, proc.stdout[-2000:]

@@ -21,7 +21,7 @@ REPO = Path(__file__).resolve().parents[1]
 EXAMPLES = REPO / "examples"
 TOY = "my_policy:GoalPlanePolicy"
 TINY = ["stage=eval", "device=cpu", "logger=none", "progress=false", "eval.seen=[cube]", "eval.unseen=[]",
-        "eval.tasks=[slice]", "eval.episodes_per_cell=1", "eval.max_cuts=1", "eval.gifs=0", "eval.num_points=128",
+        "eval.tasks=[slice]", "eval.episodes_per_cell=1", "eval.max_cuts=1", "eval.gifs=0", "eval.videos=0", "eval.num_points=128",
         "eval.cpu_threads=1", "sim.n_grid=20", "sim.cut_substeps=40", "sim.dwell_time=0.0005", "sim.push_time=0.002",
         "sim.settle_time=0.002", "topology.resolution=32"]
 

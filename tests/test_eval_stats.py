@@ -227,7 +227,7 @@ def test_train_seeds_config_is_three_at_paper_scale_and_checked():
 # -- determinism ---------------------------------------------------------------------------------------
 TINY = ["stage=eval", "device=cpu", "logger=none", "progress=false", "eval.policies=[oracle,heuristic]",
         "eval.seen=[cube]", "eval.unseen=[]", "eval.tasks=[slice]", "eval.episodes_per_cell=2", "eval.max_cuts=1",
-        "eval.gifs=0", "eval.num_points=128", "eval.cpu_threads=1", "sim.n_grid=20", "sim.cut_substeps=40",
+        "eval.gifs=0", "eval.videos=0", "eval.num_points=128", "eval.cpu_threads=1", "sim.n_grid=20", "sim.cut_substeps=40",
         "sim.dwell_time=0.0005", "sim.push_time=0.002", "sim.settle_time=0.002", "topology.resolution=32"]
 
 

@@ -83,7 +83,7 @@ WANDB_STAGES = {
     "pretrain": ["stage=pretrain", "trainer.max_epochs=1"],
     "bc": ["stage=bc", "stage.run.policies=[pddp]", "policy.train.max_epochs=1"],
     "eval": ["stage=eval", "eval.policies=[oracle]", "eval.seen=[cube]", "eval.unseen=[]", "eval.max_cuts=1",
-             "eval.gifs=0", "eval.num_points=128", "eval.bootstrap_resamples=100"],
+             "eval.gifs=0", "eval.videos=0", "eval.num_points=128", "eval.bootstrap_resamples=100"],
     "teleop": ["stage=teleop", "task=slice", "stage.run.replay=examples/teleop_slice_cake.json"],
 }
 

@@ -71,6 +71,9 @@ class EpisodeLog:
     labels: np.ndarray | None = None  # the final particle labels
     # (x, labels, what, knife) after reset, each cut, each turn (frames=True); knife: the cut's executed KnifeAction
     frames: list = field(default_factory=list)
+    # per entry of ``frames``: the topocut.sim.cut_frames.CutFrames during the cut that led to it (cut_frames=F > 0: F of
+    # them; [] after reset and turns, and for every frame with cut_frames=0)
+    motion: list = field(default_factory=list)
     goal: object = None
 
 
@@ -238,18 +241,21 @@ class EpisodeBatch:
 
     def __init__(self, env, scoring: Scoring, max_cuts: int = 5, turns: bool = True, spacing: float | None = None,
                  record: bool = False, frames: bool = False, stop_on_success: bool = False,
-                 progress: Callable | None = None):
+                 progress: Callable | None = None, cut_frames: int = 0):
         self.env, self.sc, self.max_cuts, self.turns = env, scoring, int(max_cuts), bool(turns)
         self.spacing, self.record, self.frames, self.stop_on_success = spacing, record, frames, stop_on_success
         self.progress = progress
+        # frames during each cut: CuttingEnv.cut's snapshots (a host sync each), so only for renders (frames=True)
+        self.cut_frames = int(cut_frames) if frames else 0
         self.B = int(getattr(env, "batch_size", 1) or 1)
         self.board_z = env_board_z(env)
         self.Diverged = diverged_type()
 
     # -- episode bookkeeping ---------------------------------------------------------------------------
-    def _keep(self, b: int, what: str, knife=None) -> None:
+    def _keep(self, b: int, what: str, knife=None, motion=()) -> None:
         if self.frames:
             self.logs[b].frames.append((self.xs[b].copy(), np.asarray(self.labels[b]).copy(), what, knife))
+            self.logs[b].motion.append(list(motion))
 
     def end(self, b: int, status: str, error: str) -> None:
         self.live[b] = False
@@ -308,13 +314,21 @@ class EpisodeBatch:
         out: list[Score | None] = [None] * n
         if not moving:
             return out
+        record = {}  # CuttingEnv.cut's snapshot interval, only when the frames during the cut are kept
+        if self.cut_frames:
+            from topocut.sim.cut_frames import record_interval
+
+            record = {"record_every": record_interval(env, [self.xs[b][:, 2].max() for b in moving],
+                                                      [acts[b] for b in moving], self.cut_frames)}
+            st0 = env.state()
+            damage_before = [_scene(st0, b)[1].copy() for b in range(n)]
         try:
             if self.alone:
-                env.cut([acts[0]] * B if B > 1 else acts[0])
+                info = env.cut([acts[0]] * B if B > 1 else acts[0], **record)
                 if getattr(self.tasks[0], "push", False):
                     env.push()
             else:
-                env.cut(acts + [None] * (B - n))
+                info = env.cut(acts + [None] * (B - n), **record)
                 pushed = np.array([acts[b] is not None and bool(getattr(self.tasks[b], "push", False))
                                    for b in range(n)] + [False] * (B - n))
                 if pushed.any():
@@ -363,8 +377,17 @@ class EpisodeBatch:
                 log.piece_iou.append(iou)
             log.actions.append([float(v) for v in a.to_vector()])
             self.hist[b].append(a.pose_feature(self.board_z))
+            motion = []
+            if record:
+                from topocut.sim.cut_frames import pick_cut_frames
+
+                scene = 0 if self.alone else b
+                budget = (info.substeps if info.substeps_per_scene is None
+                          else int(info.substeps_per_scene[scene]))
+                motion = pick_cut_frames(info.snapshots, scene, len(self.xs[b]), damage_before[b], budget,
+                                         self.cut_frames, env.dt)
             self.xs[b], self.labels[b] = x1, lab1
-            self._keep(b, f"cut {k + 1}: R={res.total:.2f}", knife=a)
+            self._keep(b, f"cut {k + 1}: R={res.total:.2f}", knife=a, motion=motion)
             out[b] = res
             if self.progress is not None:
                 name = self.eps[b].key or self.eps[b].object or getattr(self.goals[b], "object", "") or f"episode {b}"
@@ -432,22 +455,24 @@ def run_episodes(env, episodes: list[Episode], policy, scoring: Scoring, max_cut
                  observe_fn: Callable | None = None, stop_on_success: bool = False, record: bool = False,
                  turns: bool = True, spacing: float | None = None, on_done: Callable | None = None,
                  progress: Callable | None = None, initial_reward: bool = True,
-                 batch: bool = True, frames: bool = False) -> list[EpisodeLog]:
+                 batch: bool = True, frames: bool = False, cut_frames: int = 0) -> list[EpisodeLog]:
     """Run ``episodes`` with ``policy`` (the Policy protocol), env.batch_size at a time (module docstring).
 
     ``observe_fn(x, labels, seed) -> (points, labels)`` is what the policy sees (default: the particles).
     ``record``: keep dataset records (topocut.data) in ``EpisodeLog.steps``.  ``on_done(i, log)`` is called
     as episode i finishes (evaluation writes its JSON there, so a killed run resumes); ``progress(n, info)``
     after every executed cut of every episode; ``initial_reward``: score the uncut scene too; ``batch`` False:
-    one episode at a time (in every scene); ``frames``: keep (x, labels, what, knife) of every state (renders).
-    Returns one EpisodeLog per episode, in order.
+    one episode at a time (in every scene); ``frames``: keep (x, labels, what, knife) of every state (renders),
+    and with ``cut_frames`` F > 0 also F frames during each cut (``EpisodeLog.motion``, topocut.sim.cut_frames: the env's
+    ``cut(..., record_every=k)`` snapshots, asked for only then).  Returns one EpisodeLog per episode, in order.
     """
     B = int(getattr(env, "batch_size", 1) or 1)
     uses_sim = bool(getattr(policy, "uses_simulator", False))
     alone = (not batch or B == 1 or uses_sim or not hasattr(env, "reset_scenes")
              or any(e.object is None for e in episodes))
     size = 1 if alone else B
-    engine = EpisodeBatch(env, scoring, max_cuts, turns, spacing, record, frames, stop_on_success, progress)
+    engine = EpisodeBatch(env, scoring, max_cuts, turns, spacing, record, frames, stop_on_success, progress,
+                          cut_frames)
     logs: list[EpisodeLog] = []
     for c0 in range(0, len(episodes), size):
         chunk = episodes[c0:c0 + size]

@@ -60,6 +60,10 @@ class EvalConfig:
     min_fragment_points: int = 4  # smaller labelled clusters are debris, not pieces
     stop_on_success: bool = False  # the paper runs all five cuts; True stops once the task's threshold is met
     gifs: int = 0  # episodes per policy rendered to GIF by the eval stage
+    # rollout videos (topocut.eval.videos): the first `videos` episodes of every policy run as MP4, each cut shown
+    # in motion by `video_frames_per_cut` frames; 0 films none.  Not part of the artifact's key (no episode changes)
+    videos: int = 0
+    video_frames_per_cut: int = 8
     # checkpoint version per learned policy (`+eval.checkpoints.pddp=v003`); a policy not named here loads its latest
     # version (stage=all pins what its bc stage wrote)
     checkpoints: dict[str, str] = field(default_factory=dict)
@@ -81,6 +85,13 @@ class EvalConfig:
         if self.episodes_per_cell < 1 or self.max_cuts < 1:
             raise ValueError(f"eval.episodes_per_cell={self.episodes_per_cell} and eval.max_cuts={self.max_cuts} "
                              "must be >= 1")
+        for key, value, what in (("eval.gifs", self.gifs, "episodes per task rendered to GIF"),
+                                 ("eval.videos", self.videos, "episodes per policy filmed to MP4")):
+            if value < 0:
+                raise ValueError(f"{key}={value} is not valid; must be >= 0 ({what}; 0: none)")
+        if self.video_frames_per_cut < 1:
+            raise ValueError(f"eval.video_frames_per_cut={self.video_frames_per_cut} is not valid; must be >= 1 "
+                             "(frames during each cut of a video; eval.videos=0 turns the videos off)")
         if self.jobs < 1:
             raise ValueError(f"eval.jobs={self.jobs} must be >= 1 (processes evaluating at once)")
         if self.train_seeds < 1 or self.bootstrap_resamples < 1 or self.cpu_threads < 0:

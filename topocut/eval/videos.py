@@ -1,0 +1,108 @@
+"""Rollout videos of the evaluation (``eval.videos``, ``eval.video_frames_per_cut``; docs/evaluation.md).
+
+For every policy run (a learned policy's training seed is a run of its own, as in ``episodes/``), the first
+``eval.videos`` episode specs are run again through the episode engine with the frames during each cut kept
+(``run_episodes(..., frames=True, cut_frames=F)``: CuttingEnv.cut's ``record_every`` snapshots, topocut.sim.cut_frames),
+drawn by the one renderer (topocut.sim.render: particles by cluster id, the knife, the board; one view box over
+the whole episode) and encoded as H.264 MP4 (imageio with the imageio-ffmpeg binary) at
+``videos/<run>/<task>_<object>_<episode>.mp4``.  A batch's episodes do not depend on their batch-mates and each is
+reset with its own seed, so the film is the evaluated episode.
+
+Frames of a video: each state (reset, after every cut, after every turn) held ``STATE_HOLD_FRAMES`` frames (1 s),
+and before each cut's state the F frames during it (the pieces coloured as before the cut, the particles this cut
+has damaged so far dark, the blade at its edge of the time): ``STATE_HOLD_FRAMES * states + F * cuts`` frames.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+VIDEO_FPS = 10
+STATE_HOLD_FRAMES = 10  # each state between the cuts shows for 1 s at VIDEO_FPS
+VIDEO_WIDTH, VIDEO_HEIGHT = 640, 480  # multiples of 16, H.264's macroblock: the encoder need not rescale
+MACRO_BLOCK = 16
+
+
+def video_path(out_dir, run: str, spec) -> Path:
+    """Where the video of run ``run`` on EpisodeSpec ``spec`` is written (beside episodes/<run>/<key>.json)."""
+    return Path(out_dir) / run / f"{spec.key}.mp4"
+
+
+def episode_video_frames(log, title: str) -> tuple[list[dict], list[int]]:
+    """(render_frame arguments per distinct frame, how many video frames each lasts) of an EpisodeLog recorded
+    with frames=True: the frames during each cut (``log.motion``) before the state the cut led to."""
+    frames, repeats, cut = [], [], 0
+    labels_before = None
+    for (x, labels, what, knife), during in zip(log.frames, log.motion):
+        if knife is not None:
+            cut += 1
+            for f in during:  # the same particles as the state before the cut: its labels colour them
+                frames.append(dict(x=f.x, labels=labels_before, damaged=f.damaged, knife=knife, knife_edge=f.knife_edge,
+                                   title=f"{title} cut {cut}: {1e3 * f.time_s:.0f} ms"))
+                repeats.append(1)
+        frames.append(dict(x=x, labels=labels, knife=knife, title=f"{title} {what}"))
+        repeats.append(STATE_HOLD_FRAMES)
+        labels_before = labels
+    return frames, repeats
+
+
+def write_mp4(frames, path, fps: float = VIDEO_FPS) -> Path:
+    """(H,W,3) uint8 frames to an H.264 MP4 (yuv420p: plays everywhere), padded white to one size in multiples of
+    16 pixels.  Written to a temporary name in the same directory and renamed: the file is complete or absent
+    (a killed run's leftover, ``.*.tmp-*``, is dropped by the artifact's commit)."""
+    import imageio.v2 as imageio
+
+    imgs = [np.asarray(f)[..., :3] for f in frames]
+    if not imgs:
+        raise ValueError("write_mp4 needs at least one frame")
+    h = -(-max(i.shape[0] for i in imgs) // MACRO_BLOCK) * MACRO_BLOCK
+    w = -(-max(i.shape[1] for i in imgs) // MACRO_BLOCK) * MACRO_BLOCK
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")  # ffmpeg picks the container by suffix
+    try:
+        writer = imageio.get_writer(tmp, format="FFMPEG", mode="I", fps=fps, codec="libx264",
+                                    pixelformat="yuv420p", macro_block_size=MACRO_BLOCK, ffmpeg_log_level="error")
+        try:
+            canvas = np.full((h, w, 3), 255, np.uint8)  # H,W,3
+            for im in imgs:
+                canvas[:] = 255
+                canvas[:im.shape[0], :im.shape[1]] = im
+                writer.append_data(canvas)
+        finally:
+            writer.close()
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
+def film_episodes(specs, policies: dict, env, task_cfgs: dict, out_dir, eval, reward, topology, observe_fn,
+                  spacing) -> int:
+    """For every run of ``policies`` ({run: policy}), the first ``eval.videos`` of ``specs``: an MP4 each under
+    ``out_dir`` (video_path).  A video already there is kept (a resumed evaluation films only what is missing).
+    Returns how many videos this call wrote."""
+    from topocut.episode import env_board_z, run_episodes
+    from topocut.eval.protocol import _episode, scoring_for
+    from topocut.sim.render import render_frames
+
+    chosen = list(specs)[: max(0, int(eval.videos))]
+    sc = scoring_for(env, reward, topology, eval.min_fragment_points)
+    board_z, written = env_board_z(env), 0
+    for run, policy in policies.items():
+        todo = [s for s in chosen if not video_path(out_dir, run, s).exists()]
+        if not todo:
+            continue
+        logs = run_episodes(env, [_episode(s, task_cfgs[s.task]) for s in todo], policy, sc, max_cuts=eval.max_cuts,
+                            observe_fn=observe_fn, stop_on_success=eval.stop_on_success, spacing=spacing, frames=True,
+                            cut_frames=eval.video_frames_per_cut)
+        for spec, log in zip(todo, logs):
+            frames, repeats = episode_video_frames(log, f"{run} {spec.key}")
+            # one view box over every frame of the episode: pieces pushed or turned away stay in view
+            images = render_frames(frames, board_z=board_z, width=VIDEO_WIDTH, height=VIDEO_HEIGHT)
+            write_mp4([img for img, r in zip(images, repeats) for _ in range(r)], video_path(out_dir, run, spec))
+            written += 1
+    return written
