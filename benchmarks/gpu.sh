@@ -171,6 +171,11 @@ PY
     echo "== wall $(( $(date +%s) - t0 )) s" | tee -a "$OUT/mppi_check.txt"
     d=$(ls -d /tmp/o/eval/mppi64/v* | tail -1) && tar -czf "$OUT/mppi64.tgz" -C "$d" episodes
     mps_stop ;;
+  reference)  # #54: the pyramid's own plane against three wrong planes (experiments/reference_check.py) at GRIDS
+    for grid in ${GRIDS:-64 128}; do
+      python3 experiments/reference_check.py pyramid --n-grid $grid --device cuda --json "$OUT/pyramid$grid.json" 2>&1 \
+        | grep -v -i warn | tee -a "$OUT/reference.txt"
+    done ;;
   multi-gpu)  # #53: PART=eval (the oracle's evaluation, EVAL_JOBS processes) or PART=demos (a stage=mppi multirun on the
     # joblib launcher, 12 cells) on GPU 0 alone and on every GPU of the node, nvidia-smi sampling each GPU's
     # utilisation every second beside them; PART=ddp: stage=pretrain on the demos' merged dataset, one GPU and DDP on all
