@@ -160,7 +160,7 @@ def run(ctx: RunContext, sequence: list[str], trainer=None) -> dict:
 
         if jobs <= 1:
             return [one(name, label, own) for label, own in todo]
-        if ctx.device == "cuda":
+        if getattr(ctx, "device", "cpu") == "cuda":
             share_gpus()  # the workers spread over every GPU of the node
         runs = []
         for label, own in todo:
