@@ -171,6 +171,13 @@ PY
     echo "== wall $(( $(date +%s) - t0 )) s" | tee -a "$OUT/mppi_check.txt"
     d=$(ls -d /tmp/o/eval/mppi64/v* | tail -1) && tar -czf "$OUT/mppi64.tgz" -C "$d" episodes
     mps_stop ;;
+  paper-cost)  # #49: benchmarks/paper_cost.py under MPS, scratch outputs in /tmp/pc (kept while the machine is warm:
+    # run STAGES over back-to-back calls), its table and JSON to $OUT; PC_ARGS more options (e.g. --episodes 1)
+    mps_start
+    timeout ${LIMIT:-570} python3 benchmarks/paper_cost.py --out /tmp/pc --stages ${STAGES:-simulate mppi} \
+      ${PC_ARGS:-} 2>&1 | grep -v -i warn | tail -40 | tee -a "$OUT/paper_cost.txt"
+    cp /tmp/pc/paper_cost.json /tmp/pc/paper_cost.md "$OUT/" 2>/dev/null
+    mps_stop ;;
   reference)  # #54: the pyramid's own plane against three wrong planes (experiments/reference_check.py) at GRIDS
     for grid in ${GRIDS:-64 128}; do
       python3 experiments/reference_check.py pyramid --n-grid $grid --device cuda --json "$OUT/pyramid$grid.json" 2>&1 \
