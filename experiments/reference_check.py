@@ -34,22 +34,13 @@ VARIANTS = {  # name: (offset along the normal [units], yaw [deg], tilt [deg]) a
 
 def pyramid(n_grid: int = 48, size: float = 0.1, device: str = "cpu", seed: int = 0) -> dict:
     """The four planes' rewards: {"rows": [{"plane", "reward", "pieces"}], and the settings}."""
-    from topocut.planning.experiments import PlaneScorer, perturbed_plane
+    from topocut.planning.experiments import PlaneScorer, perturbed_plane, pyramid_scene
     from topocut.reward import RewardConfig
-    from topocut.sim import CuttingEnv, SimConfig, init_taichi
-    from topocut.sim.objects import ObjectPose
-    from topocut.tasks import TaskConfig, make_goal
     from topocut.topology import TopologyConfig
 
     t0 = time.perf_counter()
-    init_taichi(device, cpu_threads=1 if device == "cpu" else None)  # one thread: a re-run cut is bit-identical
-    B = len(VARIANTS)
-    sim = SimConfig(n_grid=n_grid, batch_size=B, arch=device)
-    pose = ObjectPose()
-    goal = make_goal(TaskConfig(name="pyramid", size=size, max_cuts=1), "cube", pose, spacing=sim.spacing,
-                     board_z=sim.board_z)
-    env = CuttingEnv(sim, batch_size=B)
-    env.reset("cube", pose, seed=seed)
+    env, goal = pyramid_scene(n_grid, len(VARIANTS), size, device, seed)
+    sim = env.cfg
     particles = int(env.n)
     reward = RewardConfig() if device == "cpu" else RewardConfig(backend="torch", device=device)
     scorer = PlaneScorer(env, env.get_state(0), goal, reward, reward, TopologyConfig(resolution=64))

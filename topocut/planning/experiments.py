@@ -82,6 +82,23 @@ class PlaneScorer:
         return -np.array([r["cost_reward"] for r in res])
 
 
+def pyramid_scene(n_grid: int, batch: int, size: float = 0.1, device: str = "cpu", seed: int = 0):
+    """(env of ``batch`` scenes holding the cube at the nominal pose, its pyramid goal of leg ``size``): the
+    setting of the pyramid experiments; on the CPU Taichi runs one thread, so a re-run cut is bit-identical."""
+    from topocut.sim import CuttingEnv, SimConfig, init_taichi
+    from topocut.sim.objects import ObjectPose
+    from topocut.tasks import TaskConfig, make_goal
+
+    init_taichi(device, cpu_threads=1 if device == "cpu" else None)
+    sim = SimConfig(n_grid=n_grid, batch_size=batch, arch=device)
+    pose = ObjectPose()
+    goal = make_goal(TaskConfig(name="pyramid", size=size, max_cuts=1), "cube", pose, spacing=sim.spacing,
+                     board_z=sim.board_z)
+    env = CuttingEnv(sim, batch_size=batch)
+    env.reset("cube", pose, seed=seed)
+    return env, goal
+
+
 def pyramid_experiment(n_grid: int = 48, num_samples: int = 8, iterations: int = 6, size: float = 0.1,
                        init=(-0.02, 0.35, -0.3), delta: float = 1.1, seed: int = 0, device: str = "cpu",
                        out: str | None = None) -> dict:
@@ -89,19 +106,11 @@ def pyramid_experiment(n_grid: int = 48, num_samples: int = 8, iterations: int =
     from topocut.planning.config import MPPIConfig
     from topocut.planning.mppi import MPPI
     from topocut.reward import RewardConfig
-    from topocut.sim import CuttingEnv, SimConfig, init_taichi
-    from topocut.sim.objects import ObjectPose
-    from topocut.tasks import TaskConfig, make_goal
     from topocut.topology import TopologyConfig
 
     t0 = time.perf_counter()
-    init_taichi(device, cpu_threads=1 if device == "cpu" else None)  # one thread: a re-run cut is bit-identical
-    sim = SimConfig(n_grid=n_grid, batch_size=num_samples, arch=device)
-    pose = ObjectPose()
-    goal = make_goal(TaskConfig(name="pyramid", size=size, max_cuts=1), "cube", pose, spacing=sim.spacing,
-                     board_z=sim.board_z)
-    env = CuttingEnv(sim, batch_size=num_samples)
-    env.reset("cube", pose, seed=seed)
+    env, goal = pyramid_scene(n_grid, num_samples, size, device, seed)
+    sim = env.cfg
     state = env.get_state(0)
     reward_cfg = RewardConfig()
     scorer = PlaneScorer(env, state, goal, reward_cfg, dataclasses.replace(reward_cfg, delta=delta),
