@@ -29,7 +29,8 @@ REPO = Path(__file__).resolve().parents[1]
 FAST = ["logger=none", "progress=false", "sim.n_grid=20", "sim.cut_substeps=40", "sim.dwell_time=0.0005",
         "sim.push_time=0.002", "sim.settle_time=0.002", "sim.batch_size=2", "planner.num_samples=2",
         "planner.horizon=1", "planner.iterations=1", "task.max_cuts=2", "data.points_per_step=128",
-        "topology.resolution=32", "stage.run.compare_heuristic=false", "object.randomize_pose=false"]
+        "topology.resolution=32", "stage.run.compare_heuristic=false", "object.randomize_pose=false",
+        "eval.videos=0"]  # filming: tests/test_eval_videos.py
 RESUME_SEED = 7
 RESUME_EPISODES = 3
 
