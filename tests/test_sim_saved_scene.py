@@ -10,8 +10,12 @@ from topocut.sim import CuttingEnv, KnifeAction, SimConfig  # noqa: E402
 from topocut.sim.objects import ObjectPose  # noqa: E402
 
 
+# a short cut and push (as tests/test_stages.py's FAST): what is checked is what the state restores, not the physics
+QUICK = dict(n_grid=32, arch="cpu", cut_substeps=40, dwell_time=0.0005, push_time=0.002, settle_time=0.002)
+
+
 def _env(B):
-    env = CuttingEnv(SimConfig(n_grid=32, arch="cpu"), batch_size=B)
+    env = CuttingEnv(SimConfig(**QUICK), batch_size=B)
     env.reset("cube", ObjectPose(), seed=0)
     return env
 
@@ -24,7 +28,7 @@ def _fields(env, b):
 
 
 def test_get_state_copies_exactly_the_scene_asked_for():
-    env = CuttingEnv(SimConfig(n_grid=32, arch="cpu"), batch_size=2)
+    env = CuttingEnv(SimConfig(**QUICK), batch_size=2)
     env.reset_scenes(["cube", "potato"], [ObjectPose(), ObjectPose(yaw=0.3)], [0, 1])
     env.cut([KnifeAction.from_plane(np.array([1.0, 0, 0]), np.array([0.5, 0.5, 0.1])),
              KnifeAction.from_plane(np.array([0, 1.0, 0]), np.array([0.5, 0.48, 0.1]))])
