@@ -9,7 +9,6 @@ pytest.importorskip("taichi")
 from topocut.sim import CuttingEnv, KnifeAction, SimConfig  # noqa: E402
 from topocut.sim.objects import ObjectPose  # noqa: E402
 
-
 # a short cut and push (as tests/test_stages.py's FAST): what is checked is what the state restores, not the physics
 QUICK = dict(n_grid=32, arch="cpu", cut_substeps=40, dwell_time=0.0005, push_time=0.002, settle_time=0.002)
 
