@@ -171,12 +171,7 @@ class Scenes:
         self.sweeps = [list(saved.sweeps) for _ in range(self.B)]
         self.object = saved.object
         self.dead[:] = False
-        s.sort_by_cell(self.n, self.resort > 0)
-        self.push_side[:] = 0
-        s.n_fields[None] = max(int(s.n_fields[None]), saved.n_fields)
-        s.bad_step.fill(NO_STEP)
-        s.k_on.fill(0)
-        self._set_frozen()
+        self._loaded(slice(None), saved.n_fields)
         return True
 
     def set_state(self, state: dict, b: int | None = None) -> None:
@@ -255,10 +250,16 @@ class Scenes:
             self.piece[sb, :n], self.piece[sb, n:] = piece, 0
         s.material.from_numpy(mat)
         s.Jp.from_numpy(np.linalg.det(s.F.to_numpy()).astype(np.float32))
+        top = max(int(v[1]["body"].max(initial=0)) for v in prepared.values())
+        self._loaded(scenes, top + 1)
+
+    def _loaded(self, scenes, n_fields: int) -> None:
+        """After particles were written into ``scenes`` (``_write``, ``restore_scene``): the scatter's visiting
+        order, no pending push, at least ``n_fields`` velocity fields, no divergence flag, the knife off."""
+        s = self.solver
         s.sort_by_cell(self.n, self.resort > 0)  # the scatter's order must cover exactly particles 0 .. n-1
         self.push_side[scenes] = 0
-        top = max(int(v[1]["body"].max(initial=0)) for v in prepared.values())
-        s.n_fields[None] = max(int(s.n_fields[None]), top + 1)  # only grows: see _split
+        s.n_fields[None] = max(int(s.n_fields[None]), n_fields)  # only grows: see _split
         s.bad_step.fill(NO_STEP)
         s.k_on.fill(0)
         self._set_frozen()
