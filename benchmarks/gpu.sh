@@ -205,12 +205,22 @@ PY
             planner.horizon=1 reward=torch data.episodes=${EPISODES:-3} task.max_cuts=5 logger=none progress=false \
             outputs_root=/tmp/d$tag 2>&1 | grep -v -i warn | tail -3 ;;
         ddp) python3 -m topocut.run stage=merge outputs_root=/tmp/dg${all//,/} logger=none progress=false 2>&1 | tail -2
+          # F, then PDDP on it, on one GPU (seeds SEEDS: their spread) and under DDP on every GPU (seed 0); each
+          # under its own outputs root so that bc trains on the F of the same trainer
           for tr in "trainer=gpu" "trainer=ddp trainer.devices=$ngpu"; do
-            t1=$(date +%s)
-            CUDA_VISIBLE_DEVICES=$vis timeout ${LIMIT:-250} python3 -m topocut.run stage=pretrain $tr \
-              trainer.max_epochs=${EPOCHS:-5} trainer.num_workers=2 logger=none progress=false \
-              outputs_root=/tmp/dg${all//,/} 2>&1 | grep -v -i warn | grep -i "summary\|error" | tail -3
-            echo "== pretrain $tr: wall $(( $(date +%s) - t1 )) s"
+            for seed in $([ "$tr" = trainer=gpu ] && echo ${SEEDS:-0 1} || echo 0); do
+              root=/tmp/dd${tr//[^a-z0-9]/}$seed; mkdir -p $root && cp -r /tmp/dg${all//,/}/dataset $root/
+              for st in pretrain bc; do
+                t1=$(date +%s)
+                CUDA_VISIBLE_DEVICES=$vis timeout ${LIMIT:-250} python3 -m topocut.run stage=$st $tr seed=$seed \
+                  $([ $st = bc ] && echo "stage.run.policies=[pddp]") trainer.max_epochs=${EPOCHS:-5} policy.train.max_epochs=${EPOCHS:-5} trainer.num_workers=2 \
+                  logger=none progress=false outputs_root=$root 2>&1 | grep -v -i warn | grep -i "summary\|error" | tail -2
+                echo "== $st $tr seed $seed: wall $(( $(date +%s) - t1 )) s; validation:" \
+                  $(python3 -c "import glob, json, sys
+for f in sorted(glob.glob(sys.argv[1] + '/checkpoint/*/v*/metrics.json')):
+    m = json.load(open(f))['metrics']; print(f.split('/')[-3], {k: v for k, v in m.items() if 'val' in k})" $root)
+              done
+            done
           done ;;
       esac
       kill $mon
