@@ -189,6 +189,7 @@ PY
     mps_start
     ngpu=$(nvidia-smi -L | wc -l); all=$(seq -s, 0 $((ngpu - 1)))
     sets="0 $all"; [ "${PART:-eval}" = ddp ] || [ "$ngpu" = 1 ] && sets="$all"
+    sets=${SETS:-$sets}  # e.g. SETS=0: GPU 0 alone again, once Taichi's kernel cache is warm
     for vis in $sets; do
       nvidia-smi --query-gpu=index,utilization.gpu --format=csv,noheader,nounits -lms 500 > /tmp/util.txt &
       mon=$!; t0=$(date +%s); tag=g${vis//,/}
