@@ -185,7 +185,9 @@ PY
     done ;;
   multi-gpu)  # #53: PART=eval (the oracle's evaluation, EVAL_JOBS processes) or PART=demos (a stage=mppi multirun on the
     # joblib launcher, 12 cells) on GPU 0 alone and on every GPU of the node, nvidia-smi sampling each GPU's
-    # utilisation every second beside them; PART=ddp: stage=pretrain on the demos' merged dataset, one GPU and DDP on all
+    # utilisation every second beside them (EVAL_ARGS: overrides after the 64^3 defaults, e.g. the paper's 128^3 and 3 cm:
+    # "sim.n_grid=128 eval.task_overrides={}"); PART=ddp (DDP_ARGS: overrides for the DDP runs alone, e.g. the
+    # per-device batch halved so that both see the same global batch): stage=pretrain on the demos' merged dataset, one GPU and DDP on all
     mps_start
     ngpu=$(nvidia-smi -L | wc -l); all=$(seq -s, 0 $((ngpu - 1)))
     sets="0 $all"; [ "${PART:-eval}" = ddp ] || [ "$ngpu" = 1 ] && sets="$all"
@@ -199,6 +201,7 @@ PY
             eval.jobs=${EVAL_JOBS:-12} eval.gifs=0 eval.videos=0 eval.episodes_per_cell=${EPC:-2} eval.name=$tag logger=none \
             progress=false outputs_root=/tmp/o \
             "eval.task_overrides={slice:{thickness:0.05},stick:{thickness:0.05,width:0.05},dice:{thickness:0.05,width:0.05,size:0.05}}" \
+            ${EVAL_ARGS:-} \
             2>&1 | grep -v -i warn | tail -3 ;;
         demos) CUDA_VISIBLE_DEVICES=$vis timeout ${LIMIT:-280} python3 -m topocut.run -m stage=mppi \
             task=slice,stick,dice object=cake,cube,potato,ham hydra/launcher=joblib hydra.launcher.n_jobs=${JOBS:-12} \
@@ -213,7 +216,7 @@ PY
               root=/tmp/dd${tr//[^a-z0-9]/}$seed; mkdir -p $root && cp -r /tmp/dg${all//,/}/dataset $root/
               for st in pretrain bc; do
                 t1=$(date +%s)
-                CUDA_VISIBLE_DEVICES=$vis timeout ${LIMIT:-250} python3 -m topocut.run stage=$st $tr seed=$seed \
+                CUDA_VISIBLE_DEVICES=$vis timeout ${LIMIT:-250} python3 -m topocut.run stage=$st $tr seed=$seed $([ "$tr" = trainer=gpu ] || echo ${DDP_ARGS:-}) \
                   $([ $st = bc ] && echo "stage.run.policies=[pddp]") trainer.max_epochs=${EPOCHS:-5} policy.train.max_epochs=${EPOCHS:-5} trainer.num_workers=2 \
                   logger=none progress=false outputs_root=$root 2>&1 | grep -v -i warn | grep -i "summary\|error" | tail -2
                 echo "== $st $tr seed $seed: wall $(( $(date +%s) - t1 )) s; validation:" \
