@@ -1,5 +1,6 @@
 """The reward's figures (docs/reward.md): pose invariance, the spectral-loss matrix, Q1 with hand-cut pieces and Q1
-in the simulator.  The experiments are library functions (topocut.reward.experiments); this is their command line.
+in the simulator.  The experiments live beside it (experiments/reward_lattice.py, reward_q1_hand.py,
+reward_q1_sim.py); this is their command line.
 
     python experiments/reward_figures.py pose_invariance --out docs/img/reward_pose_invariance.png
     python experiments/reward_figures.py loss_matrix --out docs/img/reward_loss_matrix.png
@@ -8,20 +9,15 @@ in the simulator.  The experiments are library functions (topocut.reward.experim
 """
 import argparse
 import json
+import sys
+from pathlib import Path
 
 import numpy as np
 
-from topocut.reward.experiments import (
-    _plot_matrix,
-    _plot_pose,
-    _plot_q1,
-    _plot_q1_hand,
-    loss_matrix,
-    pose_invariance,
-    q1_hand,
-    q1_sequence,
-    thickness_sweep,
-)
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a file: `experiments` from the repository root
+from experiments.reward_lattice import draw_loss_matrix, draw_pose_invariance, loss_matrix, pose_invariance  # noqa: E402
+from experiments.reward_q1_hand import draw_q1_hand, q1_hand, thickness_sweep  # noqa: E402
+from experiments.reward_q1_sim import draw_q1_sequence, q1_sequence  # noqa: E402
 
 
 def main(argv=None):
@@ -35,7 +31,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
     if args.experiment == "pose_invariance":
         res = pose_invariance()
-        _plot_pose(res, args.out)
+        draw_pose_invariance(res, args.out)
         exact = pose_invariance(jitter=0.0)
         summary = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in res.items()}
         summary.update({f"{m}_exact_lattice": exact[m].tolist() for m in ("dense", "surface")})
@@ -44,15 +40,15 @@ def main(argv=None):
         summary["max_spread_exact_lattice"] = {m: float(np.ptp(exact[m], axis=0).max()) for m in ("dense", "surface")}
     elif args.experiment == "q1_hand":
         res, sweep = q1_hand(), thickness_sweep()
-        _plot_q1_hand(res, sweep, args.out)
+        draw_q1_hand(res, sweep, args.out)
         summary = {"q1": res, "sweep": sweep}
     elif args.experiment == "q1":
         res = q1_sequence(n_grid=args.n_grid, push=args.push, wrong=args.wrong, error=args.error)
-        _plot_q1(res, args.out)
+        draw_q1_sequence(res, args.out)
         summary = {k: v for k, v in res.items() if not k.startswith("_")}
     else:
         names, D = loss_matrix()
-        _plot_matrix(names, D, args.out)
+        draw_loss_matrix(names, D, args.out)
         summary = {"names": names, "d_spec": D.tolist()}
     with open(args.out.rsplit(".", 1)[0] + ".json", "w") as f:
         json.dump(summary, f, indent=1)

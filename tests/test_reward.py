@@ -102,7 +102,7 @@ def test_piecewise_reward_matches_the_paper_formula():
 def test_size_terms_make_wrong_thicknesses_earn_nothing():
     """docs/reward.md#sweep: slabs of 3/4/6 layers: 1.33x and 1.5x and 2x the goal thickness earn nothing,
     the same slab scores ~1 (the spectral term alone is scale-free and does not see the thickness)."""
-    from topocut.reward.experiments import shape_gallery
+    from experiments.reward_lattice import shape_gallery
 
     g, cfg = shape_gallery(), RewardConfig()
     R = {(a, b): piecewise_reward(piece_distance(g[a], g[b], cfg), cfg)
@@ -217,7 +217,7 @@ def test_torch_batch_matches_scipy_path():
 
 
 def test_metric_table_wrong_cut_scores_below_right_cut_and_pose_moves_only_hurt_distances():
-    from topocut.reward.experiments import metric_table
+    from experiments.reward_q1_sim import metric_table
 
     t = 3 * H  # goal: two slabs of 3 layers cut off a 9-layer block
     slab = lambda x0, seed: box(t, 12 * H, 8 * H, seed) + [x0, 0, 0]  # noqa: E731
