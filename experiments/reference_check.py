@@ -2,7 +2,7 @@
 
 Pyramid: the goal's own plane (the task's oracle: the corner tetrahedron's cut) and three wrong planes, each
 simulated from the same state in one batch (the four scenes of one CuttingEnv) and scored with today's reward
-(topocut.planning.experiments.PlaneScorer: topology discovery, then the spectral reward against the goal):
+(experiments/plane_scoring.py's PlaneScorer: topology discovery, then the spectral reward against the goal):
 
 * deeper: the plane moved 2 cm into the cube along its normal (a bigger corner);
 * yawed: turned 15° about the vertical through the goal face's centre;
@@ -24,6 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a file: `experiments` from the repository root
+
 VARIANTS = {  # name: (offset along the normal [units], yaw [deg], tilt [deg]) about the goal face's centre
     "reference": (0.0, 0.0, 0.0),
     "deeper 2 cm": (-0.02, 0.0, 0.0),
@@ -34,7 +36,7 @@ VARIANTS = {  # name: (offset along the normal [units], yaw [deg], tilt [deg]) a
 
 def pyramid(n_grid: int = 48, size: float = 0.1, device: str = "cpu", seed: int = 0) -> dict:
     """The four planes' rewards: {"rows": [{"plane", "reward", "pieces"}], and the settings}."""
-    from topocut.planning.experiments import PlaneScorer, perturbed_plane, pyramid_scene
+    from experiments.plane_scoring import PlaneScorer, perturbed_plane, pyramid_scene
     from topocut.reward import RewardConfig
     from topocut.topology import TopologyConfig
 

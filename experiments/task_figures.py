@@ -1,13 +1,17 @@
 """The additional tasks' figures (docs/tasks.md): pyramid cutting by MPPI and cream writing.  The experiments are
-library functions (topocut.planning.experiments); this is their command line.
+experiments/pyramid_mppi.py and experiments/cream_writing.py; this is their command line.
 
     python experiments/task_figures.py pyramid --out docs/img/pyramid.png          # ~10 min, figure + .json
     python experiments/task_figures.py writing --out docs/img/cream_writing.png
 """
 import argparse
 import json
+import sys
+from pathlib import Path
 
-from topocut.planning.experiments import pyramid_experiment, writing_experiment
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a file: `experiments` from the repository root
+from experiments.cream_writing import writing_experiment  # noqa: E402
+from experiments.pyramid_mppi import pyramid_experiment  # noqa: E402
 
 
 def main(argv=None) -> None:

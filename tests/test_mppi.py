@@ -249,7 +249,7 @@ def test_plane_scorer_matches_the_rollout_and_survives_divergence(monkeypatch):
     +inf instead of ending the search."""
     import dataclasses
 
-    from topocut.planning.experiments import PlaneScorer
+    from experiments.plane_scoring import PlaneScorer
     from topocut.planning.rollout import make_sim_rollout
     from topocut.reward import RewardConfig
     from topocut.sim import SimulationDiverged

@@ -125,36 +125,3 @@ def write_scripted(pen, strokes, goals, reward_cfg=None, on_letter=None) -> dict
     out = letter_rewards(x[0], stroke, goals, reward_cfg)
     out.update(particles=int(pen.n), substeps=int(pen.env.step_count), seconds=time.perf_counter() - t0)
     return out
-
-
-def draw_writing(path, goals, results: list[tuple[str, np.ndarray, np.ndarray, dict]]) -> None:
-    """Top-down figure: the letter goals, then each result (title, x (n,3), stroke (n,), rewards) by stroke."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from topocut.sim.render import label_colors
-
-    rows = 1 + len(results)
-    fig, axes = plt.subplots(rows, 1, figsize=(8, 2.3 * rows), dpi=110)
-    g = np.concatenate(goals)
-    axes[0].scatter(g[:, 0], g[:, 1], s=4, c=label_colors(np.repeat(np.arange(len(goals)), [len(q) for q in goals]) + 1))
-    axes[0].set_title(f"goal: {len(goals)} letter point clouds ({', '.join(str(len(q)) for q in goals)} points)",
-                      fontsize=9)
-    for ax, (title, x, stroke, rew) in zip(axes[1:], results):
-        ax.scatter(x[:, 0], x[:, 1], s=4, c=label_colors(np.asarray(stroke) + 1))
-        per = ", ".join(f"{r:.2f}" for r in rew["per_letter"])
-        d = ", ".join(f"{v:.3f}" for v in rew["distance"])
-        ax.set_title(f"{title}: {len(x)} particles, reward {rew['total']:.3f} (per letter {per}; d_spec {d})",
-                     fontsize=9)
-    lo, hi = g[:, :2].min(0) - 0.02, g[:, :2].max(0) + 0.02
-    for ax in axes:
-        ax.set_xlim(lo[0], hi[0])
-        ax.set_ylim(lo[1], hi[1])
-        ax.set_aspect("equal")
-        ax.set_xticks([])
-        ax.set_yticks([])
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)

@@ -1,5 +1,4 @@
-"""Experiments of the additional tasks (docs/tasks.md): pyramid cutting (paper appendix "Pyramid Cutting
-Task"), MPPI driven only by the spectral reward; and cream writing (``... task_figures.py writing``).
+"""Pyramid cutting (paper appendix "Pyramid Cutting Task"; docs/tasks.md): MPPI driven only by the spectral reward.
 
 ``python experiments/task_figures.py pyramid --out docs/img/pyramid.png`` starts MPPI from a
 plane that misses the goal (shifted, yawed and less tilted than the ideal one), lets it sample
@@ -20,83 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from topocut.reward import distances_and_volumes, reward_from_distances
+from experiments.plane_scoring import PlaneScorer, perturbed_plane, pyramid_scene
 from topocut.sim.action import KnifeAction
-
-
-def perturbed_plane(ideal: KnifeAction, pivot, offset: float, dyaw: float, dtilt: float,
-                    board_z: float) -> KnifeAction:
-    """The ideal plane turned by (dyaw, dtilt) about ``pivot`` (a point near the goal piece), then moved
-    ``offset`` along the ideal normal (< 0: into the object, a bigger corner)."""
-    p = np.asarray(pivot, float)
-    p = p - ((p - ideal.plane_point(board_z)) @ ideal.normal) * ideal.normal  # onto the ideal plane
-    turned = KnifeAction(0.0, 0.0, ideal.yaw + dyaw, ideal.tilt + dtilt)
-    return KnifeAction.from_plane(turned.normal, p + offset * ideal.normal, board_z)
-
-
-class PlaneScorer:
-    """Batched one-cut rollouts from one state: action vectors (K,4) -> fragments, rewards (two RewardConfigs)."""
-
-    def __init__(self, env, state: dict, goal, reward_cfg, cost_cfg, topo_cfg):
-        from topocut.planning.rollout import Scorer, simulation_diverged_error, topology_device
-
-        self.env, self.state, self.goal = env, state, goal
-        self.scorer = Scorer(goal, reward_cfg, topo_cfg, device=topology_device(env))
-        self.cost_cfg = cost_cfg
-        self.diverged = simulation_diverged_error()
-        self.log: list[dict] = []
-
-    def run(self, actions: np.ndarray) -> list[dict]:
-        env, B = self.env, self.env.batch_size
-        out = []
-        for c0 in range(0, len(actions), B):
-            chunk = [KnifeAction.from_vector(a) for a in actions[c0:c0 + B]]
-            n = len(chunk)
-            env.set_state(self.state, b=None)
-            try:
-                env.cut(chunk + [chunk[-1]] * (B - n))
-            except self.diverged:  # as in make_sim_rollout: the chunk gets no weight, the search goes on
-                env.set_state(self.state, b=None)
-                x0 = env.state().x[0]
-                out += [{"action": a.to_vector(), "x": x0, "labels": np.zeros(len(x0), np.int32), "reward": 0.0,
-                         "cost_reward": -np.inf} for a in chunk]
-                continue
-            st = env.state()
-            xs = [st.x[b].copy() for b in range(n)]
-            labs = [self.scorer.labels(st.x[b], st.damage[b], st.sweeps[b]) for b in range(n)]
-            # one distance matrix per scene, scored under both reward configs (they differ only in R(d))
-            sets = [self.scorer.fragments(x, lab) for x, lab in zip(xs, labs)]
-            Ds, vols, gvols = distances_and_volumes(sets, list(self.goal.fragments), self.scorer.reward_cfg)
-            G = len(self.goal.fragments)
-            for b in range(n):
-                out.append({"action": chunk[b].to_vector(), "x": xs[b], "labels": labs[b],
-                            "reward": reward_from_distances(Ds[b], G, self.scorer.reward_cfg, vols[b], gvols).total,
-                            "cost_reward": reward_from_distances(Ds[b], G, self.cost_cfg, vols[b], gvols).total})
-        return out
-
-    def rollout(self, seqs: np.ndarray) -> np.ndarray:
-        """MPPI cost (K,1,4) -> (K,): minus the tail-softened spectral reward."""
-        res = self.run(np.asarray(seqs)[:, 0])
-        self.log.append({"rewards": [r["reward"] for r in res], "cost_rewards": [r["cost_reward"] for r in res],
-                         "actions": [r["action"].tolist() for r in res]})
-        return -np.array([r["cost_reward"] for r in res])
-
-
-def pyramid_scene(n_grid: int, batch: int, size: float = 0.1, device: str = "cpu", seed: int = 0):
-    """(env of ``batch`` scenes holding the cube at the nominal pose, its pyramid goal of leg ``size``): the
-    setting of the pyramid experiments; on the CPU Taichi runs one thread, so a re-run cut is bit-identical."""
-    from topocut.sim import CuttingEnv, SimConfig, init_taichi
-    from topocut.sim.objects import ObjectPose
-    from topocut.tasks import TaskConfig, make_goal
-
-    init_taichi(device, cpu_threads=1 if device == "cpu" else None)
-    sim = SimConfig(n_grid=n_grid, batch_size=batch, arch=device)
-    pose = ObjectPose()
-    goal = make_goal(TaskConfig(name="pyramid", size=size, max_cuts=1), "cube", pose, spacing=sim.spacing,
-                     board_z=sim.board_z)
-    env = CuttingEnv(sim, batch_size=batch)
-    env.reset("cube", pose, seed=seed)
-    return env, goal
 
 
 def pyramid_experiment(n_grid: int = 48, num_samples: int = 8, iterations: int = 6, size: float = 0.1,
@@ -233,31 +157,3 @@ def draw_pyramid(path, x0, goal, ideal, start, planned, res, ideal_res, result, 
     plt.close(fig)
     tmp.replace(path)
     return path
-
-
-def writing_experiment(word: str = "CORL", n_grid: int = 48, num_samples: int = 4, iterations: int = 2,
-                       seed: int = 0, out: str | None = None) -> dict:
-    """Cream writing: the scripted writer vs MPPI over strokes (same goals); figure + numbers."""
-    from topocut.planning.stroke_mppi import StrokeMPPI, StrokeMPPIConfig
-    from topocut.sim import SimConfig, init_taichi
-    from topocut.sim.pen import CreamPen
-    from topocut.tasks.config import TaskConfig
-    from topocut.tasks.writing_scene import draw_writing, write_scripted, writing_scene
-
-    init_taichi("cpu", cpu_threads=1)
-    sim, task = SimConfig(n_grid=n_grid), TaskConfig(name="cream_writing", word=word).validate()
-    goals, strokes, start, _ = writing_scene(sim, task)
-    pen = CreamPen(sim, task.pen, 1, start=start)
-    scripted = write_scripted(pen, strokes, goals)
-    xs, ss = pen.particles()
-    mpen = CreamPen(sim, task.pen, num_samples, start=start)
-    mppi = StrokeMPPI(mpen, goals, StrokeMPPIConfig(num_samples=num_samples, iterations=iterations), seed=seed)
-    planned = mppi.write(strokes)
-    xm, sm = mpen.particles()
-    planned.pop("polylines")
-    result = {"word": word, "n_grid": n_grid, "scripted": scripted, "mppi": planned}
-    if out:
-        draw_writing(out, goals, [("scripted writer", xs[0], ss, scripted),
-                                  (f"MPPI over strokes (K={num_samples}, {iterations} it.)", xm[0], sm, planned)])
-        Path(out).with_suffix(".json").write_text(json.dumps(result, indent=2, default=float))
-    return result
