@@ -3,8 +3,8 @@ import json
 
 import pytest
 
+from experiments.table2 import collect, markdown
 from topocut.data.store import ArtifactStore
-from topocut.models.table2 import collect, markdown
 
 
 def _ckpt(store, name, model, metrics, params):
