@@ -209,24 +209,3 @@ def scoop_episode(sim, task, topology=None, frames_dir=None, seed: int = 0, rewa
             "chunks_distinct": bool(distinct), "reward": float(res.total), "per_chunk": res.per_goal.tolist(),
             "target_points": int(len(target)), "particles": int(len(x)), "substeps": int(scene.env.step_count),
             "seconds": time.perf_counter() - t0, "arrays": arrays, "frames": frames}
-
-
-def figure(frames_dir, out, names=("00_", "scoop1_tilt", "scoop2_advance", "final")) -> None:
-    """docs/img/scooping.png: the run's frames (frames/NN_<phase>.png) whose names contain ``names``, side by side."""
-    from pathlib import Path
-
-    import imageio.v2 as imageio
-
-    files = sorted(Path(frames_dir).glob("*.png"))
-    imgs = [imageio.imread(next(f for f in files if key in f.name))[..., :3] for key in names]
-    h = min(i.shape[0] for i in imgs)
-    row = np.concatenate([i[:h] for i in imgs], axis=1)
-    ink = np.flatnonzero((row < 250).any(axis=(1, 2)))  # drop blank rows (titles and scenes stay)
-    keep = np.unique(np.concatenate([np.arange(max(r - 4, 0), min(r + 5, h)) for r in ink]))
-    imageio.imwrite(out, row[keep])
-
-
-if __name__ == "__main__":  # python -m topocut.tasks.scooping_scene <run>/frames docs/img/scooping.png
-    import sys
-
-    figure(sys.argv[1], sys.argv[2])
