@@ -10,7 +10,7 @@ the statistical precipice"), implemented with numpy/scipy (rliable is not a depe
 * ``wilson_interval``: the success rate with its Wilson score interval;
 * ``plot_profiles``: the performance profile, the fraction of a policy's episodes with R̂ > tau.
 
-``aggregate_markdown`` writes the "Aggregates" table of results.md from ``topocut.eval.report._prepare``'s
+``aggregate_markdown`` writes the "Aggregates" table of results.md from ``topocut.eval.summary.prepare_episodes``'
 episode dicts (``policy``, ``task``, ``split``, ``R``, ``R_hat``, ``success``).
 """
 from __future__ import annotations
