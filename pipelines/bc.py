@@ -31,10 +31,34 @@ def _loaders(dataset, split, batch_size: int, num_workers: int):
             make(dataset(val), batch_size=batch_size, num_workers=num_workers) if val else None)
 
 
+# policy.train keys each learned policy's training sets itself (registry.training_setup): a value given on the
+# command line would be overwritten, so it is refused instead, naming what sets it
+SET_PER_POLICY = {
+    "encoder": "each policy's own encoder (the registry: pddp pretrained, pddp_noperc none, pddp_graphconv "
+               "graphconv); choose the policy with stage.run.policies",
+    "encoder_ckpt": "data.encoder and data.encoder_version (the perception checkpoint stage=pretrain made)",
+    "seed": "the run's seed (seed=...)",
+}
+
+
+def check_train_keys(train) -> None:
+    """ConfigError (exit status 2) naming a ``policy.train`` key of SET_PER_POLICY given a value other than its
+    default."""
+    from topocut.config import ConfigError
+    from topocut.policies.config import PolicyTrainConfig
+
+    default = PolicyTrainConfig()
+    for key, source in SET_PER_POLICY.items():
+        if getattr(train, key) != getattr(default, key):
+            raise ConfigError(f"policy.train.{key}={getattr(train, key)!r}: stage=bc takes it from {source}; "
+                             f"leave policy.train.{key} at {getattr(default, key)!r}")
+
+
 def run(ctx: RunContext, policy, trainer, data, policies: list[str]) -> dict:
     from topocut.data.episodes import EpisodeDataset
 
     registry.check(policies, "stage.run.policies", registry.learned())
+    check_train_keys(policy.train)
     ds_path = ctx.store.resolve("dataset", data.dataset, data.version)
     ds = EpisodeDataset(ds_path / "data.zarr", in_memory=True)
     steps = [ds[i] for i in range(len(ds))]

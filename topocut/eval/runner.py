@@ -89,13 +89,13 @@ def build_policies(ctx: RunContext, names, env, sim, planner, reward, topology, 
     ``train_seeds=1``, else one run ``<name>@s<seed>`` per training seed ctx.seed .. ctx.seed+k-1; ``runs``, when
     given, receives {run name: {"policy", "train_seed", "checkpoint"}} (the report's policies.json)."""
     from topocut.eval.report import run_name
-    from topocut.planning import MPPIPolicy, sim_rollout_factory
-    from topocut.planning.heuristic import FixedTrajectoryPolicy
-    from topocut.planning.oracle import OraclePolicy
+    from topocut.policies.scripted import ScriptedSetup
 
     registry.check(names, "eval.policies", external=True, kwargs=policy_kwargs)
     seeds = None if train_seeds == 1 else [ctx.seed + i for i in range(train_seeds)]
     policies, inputs, runs = {}, {}, runs if runs is not None else {}
+    setup = ScriptedSetup(env=env, sim=sim, planner=planner, reward=reward, topology=topology, task_cfgs=task_cfgs,
+                          seed=ctx.seed)
     for name in names:
         if registry.is_import_path(name):  # your own policy class (docs/evaluation.md): episodes/<safe name>/
             ext = registry.load_external(name)
@@ -105,15 +105,8 @@ def build_policies(ctx: RunContext, names, env, sim, planner, reward, topology, 
             continue
         if name in SCRIPTED:
             runs[name] = {"policy": name, "train_seed": None, "checkpoint": None}
-        if name == "oracle":
-            policies[name] = OraclePolicy(board_z=getattr(sim, "board_z", 0.05))
-        elif name == "heuristic":
-            policies[name] = FixedTrajectoryPolicy(task_cfgs, spacing=sim.spacing, board_z=sim.board_z)
-        elif name == "mppi":
-            push = {task: bool(t.push) for task, t in task_cfgs.items()}  # rollouts do what the episode does
-            factory = sim_rollout_factory(env, reward, topology, board_z=sim.board_z, push=push)
-            policies[name] = MPPIPolicy(planner, factory, seed=ctx.seed)
-        else:
+            policies[name] = registry.build_scripted(name, setup)
+        else:  # learned: a run per training seed, each loaded from its checkpoint
             for seed, path in seed_checkpoints(ctx.store, name, (versions or {}).get(name, "latest"), seeds):
                 run = name if seeds is None else run_name(name, seed)
                 inputs[run] = ctx.store.ref(path)

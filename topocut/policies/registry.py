@@ -7,7 +7,7 @@ fields it reads.  Every learned policy reads the same ``topocut.policies.inputs.
 *with its piece labels* included -- built by ``topocut.policies.inputs.policy_inputs``.
 
 The stages ask this module instead of keeping their own lists: ``pipelines/bc.py`` (what it trains and how:
-``training_setup``), ``topocut/eval/runner.py`` (what it builds and loads: ``load_learned``), the pose baselines'
+``training_setup``), ``topocut/eval/runner.py`` (what it builds and loads: ``build_scripted``, ``load_learned``), the pose baselines'
 module (``pose_kinds``); ``display_names()`` is Table 1's row labels.
 
 Torch-free at import; the builders import their modules when called.
@@ -31,17 +31,20 @@ class PolicySpec:
     encoder: str | None = None  # PDDP: the perception encoder (topocut.policies.encoders.ENCODER_KINDS)
     kind: str | None = None  # pose baselines: the denoiser network (PoseDiffusionModule.kind)
     reference: bool = False  # a reference row (not selectable in eval.policies)
+    builder: str | None = None  # scripted: "module:function" taking a ScriptedSetup (topocut.policies.scripted)
 
     @property
     def learned(self) -> bool:
         return self.family != "scripted"
 
 
+_SCRIPTED = "topocut.policies.scripted"
 _SPECS = (
-    # scripted: built by stage=eval from the goal, the simulator or the planner config
-    PolicySpec("oracle", "Oracle (goal planes)", "scripted", ("goal",)),
-    PolicySpec("heuristic", "Heuristic", "scripted", ()),  # the nominal pose's planes, open loop
-    PolicySpec("mppi", "MPPI (expert)", "scripted", ("goal", "sim_state", "particle_labels", "cuts_done")),
+    # scripted: built by stage=eval through their builder from the goal, the simulator or the planner config
+    PolicySpec("oracle", "Oracle (goal planes)", "scripted", ("goal",), builder=f"{_SCRIPTED}:oracle"),
+    PolicySpec("heuristic", "Heuristic", "scripted", (), builder=f"{_SCRIPTED}:heuristic"),
+    PolicySpec("mppi", "MPPI (expert)", "scripted", ("goal", "sim_state", "particle_labels", "cuts_done"),
+               builder=f"{_SCRIPTED}:mppi"),
     # learned (stage=bc -> checkpoint/<name>), all on the same inputs
     PolicySpec("dp3", "DP3", "pose", INPUT_FIELDS, kind="dp3"),
     PolicySpec("3dda", "3D Diffuser Actor", "pose", INPUT_FIELDS, kind="3dda"),
@@ -294,6 +297,17 @@ def training_setup(name: str, policy, steps, train_indices, seed: int, encoder_c
 
         return module, pose_dataset, 1.0
     raise ValueError(f"policy {name!r} is scripted: stage=bc trains {', '.join(learned())}")
+
+
+def build_scripted(name: str, setup):
+    """The Policy of a scripted policy, from its spec's builder and ``setup`` (topocut.policies.scripted.ScriptedSetup)."""
+    import importlib
+
+    spec = get(name)
+    if spec.learned or spec.builder is None:
+        raise ValueError(f"policy {name!r} is learned: load it from its checkpoint (load_learned)")
+    module, _, func = spec.builder.partition(":")
+    return getattr(importlib.import_module(module), func)(setup)
 
 
 def load_learned(name: str, path, device: str = "cpu", seed: int = 0, board_z: float = 0.05, sampler=None):
