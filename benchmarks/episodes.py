@@ -163,9 +163,9 @@ def demo_cuts(args, batch_scenes: bool) -> dict:
 
 
 def bench_eval(args) -> dict:
-    from topocut.episode import run_episodes
+    from topocut.episode import make_scoring, run_episodes
     from topocut.eval.config import EvalConfig
-    from topocut.eval.protocol import _episode, episode_specs, scoring_for
+    from topocut.eval.protocol import _episode, episode_specs
     from topocut.planning import HeuristicPolicy
     from topocut.planning.heuristic import FixedTrajectoryPolicy
     from topocut.reward.config import RewardConfig
@@ -183,7 +183,7 @@ def bench_eval(args) -> dict:
     out = {}
     for B, eps in ((args.batch, chosen), (1, chosen[: args.ref_episodes])):
         env = CuttingEnv(sim_config(args, B), batch_size=B)
-        sc = scoring_for(env, rcfg, topo, ecfg.min_fragment_points)
+        sc = make_scoring(rcfg, topo, min_fragment_points=ecfg.min_fragment_points, env=env)
         policies = {"oracle": HeuristicPolicy(),
                     "heuristic": FixedTrajectoryPolicy(task_cfgs, spacing=env.cfg.spacing, board_z=env.cfg.board_z)}
         for name, pol in policies.items():

@@ -70,9 +70,9 @@ def audit_cut(k, x, labels, piece, goal, reward_cfg):
 
 
 def simulated(args):
-    from topocut.episode import Episode, EpisodeBatch, default_scoring, piece_agreement
+    from topocut.episode import Episode, EpisodeBatch, eval_episode_seed, make_scoring, piece_agreement
     from topocut.eval.config import EvalConfig
-    from topocut.eval.protocol import episode_pose, episode_seed
+    from topocut.eval.protocol import episode_pose
     from topocut.planning.oracle import OraclePolicy
     from topocut.reward import RewardConfig
     from topocut.sim.config import SimConfig
@@ -87,10 +87,10 @@ def simulated(args):
     env = CuttingEnv(sim, batch_size=1)
     reward_cfg = RewardConfig()
     dev = args.topology_device or ("cuda" if args.device == "cuda" else "cpu")
-    scoring = default_scoring(reward_cfg, device=dev, board_z=sim.board_z)
+    scoring = make_scoring(reward_cfg, device=dev, board_z=sim.board_z)
     rows = []
     for e in range(args.first, args.first + args.episodes):
-        seed = episode_seed(args.seed, args.task, args.object, e)
+        seed = eval_episode_seed(args.seed, args.task, args.object, e)
         pose = episode_pose(EvalConfig(seed=args.seed), seed)
         task = TaskConfig(name=args.task, thickness=args.size, width=args.size, size=args.size, max_cuts=args.max_cuts,
                           push=args.task in ("stick", "dice"))

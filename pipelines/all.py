@@ -70,7 +70,7 @@ def demo_runs(config: dict) -> list[tuple[str, dict, tuple[int, int]]]:
 
     data.episodes_per_job=null: one run per cell, as a cell always was.  Set: each cell's episodes first_episode ..
     first_episode + episodes - 1 cut into consecutive parts of at most that many (data.first_episode, data.episodes
-    per part), whose union is what the one run writes (same seeds, stage=mppi's episode_seed).  Order: part index
+    per part), whose union is what the one run writes (same seeds, stage=mppi's demo_episode_seed).  Order: part index
     first, so every cell advances and the short last parts end the queue; within one index the costliest parts
     first (EPISODE_COST x episodes: dice, stick, slice), so the cheap ones fill the gaps the long ones leave."""
     from topocut.config import ConfigError

@@ -1,7 +1,7 @@
 """stage=mppi: MPPI demonstrations guided by the spectral reward -> a versioned zarr dataset.
 
 One run writes ``data.episodes`` episodes of one task and object, episode indices e = ``data.first_episode`` ..
-``data.first_episode + data.episodes - 1`` with seeds ``episode_seed(seed, e)``: runs over consecutive ranges
+``data.first_episode + data.episodes - 1`` with seeds ``demo_episode_seed(seed, e)`` (topocut.episode.seeds): runs over consecutive ranges
 (stage=all's parts of a cell, ``data.episodes_per_job``) together write exactly the episodes of one run over their
 union.  In a Hydra multirun (or with ``data.shard=true``, as stage=all's cells) each job writes its own shard
 ``dataset/<data.dataset>-<task>-<object>-s<seed>-<config key>`` marked ``shard_of: <data.dataset>`` in its
@@ -23,6 +23,7 @@ import numpy as np
 from pipelines._common import as_dict, begin_sim, object_pose
 from topocut.data.collection import read_records
 from topocut.data.store import config_key
+from topocut.episode import demo_episode_seed
 from topocut.utils.context import RunContext
 from topocut.utils.errors import NothingUsable
 from topocut.utils.progress import progress_bar
@@ -41,14 +42,6 @@ def _is_multirun() -> bool:
 
 
 SAMPLED_TILT_MAX = 1.2  # rad: |tilt| bound when a task samples tilt (as topocut.planning.experiments' pyramid MPPI)
-
-
-def episode_seed(run_seed: int, e: int) -> int:
-    """Episode e's seed: distinct for every (run seed, episode) pair in range (run_seed * 1000 + e was not:
-    seed 0 episode 1000 = seed 1 episode 0)."""
-    from topocut.policies.base import mix_seed
-
-    return mix_seed(run_seed, e)
 
 
 def planner_for_task(planner, task):
@@ -95,9 +88,8 @@ def run(ctx: RunContext, sim, object, task, topology, reward, planner, data, com
 def run_knife(ctx: RunContext, sim, object, task, topology, reward, planner, data, compare_heuristic: int) -> dict:
     """MPPI demonstrations of a knife task: the planner plans the cuts, the goal's turns run between them."""
     planner = planner_for_task(planner, task)  # pyramid: the goal plane is tilted
-    from topocut.data.episodes import EpisodeDataset, EpisodeWriter
-    from topocut.planning import MPPIPolicy, run_episode, sim_rollout_factory
-    from topocut.planning.oracle import OraclePolicy
+    from topocut.data.episodes import EpisodeWriter
+    from topocut.planning import MPPIPolicy, sim_rollout_factory
     from topocut.sim import init_taichi
     from topocut.sim.env import cached_env
     from topocut.tasks import get_task
@@ -125,47 +117,66 @@ def run_knife(ctx: RunContext, sim, object, task, topology, reward, planner, dat
     done = ew.committed_keys()
     env = cached_env(sim, max(1, sim.batch_size))  # a worker's later parts reuse its simulator
     factory = sim_rollout_factory(env, reward, topology, board_z=sim.board_z, push=task.push)
-    expert = MPPIPolicy(planner, factory, seed=ctx.seed)
     log_path = writer.path / "episodes.jsonl"
     read_records(log_path, repair=True)  # a run killed while logging left a torn last line: drop it
+    one = functools.partial(_demo_episode, env=env, expert=MPPIPolicy(planner, factory, seed=ctx.seed), ew=ew,
+                            log_path=log_path, sim=sim, object=object, task=task, topology=topology, reward=reward,
+                            planner=planner, success=success, compare_heuristic=compare_heuristic)
     label = f"mppi {task.name}/{object.name}" + (f" e{first}-{first + data.episodes - 1}" if first else "")
     with progress_bar(label, data.episodes * task.max_cuts, ctx.progress) as advance:
         for e in range(first, first + data.episodes):
-            seed = episode_seed(ctx.seed, e)
+            seed = demo_episode_seed(ctx.seed, e)
             if ew.episode_key({"task": task.name, "object": object.name, "seed": seed}) in done:
                 advance(task.max_cuts, info=f"episode {e} already committed")
                 continue
-            pose, goal = episode_scene(object, task, sim, seed, planner)
-            record = {"episode": e, "seed": seed, "started": time.time()}  # wall clock: start-up = first - launch
-            # the same episode under the heuristic, for docs/data.md's comparison: every n-th episode by its index,
-            # so that the parts of a cell compare the episodes one run over the cell would
-            if compare_heuristic and e % compare_heuristic == 0:
-                env.reset(object.name, pose, seed=seed)
-                _, hs = run_episode(env, goal, OraclePolicy(goal, sim.board_z), reward, topology, task.max_cuts, task.push,
-                                    success_threshold=task.success_threshold, success_fn=success)
-                record["heuristic_final_reward"] = hs["final_reward"]
-                record["heuristic_time_s"] = hs["time_s"]
-            env.reset(object.name, pose, seed=seed)
-            steps, summary = run_episode(env, goal, expert, reward, topology, task.max_cuts, task.push,
-                                         progress=advance, success_threshold=task.success_threshold, seed=seed,
-                                         success_fn=success)
-            meta = {"task": task.name, "object": object.name, "seed": seed, "pose": pose,
-                    "task_params": task, "material": {k: getattr(sim, k) for k in ("mu", "lam", "rho_core", "rho_skin",
-                                                                                    "eps_c", "eps_s", "m") if hasattr(sim, k)},
-                    "goal": goal.points, "goal_labels": goal.labels, "status": summary["status"],
-                    "final_reward": summary["final_reward"], "success": summary["success"]}
-            record.update({k: summary[k] for k in ("status", "num_cuts", "final_reward", "success", "rewards",
-                                                   "turns", "time_s")})
-            if summary["status"] != "ok":  # why it failed, in the episode log and the dataset's episode entry
-                meta["error"] = record["error"] = summary.get("error", "unknown")
-                log.warning("mppi episode %d (seed %d) failed after %d cuts: %s", e, seed, summary["num_cuts"],
-                            record["error"])
-            with open(log_path, "a") as f:  # before the episode's commit: a crash between the two re-runs it,
-                f.write(json.dumps(record, default=float) + "\n")  # and its second record replaces the first
-            ew.add_episode(steps, meta)
-            advance(task.max_cuts - summary["num_cuts"],
-                    info=f"episode {e}: " + (f"reward {summary['final_reward']:.3f}" if summary["status"] == "ok"
-                                             else f"failed ({record['error']})"))
+            one(e, seed, advance)
+    return _commit_dataset(ctx, writer, zpath, log_path, name, data)
+
+
+def _demo_episode(e: int, seed: int, advance, *, env, expert, ew, log_path, sim, object, task, topology, reward,
+                  planner, success, compare_heuristic: int) -> None:
+    """Demonstration episode e (seed ``seed``): its line in the episode log, then its commit to the dataset."""
+    from topocut.episode import run_episode
+    from topocut.planning.oracle import OraclePolicy
+
+    pose, goal = episode_scene(object, task, sim, seed, planner)
+    record = {"episode": e, "seed": seed, "started": time.time()}  # wall clock: start-up = first - launch
+    # the same episode under the heuristic, for docs/data.md's comparison: every n-th episode by its index,
+    # so that the parts of a cell compare the episodes one run over the cell would
+    if compare_heuristic and e % compare_heuristic == 0:
+        env.reset(object.name, pose, seed=seed)
+        _, hs = run_episode(env, goal, OraclePolicy(goal, sim.board_z), reward, topology, task.max_cuts, task.push,
+                            success_threshold=task.success_threshold, success_fn=success)
+        record["heuristic_final_reward"] = hs["final_reward"]
+        record["heuristic_time_s"] = hs["time_s"]
+    env.reset(object.name, pose, seed=seed)
+    steps, summary = run_episode(env, goal, expert, reward, topology, task.max_cuts, task.push,
+                                 progress=advance, success_threshold=task.success_threshold, seed=seed,
+                                 success_fn=success)
+    meta = {"task": task.name, "object": object.name, "seed": seed, "pose": pose,
+            "task_params": task, "material": {k: getattr(sim, k) for k in ("mu", "lam", "rho_core", "rho_skin",
+                                                                            "eps_c", "eps_s", "m") if hasattr(sim, k)},
+            "goal": goal.points, "goal_labels": goal.labels, "status": summary["status"],
+            "final_reward": summary["final_reward"], "success": summary["success"]}
+    record.update({k: summary[k] for k in ("status", "num_cuts", "final_reward", "success", "rewards",
+                                           "turns", "time_s")})
+    if summary["status"] != "ok":  # why it failed, in the episode log and the dataset's episode entry
+        meta["error"] = record["error"] = summary.get("error", "unknown")
+        log.warning("mppi episode %d (seed %d) failed after %d cuts: %s", e, seed, summary["num_cuts"],
+                    record["error"])
+    with open(log_path, "a") as f:  # before the episode's commit: a crash between the two re-runs it,
+        f.write(json.dumps(record, default=float) + "\n")  # and its second record replaces the first
+    ew.add_episode(steps, meta)
+    advance(task.max_cuts - summary["num_cuts"],
+            info=f"episode {e}: " + (f"reward {summary['final_reward']:.3f}" if summary["status"] == "ok"
+                                     else f"failed ({record['error']})"))
+
+
+def _commit_dataset(ctx: RunContext, writer, zpath, log_path, name: str, data) -> dict:
+    """The run's dataset committed with its summary, unless nothing in it is usable (NothingUsable)."""
+    from topocut.data.episodes import EpisodeDataset
+
+    first = data.first_episode
     ds = EpisodeDataset(zpath)
     if ds.num_episodes != data.episodes:  # this run's episodes only, whatever its first_episode
         raise RuntimeError(f"{zpath} holds {ds.num_episodes} episodes, expected data.episodes={data.episodes}")

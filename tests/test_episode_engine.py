@@ -10,7 +10,7 @@ frozen padding scene.
 import numpy as np
 import pytest
 
-from topocut.episode import Episode, default_scoring, run_episodes
+from topocut.episode import Episode, make_scoring, run_episodes
 from topocut.planning.heuristic import HeuristicPolicy
 from topocut.reward.config import RewardConfig
 from topocut.sim.config import SimConfig
@@ -43,7 +43,7 @@ class Stopping(HeuristicPolicy):
 def logs():
     from topocut.sim.env import CuttingEnv
 
-    sc = default_scoring(RewardConfig(), TopologyConfig(resolution=48))
+    sc = make_scoring(RewardConfig(), TopologyConfig(resolution=48))
     out = {}
     for B in (2, 1):
         env = CuttingEnv(SimConfig(**SIM, batch_size=B))

@@ -168,6 +168,21 @@ def test_episode_rewards_cut_counts_and_history_hand_computed():
     np.testing.assert_array_equal(pol.seen[0]["goal"], fake_goal(None, None, spec.pose, 0).points)
 
 
+def test_a_policy_declaring_history_len_2_receives_histories_of_length_2():
+    """The engine takes the history length from the policy (its ``history_len``, a learned policy's
+    policy.net.history_len); a policy declaring none gets topocut.episode.HISTORY_LEN = 3."""
+    from topocut.episode import HISTORY_LEN, history_len_of
+
+    spec = episode_specs(smoke())[0]
+    pol = PlanePolicy()
+    pol.history_len = 2
+    res = evaluate_episode(spec, pol, BoxEnv(), slice_task(), **FAKES)
+    assert res.num_cuts == 3 and [o["history"].shape for o in pol.seen] == [(2, 7)] * 4
+    assert np.all(pol.seen[1]["history"][0] == 0)
+    np.testing.assert_allclose(pol.seen[3]["history"], [p.pose_feature(BOARD_Z) for p in pol.planes[1:3]], atol=1e-6)
+    assert history_len_of(PlanePolicy()) == HISTORY_LEN == 3
+
+
 def test_episode_max_cuts_and_divergence():
     spec = episode_specs(smoke())[0]
     res = evaluate_episode(spec, PlanePolicy(), BoxEnv(), slice_task(), max_cuts=2, **FAKES)

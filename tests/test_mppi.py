@@ -362,7 +362,7 @@ def test_mppi_episode_log_drops_a_torn_last_line_and_names_a_corrupt_one(tmp_pat
 
 
 def test_mppi_episode_seeds_never_collide():
-    from pipelines.mppi import episode_seed
+    from topocut.episode import demo_episode_seed as episode_seed
 
     assert episode_seed(0, 1000) != episode_seed(1, 0)
     seeds = [episode_seed(s, e) for s in range(5) for e in range(3000)]

@@ -40,8 +40,8 @@ def _episodes(path):
 
 def test_a_cell_in_parts_merges_into_the_episodes_of_one_run(tmp_path, monkeypatch):
     import topocut.sim
-    from pipelines.mppi import episode_seed
     from topocut.data.collection import read_records
+    from topocut.episode import demo_episode_seed as episode_seed
     from topocut.sim import env as simenv
 
     built = []

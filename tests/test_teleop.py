@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import topocut.planning.teleop as teleop
-from topocut.planning.rollout import run_episode
+from topocut.planning import run_episode
 from topocut.planning.teleop import Key, MouseMove, TeleopConfig, TeleopSession, Wheel, load_log, replay
 from topocut.sim.action import KnifeAction, cut_mask
 

@@ -74,7 +74,7 @@ class DataConfig:
     dataset: str = "demos"  # name written by mppi/merge and read by pretrain/bc/eval
     version: str = "latest"
     episodes: int = 2  # episodes per mppi run (job)
-    # stage=mppi writes episodes first_episode .. first_episode + episodes - 1 (seeds episode_seed(seed, e)): a part
+    # stage=mppi writes episodes first_episode .. first_episode + episodes - 1 (seeds demo_episode_seed(seed, e)): a part
     # of a larger run (stage=all's data.episodes_per_job); keys an artifact only when nonzero
     first_episode: int = 0
     points_per_step: int = 2048

@@ -176,7 +176,7 @@ class CuttingVectorEnv(VectorEnv):
         {"reset_mask": (B,) bool} must hold every scene (the scenes of one batch reset together)."""
         from gymnasium.utils import seeding
 
-        from topocut.episode import Episode, EpisodeBatch, default_scoring
+        from topocut.episode import Episode, EpisodeBatch, make_scoring
         from topocut.eval.protocol import episode_pose
 
         options = dict(options or {})
@@ -202,8 +202,8 @@ class CuttingVectorEnv(VectorEnv):
         task = dataclasses.replace(self.task_cfg, push=self.push)
         episodes = [Episode(o, episode_pose(self.eval_cfg, s), s, task, key=f"{o}_{s}") for o, s in zip(objects, seeds)]
         if self.engine is None:
-            scoring = default_scoring(self.reward_cfg, self.topo_cfg, device=self.device, board_z=self.board_z,
-                                      min_fragment_points=self.min_fragment_points)
+            scoring = make_scoring(self.reward_cfg, self.topo_cfg, device=self.device, board_z=self.board_z,
+                                   min_fragment_points=self.min_fragment_points)
             self.engine = EpisodeBatch(self.sim, scoring, self.max_cuts, self.turns, self.sim.cfg.spacing,
                                        stop_on_success=True)
         self.engine.start(episodes)

@@ -23,7 +23,6 @@ without the simulator.
 from __future__ import annotations
 
 import json
-import zlib
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -31,11 +30,15 @@ from pathlib import Path
 import numpy as np
 
 from topocut.data.store import write_json_atomic
-from topocut.episode import diverged_type as _diverged_type  # noqa: F401 - the tests' SimulationDiverged
 from topocut.episode import (
-    env_board_z,
+    Episode,
+    EpisodeOutcome,
+    eval_episode_seed,
+    make_scoring,
+    run_episodes,
     step_seed,  # noqa: F401 - the observation seeds, re-exported
 )
+from topocut.episode import simulation_diverged_error as _diverged_type  # noqa: F401 - the tests' SimulationDiverged
 from topocut.eval.config import EvalConfig
 
 
@@ -59,22 +62,11 @@ class EpisodeSpec:
 
 
 @dataclass
-class EpisodeResult:
-    spec: dict  # EpisodeSpec.asdict()
-    policy: str
-    status: str = "ok"  # ok | failed (simulation diverged) | error (the policy or the scoring raised)
-    error: str | None = None
-    initial_reward: float = 0.0  # reward of the uncut object against the goal
-    rewards: list[float] = field(default_factory=list)  # after each executed cut
-    cut_counts: list[int] = field(default_factory=list)  # RewardResult.cut_count after each cut
-    successes: list[bool] = field(default_factory=list)  # the task's success (Task.success) after each cut
-    turns: list[int] = field(default_factory=list)  # the cuts after which the goal's turn was performed
-    num_pieces: list[int] = field(default_factory=list)
-    sim_pieces: list[int] = field(default_factory=list)  # the simulator's own pieces after each cut (EpisodeLog)
-    piece_iou: list[float] = field(default_factory=list)  # worst IoU of a discovered piece with a simulator piece
-    actions: list[list[float]] = field(default_factory=list)  # executed [x, y, yaw, tilt]
-    act_time_s: list[float] = field(default_factory=list)
-    time_s: float = 0.0
+class EpisodeResult(EpisodeOutcome):
+    """One evaluated episode: its spec and policy, then the episode's outcome (topocut.episode.EpisodeOutcome,
+    the fields the engine's EpisodeLog has too).  ``asdict`` (the episode JSON) keeps spec and policy first."""
+    spec: dict = field(default=None, kw_only=True)  # EpisodeSpec.asdict()
+    policy: str = field(default=None, kw_only=True)
 
     @property
     def num_cuts(self) -> int:
@@ -95,14 +87,10 @@ class EpisodeResult:
 
     def asdict(self) -> dict:
         d = asdict(self)
+        d = {"spec": d.pop("spec"), "policy": d.pop("policy"), **d}  # the JSON's key order
         d.update(num_cuts=self.num_cuts, final_reward=self.final_reward, final_cut_count=self.final_cut_count,
                  success=self.success)
         return d
-
-
-def episode_seed(base_seed: int, task: str, obj: str, episode: int) -> int:
-    """Stable across processes and Python versions (unlike hash())."""
-    return int((base_seed * 1_000_003 + zlib.crc32(f"{task}|{obj}|{episode}".encode())) % (2 ** 31 - 1))
 
 
 def episode_pose(cfg: EvalConfig, seed: int):
@@ -122,7 +110,7 @@ def episode_specs(cfg: EvalConfig | None = None) -> list[EpisodeSpec]:
         for split, objects in (("in", cfg.seen), ("out", cfg.unseen)):
             for obj in objects:
                 for ep in range(cfg.episodes_per_cell):
-                    seed = episode_seed(cfg.seed, task, obj, ep)
+                    seed = eval_episode_seed(cfg.seed, task, obj, ep)
                     specs.append(EpisodeSpec(task, obj, split, ep, seed, episode_pose(cfg, seed)))
     return specs
 
@@ -158,45 +146,17 @@ def make_observe_fn(mode: str = "particles", num_points: int = 2048, obs_cfg=Non
 
 
 # -- one episode ---------------------------------------------------------------------------------------
-def scoring_for(env, reward_cfg=None, topo_cfg=None, min_fragment_points: int = 4, goal_fn: Callable | None = None,
-                discover_fn: Callable | None = None, reward_fn: Callable | None = None):
-    """The episode engine's Scoring (topocut.episode) for the protocol: the task's goal and success, discovery
-    where the simulator runs, the spectral reward; ``goal_fn(task_cfg, obj, pose, spacing)``,
-    ``discover_fn(x, damage, sweeps, previous, topo_cfg)`` and ``reward_fn(fragments, goal_fragments,
-    reward_cfg)`` replace their parts (tests run the protocol without the simulator that way)."""
-    from topocut.episode import default_scoring, fragment_scoring
-    from topocut.planning.rollout import topology_device
-    from topocut.tasks import get_task
-
-    base = default_scoring(reward_cfg, topo_cfg, device=topology_device(env), board_z=env_board_z(env),
-                           min_fragment_points=min_fragment_points)
-    if goal_fn is None and discover_fn is None and reward_fn is None:
-        return base
-    if reward_fn is None:
-        from topocut.reward import spectral_rewards
-
-        rewards = lambda sets, goal_sets, offcuts=None: spectral_rewards(sets, goal_sets, reward_cfg, offcuts)  # noqa: E731
-    else:  # a replacement reward_fn(fragments, goal_fragments, reward_cfg) is told no planned offcuts
-        rewards = lambda sets, goal_sets, offcuts=None: [reward_fn(f, g, reward_cfg)  # noqa: E731
-                                                         for f, g in zip(sets, goal_sets)]
-    discover = base.discover_fn if discover_fn is None else (
-        lambda x, damage, sweeps, previous: discover_fn(x, np.asarray(damage, bool), sweeps, previous, topo_cfg))
-    return fragment_scoring(goal_fn or base.goal_fn, discover, rewards,
-                            lambda res, task_cfg: bool(get_task(task_cfg.name).success(res, task_cfg)),
-                            min_fragment_points)
+def scoring_for(env, reward_cfg=None, topo_cfg=None, min_fragment_points: int = 4, **parts):
+    """``make_scoring(reward_cfg, topo_cfg, min_fragment_points=..., env=env, **parts)`` under its older name
+    (topocut/eval/runner.py still calls it)."""
+    return make_scoring(reward_cfg, topo_cfg, min_fragment_points=min_fragment_points, env=env, **parts)
 
 
 def _result(spec: EpisodeSpec, name: str, log) -> EpisodeResult:
-    return EpisodeResult(spec=spec.asdict(), policy=name, status=log.status, error=log.error,
-                         initial_reward=log.initial_reward, rewards=log.rewards, cut_counts=log.cut_counts,
-                         successes=log.successes, turns=log.turns, num_pieces=log.num_pieces,
-                         sim_pieces=log.sim_pieces, piece_iou=log.piece_iou, actions=log.actions,
-                         act_time_s=log.act_time_s, time_s=log.time_s)
+    return EpisodeResult(spec=spec.asdict(), policy=name, **EpisodeOutcome.outcome(log))
 
 
 def _episode(spec: EpisodeSpec, task_cfg):
-    from topocut.episode import Episode
-
     return Episode(spec.object, spec.pose, spec.seed, task_cfg, key=spec.key)
 
 
@@ -212,9 +172,8 @@ def evaluate_episode(spec: EpisodeSpec, policy, env, task_cfg, reward_cfg=None, 
     refuses) marks it ``failed``; an exception from the policy or from scoring a cut marks it ``error`` (all
     keep the steps completed before).  ``turns``: perform the goal's turns between cuts (module docstring).
     """
-    from topocut.episode import run_episodes
-
-    sc = scoring_for(env, reward_cfg, topo_cfg, min_fragment_points, goal_fn, discover_fn, reward_fn)
+    sc = make_scoring(reward_cfg, topo_cfg, min_fragment_points=min_fragment_points, env=env, goal_fn=goal_fn,
+                      discover_fn=discover_fn, reward_fn=reward_fn)
     [log] = run_episodes(env, [_episode(spec, task_cfg)], policy, sc, max_cuts=max_cuts, observe_fn=observe_fn,
                          stop_on_success=stop_on_success, turns=turns, spacing=spacing)
     return _result(spec, policy_name, log)
@@ -234,7 +193,6 @@ def run_evaluation(specs: list[EpisodeSpec], policies: dict, env, task_cfgs: dic
     Specs run in the outer loop so that an interrupted evaluation holds comparable episodes for all policies.
     ``episode_kw`` goes to ``evaluate_episode`` (spacing, goal_fn, discover_fn, reward_fn, ...).
     """
-    from topocut.episode import run_episodes
     from topocut.utils.progress import progress_bar
 
     cfg = cfg or EvalConfig()
@@ -249,8 +207,8 @@ def run_evaluation(specs: list[EpisodeSpec], policies: dict, env, task_cfgs: dic
                 done[n, s.key] = json.loads(p.read_text())
     todo = [(s, n) for s in specs for n in policies if (n, s.key) not in done]
     episode_kw = dict(episode_kw)
-    sc = scoring_for(env, reward_cfg, topo_cfg, cfg.min_fragment_points, episode_kw.pop("goal_fn", None),
-                     episode_kw.pop("discover_fn", None), episode_kw.pop("reward_fn", None))
+    sc = make_scoring(reward_cfg, topo_cfg, min_fragment_points=cfg.min_fragment_points, env=env,
+                      **{k: episode_kw.pop(k, None) for k in ("goal_fn", "discover_fn", "reward_fn")})
     B = int(getattr(env, "batch_size", 1) or 1)
     with progress_bar("eval", total=len(todo), enabled=progress) as advance:
         # B specs at a time, every policy on them before the next B: an interrupted evaluation holds

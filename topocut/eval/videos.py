@@ -85,12 +85,12 @@ def film_episodes(specs, policies: dict, env, task_cfgs: dict, out_dir, eval, re
     """For every run of ``policies`` ({run: policy}), the first ``eval.videos`` of ``specs``: an MP4 each under
     ``out_dir`` (video_path).  A video already there is kept (a resumed evaluation films only what is missing).
     Returns how many videos this call wrote."""
-    from topocut.episode import env_board_z, run_episodes
-    from topocut.eval.protocol import _episode, scoring_for
+    from topocut.episode import env_board_z, make_scoring, run_episodes
+    from topocut.eval.protocol import _episode
     from topocut.sim.render import render_frames
 
     chosen = list(specs)[: max(0, int(eval.videos))]
-    sc = scoring_for(env, reward, topology, eval.min_fragment_points)
+    sc = make_scoring(reward, topology, min_fragment_points=eval.min_fragment_points, env=env)
     board_z, written = env_board_z(env), 0
     for run, policy in policies.items():
         todo = [s for s in chosen if not video_path(out_dir, run, s).exists()]

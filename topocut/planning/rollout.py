@@ -1,97 +1,23 @@
-"""Simulator rollouts for MPPI and the episode runner that turns a policy into dataset records.
-
-Both share ``Scorer``: topology discovery after every cut (consistent cluster
-ids carried from the previous labels) and the spectral reward of the
-resulting fragments against the goal's pieces.
+"""Simulator rollouts for MPPI: K action sequences from one episode state, each scored by the episode core's
+one-goal ``Scorer`` (topocut.episode: topology discovery after every cut, consistent cluster ids carried from
+the previous labels, and the spectral reward of the resulting fragments against the goal's pieces).
 
 Turns: where the goal's oracle (``Goal.steps``) lays pieces down between two cut directions (a Turn after its
-k-th cut: stick, dice), the runner performs it after the episode's k-th cut (``CuttingEnv.turn``; discovery
-then runs with the previous labels and no sweep, so cluster ids are kept).  The planner (MPPI, the heuristic)
-plans the cuts; the turn is the scripted primitive.  A rollout performs the turns that fall between two of
-its cuts (one at the end of its horizon cannot change the pose-invariant reward of what it scored).
+k-th cut: stick, dice), the episode performs it after its k-th cut (``CuttingEnv.turn``; discovery then runs
+with the previous labels and no sweep, so cluster ids are kept).  A rollout performs the turns that fall
+between two of its cuts (one at the end of its horizon cannot change the pose-invariant reward of what it
+scored).  The demonstrations' episode runner (``run_episode``) is the episode core's.
 """
 from __future__ import annotations
 
-from collections import deque
 from collections.abc import Mapping
 
 import numpy as np
 
-from topocut.episode import env_board_z, fragments, make_record, new_history  # noqa: F401 - env_board_z: teleop's
+from topocut.episode import Scorer, simulation_diverged_error, topology_device
 from topocut.sim.action import KnifeAction, cut_mask, executed_action
 from topocut.sim.primitives import TurnRefused
-
-HISTORY_LEN = 3
-
-
-class _NoSimulator(Exception):
-    """Stands in for SimulationDiverged when topocut.sim.env cannot be imported (so nothing raises it)."""
-
-
-def simulation_diverged_error() -> type:
-    """topocut.sim.SimulationDiverged (imported late so that this module stays free of Taichi)."""
-    try:
-        from topocut.sim import SimulationDiverged
-    except ImportError:
-        try:
-            from topocut.sim.env import SimulationDiverged
-        except ImportError:
-            return _NoSimulator
-    return SimulationDiverged
-
-
-class Scorer:
-    """Labels (topology discovery) and reward/success of a particle state against one goal."""
-
-    def __init__(self, goal, reward_cfg=None, topo_cfg=None, success_threshold: float | None = None,
-                 min_fragment_points: int = 4, device: str = "cpu", success_fn=None):
-        """``success_fn(RewardResult) -> bool`` (the task's ``success``, e.g. ``lambda r: task.success(r, cfg)``)
-        decides success; without it, the total at ``success_threshold`` (None: never)."""
-        self.goal, self.reward_cfg, self.topo_cfg = goal, reward_cfg, topo_cfg
-        self.success_threshold, self.min_fragment_points, self.device = success_threshold, min_fragment_points, device
-        self.success_fn = success_fn
-
-    def labels(self, x, damage, sweeps, previous=None) -> np.ndarray:  # N,
-        from topocut.topology import discover
-
-        res = discover(np.asarray(x), np.asarray(damage, bool), sweeps, previous_labels=previous,
-                       cfg=self.topo_cfg, device=self.device)
-        return np.asarray(res.labels, np.int32)
-
-    def labels_batch(self, xs, damages, sweeps, previous) -> list[np.ndarray]:  # B x (N_b,)
-        """``labels`` of several scenes in one discovery (topology.batch.discover_batch: one grid, one pass)."""
-        from topocut.topology.batch import discover_batch
-
-        res = discover_batch([np.asarray(x) for x in xs], [np.asarray(d, bool) for d in damages], list(sweeps),
-                             list(previous), cfg=self.topo_cfg, device=self.device)
-        return [np.asarray(r.labels, np.int32) for r in res]
-
-    def fragments(self, x, labels) -> list[np.ndarray]:
-        return fragments(x, labels, self.min_fragment_points)  # the engine's rule: -1 is no piece
-
-    def reward(self, x, labels) -> tuple[float, bool]:
-        from topocut.reward import spectral_reward
-
-        res = spectral_reward(self.fragments(x, labels), list(self.goal.fragments), self.reward_cfg,
-                              offcuts=list(getattr(self.goal, "offcuts", None) or []))
-        total = float(res.total)
-        if self.success_fn is not None:
-            return total, bool(self.success_fn(res))
-        ok = self.success_threshold is not None and total >= self.success_threshold
-        return total, bool(ok)
-
-    def rewards(self, xs, labels) -> np.ndarray:  # K, the rewards of K scenes in one batched reward call
-        from topocut.reward import spectral_rewards
-
-        sets = [self.fragments(x, lab) for x, lab in zip(xs, labels)]
-        off = list(getattr(self.goal, "offcuts", None) or [])
-        return np.array([r.total for r in spectral_rewards(sets, list(self.goal.fragments), self.reward_cfg, off)])
-
-
-def topology_device(env) -> str:
-    """Discovery runs where the simulator runs: its particles are already on that device's side."""
-    return "cuda" if getattr(getattr(env, "cfg", None), "arch", "cpu") == "cuda" else "cpu"
-
+from topocut.tasks.base import turns_after
 
 # The one rule from a policy's action to the executed knife pose (topocut.sim.action.executed_action), under its
 # older name: demonstrations, MPPI's rollouts, evaluation and teleop replay all run ``executed_action(action)``.
@@ -100,14 +26,6 @@ quantize_action = executed_action
 
 def _as_actions(vectors: np.ndarray) -> list[KnifeAction]:
     return [executed_action(KnifeAction.from_vector(v)) for v in vectors]
-
-
-def turns_after(goal, k: int) -> list:
-    """The goal's Turn steps between its k-th and (k+1)-th cut (topocut.tasks.turns_after; none for a goal
-    without ``steps``)."""
-    from topocut.tasks.base import turns_after as after
-
-    return after(goal, k)
 
 
 def discover_scenes(scorer, xs: list, damages: list, sweeps: list, previous: list) -> list[np.ndarray]:
@@ -242,59 +160,3 @@ def sim_rollout_factory(env, reward_cfg=None, topo_cfg=None, board_z: float = 0.
                                 saved=obs.get("sim_saved"))
 
     return factory
-
-
-def empty_history() -> deque:
-    return new_history()
-
-
-# one dataset record: the engine's (topocut.episode.make_record), under the name teleop sessions use
-make_step = make_record
-
-
-def scorer_scoring(scorer: Scorer):
-    """The episode engine's Scoring (topocut.episode) from a Scorer: its labels and its reward/success."""
-    from topocut.episode import Score, Scoring
-
-    def score_fn(xs, labels, goals, task_cfgs):
-        out = []
-        for x, lab in zip(xs, labels):
-            total, ok = scorer.reward(x, lab)
-            out.append(Score(float(total), 0, bool(ok), int(len([c for c in np.unique(lab) if c >= 0]))))
-        return out
-
-    return Scoring(goal_fn=None, discover_fn=scorer.labels, score_fn=score_fn)
-
-
-def run_episode(env, goal, planner, reward_cfg=None, topo_cfg=None, max_cuts: int = 5, push: bool = False,
-                observe_fn=None, progress=None, success_threshold: float | None = None,
-                scorer: Scorer | None = None, seed: int | None = None, success_fn=None) -> tuple[list[dict], dict]:
-    """Execute ``planner`` (Policy) in ``env`` (already reset) until success or max_cuts cuts: one demonstration
-    through the episode engine (topocut.episode.run_episodes, its rules for turns, failures and the executed
-    action), keeping the dataset records.
-
-    ``seed`` (the episode's) re-seeds a stochastic planner at its reset (topocut.policies.base.reset_policy).
-    ``success_fn(RewardResult) -> bool``: the task's success (Scorer); default the total at success_threshold.
-    ``observe_fn(x, labels) -> (points, labels)``: what the planner sees (default the particles).
-    Returns the step records and a summary; a SimulationDiverged (or a refused turn) marks the
-    episode ``failed`` and keeps the steps recorded before it.
-    """
-    from types import SimpleNamespace
-
-    from topocut.episode import Episode, run_episodes
-
-    scorer = scorer or Scorer(goal, reward_cfg, topo_cfg, success_threshold, device=topology_device(env),
-                              success_fn=success_fn)
-    observe = None if observe_fn is None else (lambda x, labels, seed: observe_fn(x, labels))
-    episode = Episode(None, None, seed, SimpleNamespace(push=bool(push)), goal=goal)
-    [log] = run_episodes(env, [episode], planner, scorer_scoring(scorer), max_cuts=max_cuts, observe_fn=observe,
-                         stop_on_success=True, record=True, progress=progress, initial_reward=False, batch=False)
-    steps = log.steps
-    summary = {"status": log.status, "num_cuts": len(steps), "turns": log.turns,
-               "final_reward": steps[-1]["reward"] if steps else float("nan"),
-               "success": bool(steps and steps[-1]["success"]),
-               "rewards": [st["reward"] for st in steps], "actions": [st["action"].tolist() for st in steps],
-               "num_clusters": int(len([c for c in np.unique(log.labels) if c >= 0])), "time_s": log.time_s}
-    if log.error:
-        summary["error"] = log.error
-    return steps, summary

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from topocut.data.store import write_json_atomic
-from topocut.planning.rollout import Scorer, empty_history, env_board_z, make_step
+from topocut.episode import Scorer, env_board_z, make_record, new_history
 from topocut.sim.action import KnifeAction, executed_action
 
 LOG_VERSION = 1
@@ -76,7 +76,7 @@ class TeleopSession:
         self.x = np.asarray(st.x[0])  # N,3
         self.labels = self.scorer.labels(self.x, st.damage[0], None, None)  # N,
         self.knife = np.array([0.5, 0.5, 0.0, 0.0])  # x, y, yaw, tilt
-        self.history = empty_history()
+        self.history = new_history()
         self.steps: list[dict] = []
         self._snapshots: list[tuple] = []  # state before each live cut, for undo
         self.log = {"version": LOG_VERSION, "object": object, "pose": _jsonable(pose), "seed": int(seed),
@@ -112,7 +112,7 @@ class TeleopSession:
         x1 = np.asarray(st.x[0])
         labels1 = self.scorer.labels(x1, st.damage[0], st.sweeps[0], labels_t)
         reward, success = self.scorer.reward(x1, labels1)
-        step = make_step(x_t, labels_t, x1, labels1, action, history, reward, success, self.board_z)
+        step = make_record(x_t, labels_t, x1, labels1, action, history, reward, success, self.board_z)
         if amend:
             self.steps[-1] = step
         else:
@@ -147,7 +147,7 @@ class TeleopSession:
             return False
         state, self.x, self.labels, hist, n = self._snapshots.pop()
         self.env.set_state(state, b=None)
-        self.history = empty_history()
+        self.history = new_history()
         self.history.extend(hist)
         del self.steps[n:]
         self.log["actions"].append({"type": "undo", "action": None})
@@ -209,7 +209,7 @@ class TeleopSession:
 
     def _simulate(self, command, what: str) -> None:
         """A cut/push from the keyboard: divergence is reported in the status line, the session goes on."""
-        from topocut.planning.rollout import simulation_diverged_error
+        from topocut.episode import simulation_diverged_error
 
         try:
             command()

@@ -1,18 +1,18 @@
 """The Policy protocol used by evaluation and planners, and helpers to build its observation dict.
 
-obs keys: points (n,3), labels (n,), history (3,7) (pose features of the last 3 cuts, oldest first,
-zeros before the first cut), goal (g,3), goal_labels (g,).
+obs keys: points (n,3), labels (n,), history (h,7) (pose features of the last h cuts, oldest first, zeros before
+the first cut; h = the policy's ``history_len`` where it declares one, else HISTORY_LEN = 3), goal (g,3), goal_labels (g,).
 """
 from __future__ import annotations
 
-import inspect
 from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+# the episode core's history length, seed mixing and reset rule, re-exported for the policies
+from topocut.episode import HISTORY_LEN, mix_seed, reset_policy  # noqa: F401
 from topocut.sim.action import POSE_FEATURE_DIM, KnifeAction
 
-HISTORY_LEN = 3
 OBS_KEYS = ("points", "labels", "history", "goal", "goal_labels")
 
 
@@ -27,23 +27,6 @@ class Policy(Protocol):
 
     def act(self, obs: dict) -> KnifeAction:
         """The next cut for an observation dict with OBS_KEYS."""
-
-
-def reset_policy(policy, goal, seed: int | None = None) -> None:
-    """``policy.reset(goal, seed=seed)``; policies written against the older ``reset(goal)`` get the goal only."""
-    try:
-        takes_seed = "seed" in inspect.signature(policy.reset).parameters
-    except (TypeError, ValueError):  # a builtin or C-implemented reset
-        takes_seed = False
-    if takes_seed:
-        policy.reset(goal, seed=seed)
-    else:
-        policy.reset(goal)
-
-
-def mix_seed(seed: int, episode_seed: int | None) -> int:
-    """A policy's own seed combined with an episode's (stable across processes)."""
-    return int(seed) if episode_seed is None else (int(seed) * 1_000_003 + int(episode_seed)) % (2**31 - 1)
 
 
 def history_from_actions(actions: list[KnifeAction], board_z: float = 0.05, history_len: int = HISTORY_LEN):

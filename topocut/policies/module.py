@@ -296,6 +296,7 @@ class PDDPPolicy:
                 module = PDDPModule.load_from_checkpoint(str(module_or_ckpt), **load,
                                                          **_encoder_overrides(module_or_ckpt))
         self.module = module.to(device).eval()
+        self.history_len = int(module.cfg.history_len)  # policy.net.history_len: the engine's observations hold it
         self.device, self.board_z, self.use_ema, self.seed = torch.device(device), board_z, use_ema, int(seed)
         self.generator = torch.Generator(device=self.device).manual_seed(self.seed)
         self.goal, self.goal_labels = None, None
@@ -368,7 +369,7 @@ class PDDPPolicy:
         if goal is None:
             raise ValueError("PDDPPolicy.sample needs a goal: pass goal= or call reset(goal) first")
         goal = np.asarray(goal, np.float32)
-        history = np.zeros((3, 7), np.float32) if history is None else history
+        history = np.zeros((self.history_len, 7), np.float32) if history is None else history
         return {"points": points, "labels": labels, "goal": goal, "goal_labels": goal_labels, "history": history}
 
     def sample(self, observation, goal=None, history=None, goal_labels=None):

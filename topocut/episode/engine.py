@@ -1,0 +1,300 @@
+"""The episode engine: ``EpisodeBatch``, up to B episodes advanced together one cut at a time.
+
+An episode resets a scene (object, pose, sampling seed), builds its task's goal, then repeats up to
+``max_cuts`` times: observe (``observe_fn``), ask the policy for a cut, execute it (``executed_action``: one
+rule for every caller), push if the task pushes, re-discover the pieces with the previous labels (cluster ids
+carried over), score them against the goal (spectral reward, the task's success), and perform the goal's
+scripted turn after the k-th cut where the task has one (``Goal.steps``: stick, dice).  It ends after
+``max_cuts`` cuts, when the policy returns None, on success (``stop_on_success``), or when its scene diverges
+(status ``failed``) or its policy / scoring raises (status ``error``); the steps before stay recorded.
+
+Batching.  B = env.batch_size episodes advance together, scene b holding episode b with its own object, pose,
+goal and policy state (``CuttingEnv.reset_scenes`` pads scenes to the largest particle count with particles
+no phase visits), so a cut of all B is one launch sequence and its scores one reward call.  Scene b evolves as
+it would alone (tests/test_sim_mixed_batch.py); a scene whose episode has ended is frozen (a None action); one
+that diverges is frozen and its episode marked failed while the others go on (``CuttingEnv.freeze_diverged``).
+"""
+from __future__ import annotations
+
+import inspect
+import time
+import warnings
+from collections.abc import Callable
+
+import numpy as np
+
+from topocut.episode.records import HISTORY_LEN, Episode, EpisodeLog, Score, make_record, new_history
+from topocut.episode.scene import env_board_z, env_spacing, scene_of, simulation_diverged_error
+from topocut.episode.scoring import Scoring, piece_agreement
+from topocut.episode.seeds import step_seed
+from topocut.sim.action import executed_action
+from topocut.tasks.base import turns_after
+
+
+def reset_policy(policy, goal, seed: int | None = None) -> None:
+    """``policy.reset(goal, seed=seed)``; policies written against the older ``reset(goal)`` get the goal only."""
+    try:
+        takes_seed = "seed" in inspect.signature(policy.reset).parameters
+    except (TypeError, ValueError):  # a builtin or C-implemented reset
+        takes_seed = False
+    if takes_seed:
+        policy.reset(goal, seed=seed)
+    else:
+        policy.reset(goal)
+
+
+class EpisodeBatch:
+    """Up to B episodes in the B scenes of one simulator batch, advanced one cut at a time: the engine's state
+    (what ``run_episodes`` and the gymnasium vector env, topocut.envs, both drive).
+
+    ``start(episodes)`` loads them (scene b holds episode b; ``alone``: one episode in every scene), builds the
+    goals, labels and scores the uncut scenes; ``observations(observe_fn, sim_state)`` gives each live episode
+    its policy observation; ``step(actions)`` executes one cut per scene (None: an ended episode's scene idles),
+    the push where the episode's task pushes, discovery, the batched score, and the goals' turns.  ``logs[b]``
+    holds what episode b did; ``live[b]`` whether it goes on.
+    """
+
+    def __init__(self, env, scoring: Scoring, max_cuts: int = 5, turns: bool = True, spacing: float | None = None,
+                 record: bool = False, frames: bool = False, stop_on_success: bool = False,
+                 progress: Callable | None = None, cut_frames: int = 0):
+        self.env, self.sc, self.max_cuts, self.turns = env, scoring, int(max_cuts), bool(turns)
+        self.spacing, self.record, self.frames, self.stop_on_success = spacing, record, frames, stop_on_success
+        self.progress = progress
+        # frames during each cut: CuttingEnv.cut's snapshots (a host sync each), so only for renders (frames=True)
+        self.cut_frames = int(cut_frames) if frames else 0
+        self.B = int(getattr(env, "batch_size", 1) or 1)
+        self.board_z = env_board_z(env)
+        self.Diverged = simulation_diverged_error()
+
+    # -- episode bookkeeping ---------------------------------------------------------------------------
+    def _keep(self, b: int, what: str, knife=None, motion=()) -> None:
+        if self.frames:
+            self.logs[b].frames.append((self.xs[b].copy(), np.asarray(self.labels[b]).copy(), what, knife))
+            self.logs[b].motion.append(list(motion))
+
+    def end(self, b: int, status: str, error: str) -> None:
+        self.live[b] = False
+        self.logs[b].status, self.logs[b].error = status, error
+        if "scoring" in error or "labelling" in error:  # our side failed, not the policy: say so at once
+            warnings.warn(f"{self.eps[b].key or self.eps[b].object}: {error}", stacklevel=3)
+
+    def start(self, episodes: list[Episode], alone: bool = False, initial_reward: bool = True,
+              history_len: int = HISTORY_LEN) -> list[EpisodeLog]:
+        """Load ``episodes``; each policy observation holds the pose features of the last ``history_len`` cuts."""
+        env, sc, B, n = self.env, self.sc, self.B, len(episodes)
+        if not alone and n > B:
+            raise ValueError(f"EpisodeBatch.start: {n} episodes for batch_size={B}")
+        self.t0, self.eps, self.alone, self.n, self.k = time.perf_counter(), list(episodes), alone, n, 0
+        self.logs = [EpisodeLog() for _ in episodes]
+        if alone:  # the episode in every scene (a planner's rollouts restore them from obs["sim_state"])
+            if episodes[0].object is not None:
+                env.reset(episodes[0].object, episodes[0].pose, seed=episodes[0].seed)
+        else:  # scene b holds episode b; the scenes past them repeat the last episode and stay frozen
+            pad = self.eps + [self.eps[-1]] * (B - n)
+            env.reset_scenes([e.object for e in pad], [e.pose for e in pad], [e.seed for e in pad])
+            env.freeze_diverged = True
+        spacing = self.spacing
+        if spacing is None and any(e.goal is None for e in episodes):
+            spacing = env_spacing(env)
+        self.goals = [e.goal if e.goal is not None else sc.goal_fn(e.task, e.object, e.pose, spacing, e.seed or 0)
+                      for e in episodes]
+        self.tasks = [e.task for e in episodes]
+        st = env.state()
+        self.xs = [np.asarray(scene_of(st, b)[0]) for b in range(n)]
+        self.labels = [sc.discover_fn(self.xs[b], scene_of(st, b)[1], None, None) for b in range(n)]
+        init = (sc.score_fn(self.xs, self.labels, self.goals, self.tasks) if initial_reward
+                else [Score(float("nan"), 0, False, 0)] * n)
+        self.live = [True] * n
+        self.hist = [new_history(history_len) for _ in episodes]
+        for b in range(n):
+            self.logs[b].initial_reward, self.logs[b].goal = float(init[b].total), self.goals[b]
+            self._keep(b, "reset")
+        self.initial = init
+        return self.logs
+
+    def observation(self, b: int, observe_fn: Callable | None = None) -> dict:
+        """Episode b's policy observation (topocut.policies.base.OBS_KEYS, + particle_labels, cuts_done)."""
+        observe_fn = observe_fn or (lambda x, labels, seed: (np.asarray(x, np.float32), np.asarray(labels, np.int32)))
+        points, obs_labels = observe_fn(self.xs[b], self.labels[b], step_seed(self.eps[b].seed or 0, self.k))
+        return {"points": points, "labels": obs_labels, "history": np.stack(list(self.hist[b])),  # h,7 oldest first
+                "goal": np.asarray(self.goals[b].points, np.float32),
+                "goal_labels": np.asarray(self.goals[b].labels, np.int32),
+                "particle_labels": self.labels[b], "cuts_done": self.k}
+
+    # -- one cut of every live episode -----------------------------------------------------------------
+    def step(self, actions: list) -> list[Score | None]:
+        """Execute ``actions`` (per episode: a KnifeAction, run through ``executed_action``, or None: no cut) and
+        score them; returns each episode's Score (None where it did not cut or failed)."""
+        acts = [None if a is None or not self.live[b] else executed_action(a) for b, a in enumerate(actions)]
+        moving = [b for b in range(self.n) if acts[b] is not None]
+        out: list[Score | None] = [None] * self.n
+        if not moving:
+            return out
+        record, damage_before = self._record_args(acts, moving)
+        done, info = self._cut(acts, moving, record)
+        if not done:
+            return out
+        scored = self._discover(moving)
+        for (b, x1, lab1), res in zip(scored, self._score(scored)):
+            self._log_cut(b, acts[b], x1, lab1, res, info, record, damage_before)
+            out[b] = res
+        self._after_cut(acts)
+        return out
+
+    def _record_args(self, acts: list, moving: list) -> tuple[dict, list | None]:
+        """CuttingEnv.cut's snapshot interval (only when the frames during the cut are kept), the damage before."""
+        if not self.cut_frames:
+            return {}, None
+        from topocut.sim.cut_frames import record_interval
+
+        env = self.env
+        record = {"record_every": record_interval(env, [self.xs[b][:, 2].max() for b in moving],
+                                                  [acts[b] for b in moving], self.cut_frames)}
+        st0 = env.state()
+        return record, [scene_of(st0, b)[1].copy() for b in range(self.n)]
+
+    def _cut(self, acts: list, moving: list, record: dict) -> tuple[bool, object]:
+        """(whether the cut ran, CuttingEnv.cut's info): the cut and the pushes; a divergence raised (one episode
+        alone, or a batch not freezing its diverged scenes) fails the moving episodes."""
+        env, B, n = self.env, self.B, self.n
+        try:
+            if self.alone:
+                info = env.cut([acts[0]] * B if B > 1 else acts[0], **record)
+                if getattr(self.tasks[0], "push", False):
+                    env.push()
+            else:
+                info = env.cut(acts + [None] * (B - n), **record)
+                pushed = np.array([acts[b] is not None and bool(getattr(self.tasks[b], "push", False))
+                                   for b in range(n)] + [False] * (B - n))
+                if pushed.any():
+                    env.push(scenes=pushed)
+        except self.Diverged as e:
+            for b in moving:
+                self.end(b, "failed", f"cut {self.k + 1}: {type(e).__name__}: {e}")
+            self.k += 1
+            return False, None
+        return True, info
+
+    def _discover(self, moving: list) -> list[tuple]:
+        """(b, x after the cut, its labels) of each moving scene that neither diverged nor failed discovery."""
+        env, k = self.env, self.k
+        dead = np.asarray(getattr(env, "dead", np.zeros(self.B, bool)))
+        st = env.state()
+        scored = []
+        for b in moving:
+            if dead[b]:
+                self.end(b, "failed", f"cut {k + 1}: SimulationDiverged: scene {b} diverged (a NaN/Inf position "
+                                      f"or J = det F out of bounds); the other scenes went on")
+                continue
+            x1, d1 = scene_of(st, b)
+            try:
+                lab1 = self.sc.discover_fn(np.asarray(x1), d1, st.sweeps[b], self.labels[b])
+            except Exception as e:  # noqa: BLE001 - recorded in the episode's log
+                self.end(b, "error", f"scoring cut {k + 1}: {type(e).__name__}: {e}")
+                continue
+            scored.append((b, np.asarray(x1), lab1))
+        return scored
+
+    def _score(self, scored: list) -> list[Score]:
+        """The scores of ``scored`` in one call; a failing call fails their episodes (no scores)."""
+        try:
+            return self.sc.score_fn([x for _, x, _ in scored], [lab for _, _, lab in scored],
+                                    [self.goals[b] for b, _, _ in scored],
+                                    [self.tasks[b] for b, _, _ in scored]) if scored else []
+        except Exception as e:  # noqa: BLE001 - recorded in the episodes' logs
+            for b, _, _ in scored:
+                self.end(b, "error", f"scoring cut {self.k + 1}: {type(e).__name__}: {e}")
+            return []
+
+    def _log_cut(self, b: int, a, x1, lab1, res: Score, info, record: dict, damage_before) -> None:
+        """Episode b's cut ``a`` scored ``res``: its log, history, record, frames, and its state moves on."""
+        env, k, log = self.env, self.k, self.logs[b]
+        if self.record:
+            log.steps.append(make_record(self.xs[b], self.labels[b], x1, lab1, a, self.hist[b], res.total,
+                                         res.success, self.board_z))
+        log.rewards.append(res.total)
+        log.cut_counts.append(res.cut_count)
+        log.successes.append(res.success)
+        log.num_pieces.append(res.pieces)
+        sim_piece = getattr(env, "piece", None)
+        if isinstance(sim_piece, np.ndarray) and sim_piece.ndim == 2 and sim_piece.shape[1] >= len(lab1):
+            n_sim, iou = piece_agreement(lab1, sim_piece[0 if self.alone else b, :len(lab1)])
+            log.sim_pieces.append(n_sim)
+            log.piece_iou.append(iou)
+        log.actions.append([float(v) for v in a.to_vector()])
+        self.hist[b].append(a.pose_feature(self.board_z))
+        motion = []
+        if record:
+            from topocut.sim.cut_frames import pick_cut_frames
+
+            scene = 0 if self.alone else b
+            budget = (info.substeps if info.substeps_per_scene is None
+                      else int(info.substeps_per_scene[scene]))
+            motion = pick_cut_frames(info.snapshots, scene, len(self.xs[b]), damage_before[b], budget,
+                                     self.cut_frames, env.dt)
+        self.xs[b], self.labels[b] = x1, lab1
+        self._keep(b, f"cut {k + 1}: R={res.total:.2f}", knife=a, motion=motion)
+        if self.progress is not None:
+            name = self.eps[b].key or self.eps[b].object or getattr(self.goals[b], "object", "") or f"episode {b}"
+            self.progress(1, info=f"{name} cut {k + 1}: reward {res.total:.3f}")  # (MPPI's episodes: no key)
+        if self.stop_on_success and res.success:
+            self.live[b] = False
+
+    def _after_cut(self, acts: list) -> None:
+        """The cut is done: episodes that did not cut are over, the goals' turns after it, the cut budget."""
+        n = self.n
+        self.k += 1
+        for b in range(n):  # an episode that did not cut this step (its policy stopped) is over
+            if acts[b] is None:
+                self.live[b] = False
+        if self.turns and self.k < self.max_cuts:
+            todo = {b: turns_after(self.goals[b], self.k) for b in range(n) if self.live[b]}
+            todo = {b: t for b, t in todo.items() if t}
+            if todo:
+                self._turn(todo)
+        if self.k >= self.max_cuts:
+            self.live = [False] * n
+
+    def _turn(self, todo: dict) -> None:
+        """The goals' turns after cut k in the scenes of ``todo`` ({scene: [Turn, ...]}), then discovery with the
+        previous labels and no sweep (CuttingEnv.turn clears them), so the cluster ids are kept."""
+        from topocut.sim.primitives import TurnRefused
+
+        env, B, k = self.env, self.B, self.k
+        depth = max(len(t) for t in todo.values())
+        refused = [None] * B  # per scene, why a turn of its was refused (a batch's scenes are refused one by one)
+        try:
+            for i in range(depth):
+                if self.alone:
+                    env.turn(todo[0][i])
+                else:
+                    env.turn([todo[b][i] if b in todo and i < len(todo[b]) and not refused[b] else None
+                              for b in range(B)])
+                    refused = [r or t for r, t in zip(refused, env.turn_refused)]
+        except (self.Diverged, TurnRefused) as e:
+            for b in todo:
+                self.end(b, "failed", f"turn after cut {k}: {type(e).__name__}: {e}")
+            return
+        dead = np.asarray(getattr(env, "dead", np.zeros(B, bool)))
+        st = env.state()
+        for b in todo:
+            if dead[b] or refused[b]:
+                self.end(b, "failed", f"turn after cut {k}: " + (f"TurnRefused: {refused[b]}" if refused[b]
+                                                                 else f"scene {b} diverged"))
+                continue
+            self.logs[b].turns.append(k)
+            x1, d1 = scene_of(st, b)
+            try:
+                self.labels[b] = self.sc.discover_fn(np.asarray(x1), d1, st.sweeps[b], self.labels[b])
+            except Exception as e:  # noqa: BLE001
+                self.end(b, "error", f"labelling after turn {len(self.logs[b].turns)}: {type(e).__name__}: {e}")
+                continue
+            self.xs[b] = np.asarray(x1)
+            self._keep(b, f"turn after cut {k}")
+
+    def finish(self) -> list[EpisodeLog]:
+        for b in range(self.n):
+            self.logs[b].labels = self.labels[b]
+            self.logs[b].time_s = time.perf_counter() - self.t0
+        return self.logs
+

@@ -1,0 +1,170 @@
+"""How a state is labelled and scored: topology discovery (cluster ids carried over from the previous labels),
+the pieces (``fragments``), the spectral reward of the pieces against the goal's, the task's success.
+
+``make_scoring`` is the one builder of the engine's ``Scoring`` (every scene of a step against its own goal, in
+one reward call), whether from the task registry and the configs (evaluation, the gym env), with parts
+replaced (tests run the protocol without the simulator that way), or from a one-goal ``Scorer``
+(demonstrations, teleop: ``scorer=``).  ``Scorer`` is that one-goal view, which MPPI's rollouts also score
+with (``labels_batch``, ``rewards``: K rollouts against one goal in one call); its discovery and its pieces
+are the builder's.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from topocut.episode.records import Score
+from topocut.episode.scene import env_board_z, topology_device
+
+
+@dataclass
+class Scoring:
+    """How a state is labelled and scored; each part replaceable (test doubles, other backends)."""
+    goal_fn: Callable  # (task_cfg, object, pose, spacing, seed) -> Goal: seed, the scene's particle sampling
+    discover_fn: Callable  # (x (N,3), damage (N,), sweeps, previous_labels) -> labels (N,)
+    score_fn: Callable  # (xs, labels, goals, task_cfgs) -> [Score]: all scenes of a step in one call
+
+
+def fragments(x, labels, min_points: int) -> list[np.ndarray]:
+    """The pieces (n_i,3) of labelled particles; -1 (unassigned) is no piece, pieces below min_points dropped."""
+    x, labels = np.asarray(x), np.asarray(labels)
+    ids = [c for c in np.unique(labels) if c >= 0]
+    return [f for f in (x[labels == c] for c in ids) if len(f) >= min_points]
+
+
+def discover_labels(x, damage, sweeps, previous, topo_cfg=None, device: str = "cpu") -> np.ndarray:  # N,
+    """Topology discovery (topocut.topology.discover on ``device``) with the previous labels' cluster ids."""
+    from topocut.topology import discover
+
+    res = discover(np.asarray(x), np.asarray(damage, bool), sweeps, previous_labels=previous, cfg=topo_cfg,
+                   device=device)
+    return np.asarray(res.labels, np.int32)
+
+
+def make_scoring(reward_cfg=None, topo_cfg=None, device: str = "cpu", board_z: float = 0.05,
+                 min_fragment_points: int = 4, *, env=None, goal_fn: Callable | None = None,
+                 discover_fn: Callable | None = None, reward_fn: Callable | None = None, scorer=None) -> Scoring:
+    """The engine's Scoring: the task registry's goal (on the board at ``board_z``) and success, topology
+    discovery on ``device``, the spectral reward of every scene against its own goal in one call (descriptors
+    batched across scenes).  ``env``: ``device`` and ``board_z`` are the simulator's (discovery where it runs).
+
+    Replacements: ``goal_fn(task_cfg, obj, pose, spacing, seed)``, ``discover_fn(x, damage, sweeps, previous,
+    topo_cfg)`` and ``reward_fn(fragments, goal_fragments, reward_cfg)`` (told no planned offcuts; one scene a
+    call).  ``scorer``: a one-goal scorer (``Scorer`` or a double with ``labels(x, damage, sweeps, previous)``
+    and ``reward(x, labels) -> (total, success)``) labels and scores every scene instead (the episode's goal
+    given, not built)."""
+    if scorer is not None:
+        return _scorer_scoring(scorer)
+    if env is not None:
+        device, board_z = topology_device(env), env_board_z(env)
+    from topocut.tasks import get_task
+
+    def default_goal(task_cfg, obj, pose, spacing, seed=0):  # the scene's own particles (its sampling seed), ideally cut
+        return get_task(task_cfg.name).make_goal(task_cfg, obj, pose, spacing, board_z=board_z, seed=seed)
+
+    if discover_fn is None:
+        def discover(x, damage, sweeps, previous):
+            return discover_labels(x, damage, sweeps, previous, topo_cfg, device)
+    else:
+        def discover(x, damage, sweeps, previous):
+            return discover_fn(x, np.asarray(damage, bool), sweeps, previous, topo_cfg)
+
+    if reward_fn is None:
+        def rewards_fn(sets, goal_sets, offcut_sets=None):
+            from topocut.reward import spectral_rewards
+
+            return spectral_rewards(sets, goal_sets, reward_cfg, offcut_sets)
+    else:  # a replacement reward_fn(fragments, goal_fragments, reward_cfg) is told no planned offcuts
+        def rewards_fn(sets, goal_sets, offcut_sets=None):
+            return [reward_fn(f, g, reward_cfg) for f, g in zip(sets, goal_sets)]
+
+    def score_fn(xs, labels, goals, task_cfgs):
+        sets = [fragments(x, lab, min_fragment_points) for x, lab in zip(xs, labels)]
+        res = rewards_fn(sets, [[np.asarray(f) for f in g.fragments] for g in goals],
+                         [[np.asarray(f) for f in getattr(g, "offcuts", None) or []] for g in goals]) if sets else []
+        return [Score(float(r.total), int(r.cut_count), bool(get_task(t.name).success(r, t)), len(f))
+                for r, t, f in zip(res, task_cfgs, sets)]
+
+    return Scoring(goal_fn or default_goal, discover, score_fn)
+
+
+def _scorer_scoring(scorer) -> Scoring:
+    """The Scoring of a one-goal scorer: its labels and its reward/success (N_C not counted: 0)."""
+
+    def score_fn(xs, labels, goals, task_cfgs):
+        out = []
+        for x, lab in zip(xs, labels):
+            total, ok = scorer.reward(x, lab)
+            out.append(Score(float(total), 0, bool(ok), int(len([c for c in np.unique(lab) if c >= 0]))))
+        return out
+
+    return Scoring(goal_fn=None, discover_fn=scorer.labels, score_fn=score_fn)
+
+
+class Scorer:
+    """Labels (topology discovery) and reward/success of a particle state against one goal."""
+
+    def __init__(self, goal, reward_cfg=None, topo_cfg=None, success_threshold: float | None = None,
+                 min_fragment_points: int = 4, device: str = "cpu", success_fn=None):
+        """``success_fn(RewardResult) -> bool`` (the task's ``success``, e.g. ``lambda r: task.success(r, cfg)``)
+        decides success; without it, the total at ``success_threshold`` (None: never)."""
+        self.goal, self.reward_cfg, self.topo_cfg = goal, reward_cfg, topo_cfg
+        self.success_threshold, self.min_fragment_points, self.device = success_threshold, min_fragment_points, device
+        self.success_fn = success_fn
+
+    def labels(self, x, damage, sweeps, previous=None) -> np.ndarray:  # N,
+        return discover_labels(x, damage, sweeps, previous, self.topo_cfg, self.device)
+
+    def labels_batch(self, xs, damages, sweeps, previous) -> list[np.ndarray]:  # B x (N_b,)
+        """``labels`` of several scenes in one discovery (topology.batch.discover_batch: one grid, one pass)."""
+        from topocut.topology.batch import discover_batch
+
+        res = discover_batch([np.asarray(x) for x in xs], [np.asarray(d, bool) for d in damages], list(sweeps),
+                             list(previous), cfg=self.topo_cfg, device=self.device)
+        return [np.asarray(r.labels, np.int32) for r in res]
+
+    def fragments(self, x, labels) -> list[np.ndarray]:
+        return fragments(x, labels, self.min_fragment_points)  # the engine's rule: -1 is no piece
+
+    def reward(self, x, labels) -> tuple[float, bool]:
+        from topocut.reward import spectral_reward
+
+        res = spectral_reward(self.fragments(x, labels), list(self.goal.fragments), self.reward_cfg,
+                              offcuts=list(getattr(self.goal, "offcuts", None) or []))
+        total = float(res.total)
+        if self.success_fn is not None:
+            return total, bool(self.success_fn(res))
+        ok = self.success_threshold is not None and total >= self.success_threshold
+        return total, bool(ok)
+
+    def rewards(self, xs, labels) -> np.ndarray:  # K, the rewards of K scenes in one batched reward call
+        from topocut.reward import spectral_rewards
+
+        sets = [self.fragments(x, lab) for x, lab in zip(xs, labels)]
+        off = list(getattr(self.goal, "offcuts", None) or [])
+        return np.array([r.total for r in spectral_rewards(sets, list(self.goal.fragments), self.reward_cfg, off)])
+
+
+def piece_agreement(labels, piece, min_points: int = 4) -> tuple[int, float]:
+    """(the simulator's pieces of >= min_points particles, the lowest IoU of a discovered piece (label >= 0, >=
+    min_points particles) with the simulator piece it overlaps most): does discovery see what the simulator
+    separated?"""
+    labels, piece = np.asarray(labels, np.int64), np.asarray(piece, np.int64)
+    n_sim = int((np.bincount(piece) >= min_points).sum()) if len(piece) else 0
+    ok = labels >= 0
+    if not ok.any():
+        return n_sim, float("nan")
+    pairs, inter = np.unique(np.stack([labels[ok], piece[ok]]), axis=1, return_counts=True)
+    size_l = np.bincount(labels[ok])
+    size_p = np.bincount(piece)
+    worst = 1.0
+    for lab in np.unique(pairs[0]):
+        if size_l[lab] < min_points:
+            continue
+        m = pairs[0] == lab
+        j = np.argmax(inter[m])
+        i = inter[m][j]
+        worst = min(worst, float(i / (size_l[lab] + size_p[pairs[1][m][j]] - i)))
+    return n_sim, worst
