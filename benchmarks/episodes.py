@@ -166,8 +166,8 @@ def bench_eval(args) -> dict:
     from topocut.episode import make_scoring, run_episodes
     from topocut.eval.config import EvalConfig
     from topocut.eval.protocol import _episode, episode_specs
-    from topocut.planning import HeuristicPolicy
-    from topocut.planning.heuristic import FixedTrajectoryPolicy
+    from topocut.planning import GoalPlanesPolicy
+    from topocut.planning.heuristic import HeuristicPolicy
     from topocut.reward.config import RewardConfig
     from topocut.sim.env import CuttingEnv
     from topocut.tasks import TaskConfig
@@ -184,8 +184,8 @@ def bench_eval(args) -> dict:
     for B, eps in ((args.batch, chosen), (1, chosen[: args.ref_episodes])):
         env = CuttingEnv(sim_config(args, B), batch_size=B)
         sc = make_scoring(rcfg, topo, min_fragment_points=ecfg.min_fragment_points, env=env)
-        policies = {"oracle": HeuristicPolicy(),
-                    "heuristic": FixedTrajectoryPolicy(task_cfgs, spacing=env.cfg.spacing, board_z=env.cfg.board_z)}
+        policies = {"oracle": GoalPlanesPolicy(),
+                    "heuristic": HeuristicPolicy(task_cfgs, spacing=env.cfg.spacing, board_z=env.cfg.board_z)}
         for name, pol in policies.items():
             run_episodes(env, [_episode(s, task_cfgs[s.task]) for s in eps[:min(B, 2)]], pol, sc,
                          max_cuts=ecfg.max_cuts)  # warm-up: kernels, caches

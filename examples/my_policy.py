@@ -13,7 +13,7 @@ from topocut.sim.action import KnifeAction
 class GoalPlanePolicy:
     display_name = "Goal plane (example)"  # the report's row label (default: the class name)
 
-    def reset(self, goal, seed=None):  # goal: topocut.goals.Goal; seed: the episode's (for a stochastic policy)
+    def reset(self, goal, seed=None):  # goal: topocut.tasks.Goal; seed: the episode's (for a stochastic policy)
         self.cuts = 0
 
     def act(self, obs):  # obs: points (n,3), labels (n,), history (3,7), goal (g,3), goal_labels (g,)

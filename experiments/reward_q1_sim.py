@@ -62,7 +62,7 @@ def q1_sequence(n_grid: int = 64, thickness: float = 0.03, wrong: str = "yaw", e
     """
     import time
 
-    from topocut.goals import TaskConfig, make_goal
+    from topocut.tasks import TaskConfig, make_goal
     from topocut.sim import CuttingEnv, init_taichi
     from topocut.sim.action import KnifeAction
     from topocut.sim.config import SimConfig

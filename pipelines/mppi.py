@@ -41,7 +41,7 @@ def _is_multirun() -> bool:
         return False
 
 
-SAMPLED_TILT_MAX = 1.2  # rad: |tilt| bound when a task samples tilt (as topocut.planning.experiments' pyramid MPPI)
+SAMPLED_TILT_MAX = 1.2  # rad: |tilt| bound when a task samples tilt (as experiments/pyramid_mppi.py's pyramid MPPI)
 
 
 def planner_for_task(planner, task):

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from topocut.episode import Episode, make_scoring, run_episodes
-from topocut.planning.heuristic import HeuristicPolicy
+from topocut.planning.heuristic import GoalPlanesPolicy
 from topocut.reward.config import RewardConfig
 from topocut.sim.config import SimConfig
 from topocut.sim.objects import ObjectPose
@@ -26,7 +26,7 @@ EPISODES = [
 ]
 
 
-class Stopping(HeuristicPolicy):
+class Stopping(GoalPlanesPolicy):
     """The goal's planes; stops (None) after ``limit`` cuts in episodes of seed 12, so its scene idles."""
 
     def reset(self, goal, seed=None):

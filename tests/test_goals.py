@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from topocut.goals import TaskConfig, make_goal
+from topocut.tasks import TaskConfig, make_goal
 from topocut.sim.action import cut_mask
 from topocut.sim.objects import ObjectPose
 

@@ -2,11 +2,11 @@
 import numpy as np
 import pytest
 
-from topocut.planning import MPPI, HeuristicPolicy, MPPIConfig, MPPIPolicy, mppi_weights, shift
+from topocut.planning import MPPI, GoalPlanesPolicy, MPPIConfig, MPPIPolicy, mppi_weights, shift
 from topocut.sim.action import KnifeAction
 
 
-class Goal:  # the parts of topocut.goals.Goal the planners read
+class Goal:  # the parts of topocut.tasks.Goal the planners read
     def __init__(self, planes):
         self.planes = planes
         self.points = np.zeros((4, 3), np.float32)
@@ -104,13 +104,13 @@ def test_shift_and_config_errors():
 
 def test_heuristic_policy_returns_planes_in_order():
     planes = [KnifeAction(0.4, 0.5), KnifeAction(0.5, 0.5), KnifeAction(0.6, 0.5, yaw=0.3)]
-    pol = HeuristicPolicy(Goal(planes))
+    pol = GoalPlanesPolicy(Goal(planes))
     assert [pol.act({}) for _ in range(4)] == planes + [planes[-1]]
     np.testing.assert_allclose(pol.sequence(1, 3), [p.to_vector() for p in (planes[1], planes[2], planes[2])])
     pol.reset(Goal(planes[:1]))
     assert pol.act({}) == planes[0]
     with pytest.raises(ValueError, match="goal.planes"):
-        HeuristicPolicy(Goal([]))
+        GoalPlanesPolicy(Goal([]))
 
 
 def test_mppi_policy_improves_on_heuristic_and_shifts():
@@ -175,12 +175,12 @@ def test_sim_rollout_factory_pushes_per_goal_task(monkeypatch):
     assert seen[-1] is True
 
 
-# ---- the simulator rollout: needs topocut.sim, topocut.topology, topocut.reward, topocut.goals ----------
+# ---- the simulator rollout: needs topocut.sim, topocut.topology, topocut.reward, topocut.tasks -----------
 
 def _sim_modules():
     try:
-        from topocut.goals import make_goal
-        from topocut.goals.config import TaskConfig
+        from topocut.tasks import make_goal
+        from topocut.tasks.config import TaskConfig
         from topocut.reward import spectral_reward  # noqa: F401
         from topocut.sim.config import SimConfig
         from topocut.sim.env import CuttingEnv
@@ -322,7 +322,7 @@ def test_mppi_stage_planner_covers_the_pyramid_goal_tilt():
     tilt = goal.planes[0].tilt
     assert tilt == pytest.approx(np.arcsin(1 / np.sqrt(3)), abs=2e-3)  # corner face normal (1,1,1)/sqrt(3): 35.26 deg
     assert planner.tilt_max < tilt <= stage_planner.tilt_max and "tilt" in stage_planner.sampled_dims
-    start = HeuristicPolicy(goal).sequence(0, 1)
+    start = GoalPlanesPolicy(goal).sequence(0, 1)
     assert MPPI(stage_planner, lambda s: np.zeros(len(s))).clip(start)[0, 3] == start[0, 3]  # not clipped
     with pytest.raises(ValueError, match=r"tilt up to 0\.61.*planner\.tilt_max=0\.6"):
         episode_scene(cfg["object"], task, cfg["sim"], 0, planner)  # the bound the stage used to plan with

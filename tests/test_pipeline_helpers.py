@@ -229,9 +229,9 @@ def test_eval_jobs_cut_the_work_into_tasks_and_leave_the_artifact_key_alone():
 
     assert {n for n in ("oracle", "heuristic", "mppi", "pddp", "dp3", "mypkg.mod:Mine")
             if runs_one_at_a_time(n)} == {"mppi"}
-    from topocut.planning import HeuristicPolicy, MPPIPolicy  # the registry's sim_state input = the engine's rule
+    from topocut.planning import GoalPlanesPolicy, MPPIPolicy  # the registry's sim_state input = the engine's rule
 
-    assert MPPIPolicy.uses_simulator and not getattr(HeuristicPolicy, "uses_simulator", False)
+    assert MPPIPolicy.uses_simulator and not getattr(GoalPlanesPolicy, "uses_simulator", False)
     specs = list(range(5))
     tasks = eval_tasks(specs, ["oracle", "mppi"], 2, {"mppi"})
     assert tasks == [("oracle", [0, 1]), ("mppi", [0]), ("mppi", [1]),

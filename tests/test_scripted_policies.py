@@ -16,7 +16,7 @@ def test_every_scripted_spec_names_a_builder_that_exists():
 
 
 def test_the_oracle_and_the_heuristic_are_built_from_the_setup():
-    from topocut.planning.heuristic import FixedTrajectoryPolicy
+    from topocut.planning.heuristic import HeuristicPolicy
     from topocut.planning.oracle import OraclePolicy
     from topocut.tasks.config import TaskConfig
 
@@ -24,7 +24,7 @@ def test_the_oracle_and_the_heuristic_are_built_from_the_setup():
     oracle = registry.build_scripted("oracle", setup)
     assert isinstance(oracle, OraclePolicy) and oracle.board_z == pytest.approx(0.07)
     heuristic = registry.build_scripted("heuristic", setup)
-    assert isinstance(heuristic, FixedTrajectoryPolicy)
+    assert isinstance(heuristic, HeuristicPolicy)
     assert (heuristic.spacing, heuristic.board_z, set(heuristic.task_cfgs)) == (0.01, 0.07, {"slice"})
 
 

@@ -6,7 +6,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 
 from topocut.config import STAGES, ConfigError, register_configs, validate
-from topocut.goals.config import TaskConfig
+from topocut.tasks.config import TaskConfig
 from topocut.tasks import TASKS, get_task
 
 CONF = str(Path(__file__).resolve().parents[1] / "conf")

@@ -168,10 +168,10 @@ class FakeScorer:
 
 
 def test_episode_runner_turns_between_the_cuts_and_keeps_the_ids():
-    from topocut.planning import HeuristicPolicy, run_episode
+    from topocut.planning import GoalPlanesPolicy, run_episode
 
     env, scorer = FakeEnv(), FakeScorer()
-    steps, summary = run_episode(env, _goal(), HeuristicPolicy(_goal()), max_cuts=3, push=True, scorer=scorer)
+    steps, summary = run_episode(env, _goal(), GoalPlanesPolicy(_goal()), max_cuts=3, push=True, scorer=scorer)
     assert env.calls == ["cut", "push", "turn", "cut", "push", "cut", "push"]
     assert summary["turns"] == [1] and summary["num_cuts"] == 3 and summary["status"] == "ok"
     # discovery: start, cut 1 (its sweep), after the turn (no sweep, previous labels), cuts 2 and 3
@@ -180,7 +180,7 @@ def test_episode_runner_turns_between_the_cuts_and_keeps_the_ids():
     assert (steps[0]["x_t1"] == 0).all() and (steps[1]["x_t"] == 1).all()
     # a budget that ends at the turn's cut skips it
     env = FakeEnv()
-    run_episode(env, _goal(), HeuristicPolicy(_goal()), max_cuts=1, scorer=FakeScorer())
+    run_episode(env, _goal(), GoalPlanesPolicy(_goal()), max_cuts=1, scorer=FakeScorer())
     assert env.calls == ["cut"]
 
 
@@ -201,7 +201,7 @@ def test_mppi_rollouts_turn_between_their_cuts_where_the_episode_would():
 
 def test_evaluation_runs_the_oracle_steps_and_asks_the_task_for_success():
     from topocut.eval import episode_specs, evaluate_episode, smoke
-    from topocut.planning import HeuristicPolicy
+    from topocut.planning import GoalPlanesPolicy
 
     spec = episode_specs(smoke())[0]
     env, seen = FakeEnv(), []
@@ -216,7 +216,7 @@ def test_evaluation_runs_the_oracle_steps_and_asks_the_task_for_success():
 
     env.reset = lambda *a, **k: None
     cfg = SimpleNamespace(name="dice", push=False, success_threshold=0.5)  # 0.2 a cut: 0.6 after the third
-    res = evaluate_episode(spec, HeuristicPolicy(), env, cfg, max_cuts=3, spacing=0.01, goal_fn=lambda *a: _goal(),
+    res = evaluate_episode(spec, GoalPlanesPolicy(), env, cfg, max_cuts=3, spacing=0.01, goal_fn=lambda *a: _goal(),
                            discover_fn=discover, reward_fn=reward)
     assert env.calls == ["cut", "turn", "cut", "cut"] and res.turns == [1] and res.num_cuts == 3
     assert seen[2] == ([], 1)  # after the turn: no sweep, the previous labels
@@ -231,7 +231,7 @@ def test_a_simulated_dice_episode_lays_the_slab_flat_and_keeps_its_cluster():
 
     if not hasattr(CuttingEnv, "turn"):
         pytest.skip("CuttingEnv.turn not provided yet")
-    from topocut.planning import HeuristicPolicy, Scorer, run_episode
+    from topocut.planning import GoalPlanesPolicy, Scorer, run_episode
     from topocut.sim import SimConfig
     from topocut.sim.objects import ObjectPose
     from topocut.topology import TopologyConfig
@@ -246,7 +246,7 @@ def test_a_simulated_dice_episode_lays_the_slab_flat_and_keeps_its_cluster():
     labels_seen = []
     real = scorer.labels
     scorer.labels = lambda *a: labels_seen.append(real(*a)) or labels_seen[-1]
-    steps, summary = run_episode(env, goal, HeuristicPolicy(goal), max_cuts=2, scorer=scorer)
+    steps, summary = run_episode(env, goal, GoalPlanesPolicy(goal), max_cuts=2, scorer=scorer)
     assert summary["status"] == "ok", summary.get("error")
     assert summary["turns"] == [1] and summary["num_cuts"] == 2
     a1 = goal.axes[0]

@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from topocut.goals.config import PenConfig
-from topocut.goals.letters import LETTER_ASPECT, LETTERS, layout, letter_points, polyline_length, word_goal
+from topocut.tasks.config import PenConfig
+from topocut.tasks.letters import LETTER_ASPECT, LETTERS, layout, letter_points, polyline_length, word_goal
 
 
 def test_letter_L_bead_geometry():

@@ -208,8 +208,8 @@ def test_run_episode_marks_divergence_failed():
 
 def test_teleop_replay_in_simulator_matches_live(tmp_path):
     try:
-        from topocut.goals import make_goal
-        from topocut.goals.config import TaskConfig
+        from topocut.tasks import make_goal
+        from topocut.tasks.config import TaskConfig
         from topocut.reward import spectral_reward  # noqa: F401
         from topocut.sim.config import SimConfig
         from topocut.sim.env import CuttingEnv

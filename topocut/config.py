@@ -17,7 +17,7 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig, OmegaConf
 
 from topocut.eval.config import EvalConfig
-from topocut.goals.config import TaskConfig
+from topocut.tasks.config import TaskConfig
 from topocut.models.config import DynamicsConfig
 from topocut.planning.config import MPPIConfig
 from topocut.policies.config import PDDPConfig, PolicyTrainConfig, SamplerConfig

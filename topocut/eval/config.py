@@ -124,7 +124,7 @@ class EvalConfig:
             bad = [o for o in names if o not in OBJECTS]
             if bad:
                 raise ValueError(f"{key}: unknown object {bad[0]!r}; valid: {', '.join(OBJECTS)}")
-        from topocut.goals.config import TaskConfig
+        from topocut.tasks.config import TaskConfig
 
         params = {f for f in TaskConfig.__dataclass_fields__ if f not in ("name", "max_cuts", "stage")}
         for task, over in self.task_overrides.items():

@@ -22,7 +22,7 @@ def task_configs(names, max_cuts: int, overrides=None) -> dict:
     """TaskConfig per task from conf/task/<name>.yaml (one source of truth for task parameters), with
     ``overrides[name]`` (eval.task_overrides) on top; the cut budget is eval.max_cuts, raised to the task's
     own minimum (``min_cuts``: a die needs 3)."""
-    from topocut.goals.config import TaskConfig
+    from topocut.tasks.config import TaskConfig
 
     out = {}
     for name in names:

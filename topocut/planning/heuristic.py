@@ -1,9 +1,11 @@
-"""Heuristic controller: the goal's ideal cut planes in order (the evaluation's "Heuristic" baseline).
+"""Open-loop plane policies: a goal's planes in order (``GoalPlanesPolicy``) and Table 1's "Heuristic".
 
 ``Goal.planes`` (topocut.tasks.make_goal; the Cut steps of the task's oracle) are the equally spaced planes that
-produce the target pieces on the nominal, undeformed object; executing them
-open loop ignores how the material deforms and moves.  They are also MPPI's
-initial guess and horizon fill.
+produce the target pieces on the nominal, undeformed object.  ``GoalPlanesPolicy`` cuts them open loop at the pose
+its goal was made for: on the episode's own goal that is the untracked oracle, and it is MPPI's initial guess and
+horizon fill.  ``HeuristicPolicy`` cuts the planes of the object's *nominal* pose, blind to the episode's
+randomisation: the evaluation's "Heuristic" baseline.  (The evaluation's oracle, ``topocut.planning.oracle``,
+also carries each plane with the piece it cuts.)
 """
 from __future__ import annotations
 
@@ -12,7 +14,7 @@ import numpy as np
 from topocut.sim.action import KnifeAction
 
 
-class HeuristicPolicy:
+class GoalPlanesPolicy:
     """Policy protocol: ``reset(goal)``, ``act(obs) -> KnifeAction`` returning goal.planes[t]."""
 
     def __init__(self, goal=None):
@@ -24,7 +26,7 @@ class HeuristicPolicy:
     def reset(self, goal) -> None:
         planes = list(getattr(goal, "planes", []) or [])
         if not planes:
-            raise ValueError("HeuristicPolicy needs a goal with at least one plane in goal.planes")
+            raise ValueError("GoalPlanesPolicy needs a goal with at least one plane in goal.planes")
         self.planes = [p if isinstance(p, KnifeAction) else KnifeAction.from_vector(p) for p in planes]
         self.t = 0
 
@@ -39,11 +41,11 @@ class HeuristicPolicy:
         return action
 
 
-class FixedTrajectoryPolicy(HeuristicPolicy):
+class HeuristicPolicy(GoalPlanesPolicy):
     """The evaluation's "Heuristic" baseline: the task's equally spaced planes for the object's *nominal*
     pose, executed open loop — blind to the episode's randomised translation, yaw and scale.
 
-    (HeuristicPolicy on the episode's own goal knows the true pose: that is the "oracle" reference.)
+    (GoalPlanesPolicy on the episode's own goal knows the true pose: the oracle's open-loop core.)
     """
 
     def __init__(self, task_cfgs: dict, spacing: float, board_z: float = 0.05):
@@ -58,7 +60,7 @@ class FixedTrajectoryPolicy(HeuristicPolicy):
         key = (goal.task, goal.object)
         if key not in self._cache:
             if goal.task not in self.task_cfgs:
-                raise KeyError(f"FixedTrajectoryPolicy has no TaskConfig for task {goal.task!r}; "
+                raise KeyError(f"HeuristicPolicy has no TaskConfig for task {goal.task!r}; "
                                f"known: {', '.join(self.task_cfgs)}")
             self._cache[key] = make_goal(self.task_cfgs[goal.task], goal.object, ObjectPose(),
                                          spacing=self.spacing, board_z=self.board_z)

@@ -126,13 +126,13 @@ class MPPIPolicy:
             self.reset(goal)
 
     def reset(self, goal, seed: int | None = None) -> None:
-        from topocut.planning.heuristic import HeuristicPolicy
+        from topocut.planning.heuristic import GoalPlanesPolicy
         from topocut.policies.base import mix_seed
 
         if seed is not None:  # an episode's samples do not depend on the episodes planned before it
             self.rng = np.random.default_rng(mix_seed(self.seed, seed))
         self.goal = goal
-        self.heuristic = HeuristicPolicy(goal)
+        self.heuristic = GoalPlanesPolicy(goal)
         self.t = 0
         self.mean = self.heuristic.sequence(0, self.cfg.horizon)  # H,4
 

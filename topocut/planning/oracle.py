@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from topocut.planning.heuristic import HeuristicPolicy
+from topocut.planning.heuristic import GoalPlanesPolicy
 from topocut.sim.action import KnifeAction
 
 
@@ -41,7 +41,7 @@ def moved_plane(action: KnifeAction, R: np.ndarray, t: np.ndarray, board_z: floa
     return KnifeAction.from_plane(R @ action.normal, point, board_z)
 
 
-class OraclePolicy(HeuristicPolicy):
+class OraclePolicy(GoalPlanesPolicy):
     """Policy protocol: ``reset(goal)``, ``act(obs)``: the goal's planes in order, each carried with the piece it
     cuts (module docstring); None once they are done.  Without ``particles`` in the observation (or anchors in
     the goal) it cuts the planes where the plan put them."""

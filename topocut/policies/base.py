@@ -19,7 +19,7 @@ OBS_KEYS = ("points", "labels", "history", "goal", "goal_labels")
 @runtime_checkable
 class Policy(Protocol):
     def reset(self, goal, seed: int | None = None) -> None:
-        """Start an episode towards ``goal`` (topocut.goals.Goal).
+        """Start an episode towards ``goal`` (topocut.tasks.Goal).
 
         A stochastic policy re-seeds its sampler from ``seed`` (the episode's seed) so that an
         episode's actions do not depend on which episodes ran before it in the same process.

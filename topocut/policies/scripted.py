@@ -35,9 +35,9 @@ def oracle(setup: ScriptedSetup):
 
 def heuristic(setup: ScriptedSetup):
     """The task's planes for the object's nominal pose, open loop (Table 1's "Heuristic")."""
-    from topocut.planning.heuristic import FixedTrajectoryPolicy
+    from topocut.planning.heuristic import HeuristicPolicy
 
-    return FixedTrajectoryPolicy(setup.task_cfgs, spacing=setup.sim.spacing, board_z=setup.board_z)
+    return HeuristicPolicy(setup.task_cfgs, spacing=setup.sim.spacing, board_z=setup.board_z)
 
 
 def mppi(setup: ScriptedSetup):

@@ -2,8 +2,6 @@
 registry.  Each task owns its goal construction (``make_goal``), its oracle sequence (``oracle``: Cut and
 Turn steps), its success condition (``success``) and its scene set-up (``scene``); callers ask
 ``get_task(name)`` instead of branching on the name (docs/tasks.md).
-
-``topocut.goals`` re-exports this package's goal API (``make_goal``, ``Goal``, ``TaskConfig``, ...).
 """
 from __future__ import annotations
 
