@@ -62,11 +62,11 @@ def q1_sequence(n_grid: int = 64, thickness: float = 0.03, wrong: str = "yaw", e
     """
     import time
 
-    from topocut.tasks import TaskConfig, make_goal
     from topocut.sim import CuttingEnv, init_taichi
     from topocut.sim.action import KnifeAction
     from topocut.sim.config import SimConfig
     from topocut.sim.objects import ObjectPose
+    from topocut.tasks import TaskConfig, make_goal
     from topocut.topology import discover
 
     init_taichi("cpu")

@@ -2,9 +2,9 @@
 import numpy as np
 import pytest
 
-from topocut.tasks import TaskConfig, make_goal
 from topocut.sim.action import cut_mask
 from topocut.sim.objects import ObjectPose
+from topocut.tasks import TaskConfig, make_goal
 
 SP = 0.008  # particle spacing
 

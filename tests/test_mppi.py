@@ -179,12 +179,12 @@ def test_sim_rollout_factory_pushes_per_goal_task(monkeypatch):
 
 def _sim_modules():
     try:
-        from topocut.tasks import make_goal
-        from topocut.tasks.config import TaskConfig
         from topocut.reward import spectral_reward  # noqa: F401
         from topocut.sim.config import SimConfig
         from topocut.sim.env import CuttingEnv
         from topocut.sim.objects import ObjectPose
+        from topocut.tasks import make_goal
+        from topocut.tasks.config import TaskConfig
         from topocut.topology import discover  # noqa: F401
     except ImportError as e:
         pytest.skip(f"simulator/topology/reward/goals not importable yet: {e}")

@@ -67,9 +67,9 @@ def test_grid_box_validation():
 
 def _spoon_run(grid_box: str):
     """A sided (spoon) substep, then solver substeps, then sided ones with the spoon pressing into a block."""
-    from topocut.tasks.config import SpoonConfig
     from topocut.sim.env import CuttingEnv
     from topocut.sim.spoon import ToolColliders, bowl_axis
+    from topocut.tasks.config import SpoonConfig
     from topocut.tasks.scooping_scene import block_particles
 
     sim = SimConfig(n_grid=32, tuning=TuningConfig(grid_box=grid_box))

@@ -6,8 +6,8 @@ import pytest
 from hydra import compose, initialize_config_dir
 
 from topocut.config import STAGES, ConfigError, register_configs, validate
-from topocut.tasks.config import TaskConfig
 from topocut.tasks import TASKS, get_task
+from topocut.tasks.config import TaskConfig
 
 CONF = str(Path(__file__).resolve().parents[1] / "conf")
 register_configs()

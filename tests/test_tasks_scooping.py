@@ -4,8 +4,8 @@ import math
 import numpy as np
 import pytest
 
-from topocut.tasks.config import SpoonConfig
 from topocut.sim.spoon import Keyframe, SpoonPath, bowl_axis, scoop_keyframes, spoon_sdf_np
+from topocut.tasks.config import SpoonConfig
 from topocut.tasks.scooping_scene import block_particles, in_cup, target_chunk, target_volume
 
 
@@ -74,8 +74,8 @@ def test_block_and_cup_regions():
 
 def test_one_scoop_moves_a_chunk_into_the_cup():
     """n_grid 32 (dx 3.1 cm, 1350 particles, ~15 s): the chunk leaves the block, lands in the cup, is its own cluster."""
-    from topocut.tasks.config import TaskConfig
     from topocut.sim import SimConfig
+    from topocut.tasks.config import TaskConfig
     from topocut.tasks.scooping_scene import scoop_episode
     from topocut.topology import TopologyConfig
 

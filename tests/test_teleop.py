@@ -208,12 +208,12 @@ def test_run_episode_marks_divergence_failed():
 
 def test_teleop_replay_in_simulator_matches_live(tmp_path):
     try:
-        from topocut.tasks import make_goal
-        from topocut.tasks.config import TaskConfig
         from topocut.reward import spectral_reward  # noqa: F401
         from topocut.sim.config import SimConfig
         from topocut.sim.env import CuttingEnv
         from topocut.sim.objects import ObjectPose
+        from topocut.tasks import make_goal
+        from topocut.tasks.config import TaskConfig
         from topocut.topology import discover  # noqa: F401
     except ImportError as e:
         pytest.skip(f"simulator/topology/reward/goals not importable yet: {e}")

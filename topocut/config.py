@@ -17,13 +17,13 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig, OmegaConf
 
 from topocut.eval.config import EvalConfig
-from topocut.tasks.config import TaskConfig
 from topocut.models.config import DynamicsConfig
 from topocut.planning.config import MPPIConfig
 from topocut.policies.config import PDDPConfig, PolicyTrainConfig, SamplerConfig
 from topocut.reward.config import RewardConfig
 from topocut.sim.config import SimConfig
 from topocut.sim.objects import OBJECTS
+from topocut.tasks.config import TaskConfig
 from topocut.topology.config import TopologyConfig
 from topocut.topology.observation import ObservationConfig
 from topocut.utils.logger import LoggerConfig
