@@ -34,7 +34,8 @@ from sim_throughput import ReferenceMPM  # the script's own folder is on sys.pat
 from taichi.lang.expr import Expr
 
 from topocut.sim.config import SimConfig
-from topocut.sim.mpm import init_taichi, polar_rotation
+from topocut.sim.materials import polar_rotation
+from topocut.sim.mpm import init_taichi
 from topocut.sim.objects import sample_object
 
 

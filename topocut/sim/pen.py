@@ -25,9 +25,9 @@ import math
 import numpy as np
 import taichi as ti
 
-from topocut.goals.config import PenConfig
 from topocut.sim.config import SimConfig
 from topocut.sim.env import NO_STEP, CuttingEnv, SimulationDiverged
+from topocut.sim.tools import PenConfig
 
 
 def cream_sim_config(sim: SimConfig, pen: PenConfig) -> SimConfig:

@@ -31,6 +31,8 @@ from dataclasses import dataclass
 import numpy as np
 import taichi as ti
 
+from topocut.sim.tools import SpoonConfig
+
 
 def bowl_axis(phi: float) -> np.ndarray:  # 3,
     return np.array([math.sin(phi), 0.0, math.cos(phi)])
@@ -78,7 +80,7 @@ class SpoonPath:
         raise AssertionError("unreachable")
 
 
-def scoop_keyframes(spoon, place_xy, block_top: float, cup_top: float, t0: float = 0.0) -> SpoonPath:
+def scoop_keyframes(spoon: SpoonConfig, place_xy, block_top: float, cup_top: float, t0: float = 0.0) -> SpoonPath:
     """The scooping primitive starting at time t0 for a placement (x, y) of the bowl's centre on the block.
 
     The bowl's sphere is centred ``radius - depth`` above the block's top, so it dips ``depth`` into
@@ -110,7 +112,7 @@ def scoop_keyframes(spoon, place_xy, block_top: float, cup_top: float, t0: float
     return SpoonPath(frames)
 
 
-def spoon_sdf_np(x, c, a, spoon):
+def spoon_sdf_np(x, c, a, spoon: SpoonConfig):
     """Signed distance (N,) of points (N,3) to the spoon shell (numpy mirror of the kernel's, for tests)."""
     d = np.asarray(x, float) - c
     rho = np.linalg.norm(d, axis=-1)
@@ -123,7 +125,7 @@ def spoon_sdf_np(x, c, a, spoon):
 class ToolColliders:
     """The spoon (per scene, posed every substep) and the cup (static) acting on a solver's grid."""
 
-    def __init__(self, solver, spoon, friction: float = 0.4):
+    def __init__(self, solver, spoon: SpoonConfig, friction: float = 0.4):
         self.s, self.spoon, self.friction = solver, spoon, friction
         self.margin = 0.5 * solver.dx  # contact band beyond the shell: the shell (1 cm) is thinner than a cell
         fb = ti.FieldsBuilder()
