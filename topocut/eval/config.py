@@ -14,6 +14,17 @@ from topocut.policies import registry
 
 SPLITS = ("in", "out")  # in-distribution (seen objects) / out-of-distribution (unseen objects)
 TASKS = ("slice", "stick", "dice")
+
+
+def _is_task_path(entry) -> bool:  # topocut.tasks.is_task_path, without importing the tasks here
+    return isinstance(entry, str) and ":" in entry
+
+
+def table_tasks(present) -> list:
+    """The tasks a table shows, in column order: the protocol's TASKS, then any other task in ``present`` (a
+    task of your own, eval.tasks=[module.path:ClassName]) in the order first seen."""
+    extra = [t for t in dict.fromkeys(present) if t not in TASKS]
+    return [*TASKS, *extra]
 OBSERVATIONS = ("particles", "depth")
 NORMALIZE_BY = ("task", "task_split")
 POLICY_NAMES = registry.names()  # topocut/policies/registry.py: the one list
@@ -79,9 +90,10 @@ class EvalConfig:
                                   ("eval.normalize_by", self.normalize_by, NORMALIZE_BY)):
             if value not in valid:
                 raise ValueError(f"{key}={value!r} is not valid; choose one of {', '.join(valid)}")
-        bad = [t for t in self.tasks if t not in TASKS]
+        bad = [t for t in self.tasks if t not in TASKS and not _is_task_path(t)]
         if bad:
-            raise ValueError(f"eval.tasks: unknown task {bad[0]!r}; valid: {', '.join(TASKS)}")
+            raise ValueError(f"eval.tasks: unknown task {bad[0]!r}; valid: {', '.join(TASKS)}, or a knife task of "
+                             "your own as module.path:ClassName (docs/architecture.md)")
         if self.episodes_per_cell < 1 or self.max_cuts < 1:
             raise ValueError(f"eval.episodes_per_cell={self.episodes_per_cell} and eval.max_cuts={self.max_cuts} "
                              "must be >= 1")
@@ -128,8 +140,9 @@ class EvalConfig:
 
         params = {f for f in TaskConfig.__dataclass_fields__ if f not in ("name", "max_cuts", "stage")}
         for task, over in self.task_overrides.items():
-            if task not in TASKS:
-                raise ValueError(f"eval.task_overrides.{task}: unknown task; valid: {', '.join(TASKS)}")
+            if task not in TASKS and task not in self.tasks:
+                raise ValueError(f"eval.task_overrides.{task}: unknown task; valid: {', '.join(TASKS)} and the "
+                                 "entries of eval.tasks")
             bad = [k for k in over if k not in params]
             if bad:
                 why = " (eval.max_cuts sets it)" if bad[0] == "max_cuts" else ""

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from topocut.eval.config import TASKS
+from topocut.eval.config import table_tasks
 from topocut.eval.summary import DISPLAY
 from topocut.eval.tables import SPLIT_TITLES, table1_cells
 
@@ -22,7 +22,7 @@ def plot_results(rows: list[dict], path, reference: str | None = None) -> dict:
     policies = list(dict.fromkeys(r["policy"] for r in rows))
     policies.sort(key=lambda p: p != reference)  # stable: the reference first, the others in row order
     drawn: dict = {}
-    tasks = [t for t in TASKS if any(r["task"] == t for r in rows)]
+    tasks = [t for t in table_tasks(r["task"] for r in rows) if any(r["task"] == t for r in rows)]
     fig, axes = plt.subplots(2, 2, figsize=(11, 6.5), sharey="row", squeeze=False)
     width = 0.8 / max(len(policies), 1)
     for j, split in enumerate(("in", "out")):

@@ -19,19 +19,24 @@ _log = logging.getLogger("topocut")
 
 
 def task_configs(names, max_cuts: int, overrides=None) -> dict:
-    """TaskConfig per task from conf/task/<name>.yaml (one source of truth for task parameters), with
-    ``overrides[name]`` (eval.task_overrides) on top; the cut budget is eval.max_cuts, raised to the task's
-    own minimum (``min_cuts``: a die needs 3)."""
+    """TaskConfig per task from conf/task/<name>.yaml (one source of truth for task parameters) -- for a task of
+    your own (``module.path:ClassName``) its class's ``defaults`` instead -- with ``overrides[name]``
+    (eval.task_overrides) on top; the cut budget is eval.max_cuts, raised to the task's own minimum (``min_cuts``:
+    a die needs 3)."""
+    from topocut.tasks import get_task, is_task_path
     from topocut.tasks.config import TaskConfig
 
     out = {}
     for name in names:
         f = CONF_TASKS / f"{name}.yaml"
-        if not f.exists():
+        if is_task_path(name):
+            own = {**dict(getattr(get_task(name), "defaults", {}) or {}), "name": name}
+        elif f.exists():
+            own = OmegaConf.load(f)
+        else:
             raise KeyError(f"eval.tasks: unknown task {name!r}; valid: {', '.join(sorted(p.stem for p in CONF_TASKS.glob('*.yaml')))}")
         over = (overrides or {}).get(name, {})
-        cfg = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(TaskConfig), OmegaConf.load(f), over))
-        from topocut.tasks import get_task
+        cfg = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(TaskConfig), own, over))
 
         cfg.max_cuts = max(max_cuts, get_task(name).min_cuts)  # dice need 3 cuts even where eval.max_cuts is 2
         cfg.validate()

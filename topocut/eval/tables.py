@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from topocut.eval.config import TASKS
+from topocut.eval.config import table_tasks
 from topocut.eval.summary import ALL, CSV_COLUMNS, DIFF_METRICS, DISPLAY
 
 SPLIT_TITLES = {"in": "In-distribution", "out": "Out-of-distribution"}
@@ -82,7 +82,7 @@ def table1_markdown(table: dict, reference: str | None = None, title: str = "", 
     """Paper layout from {policy: {(split, task): (R̂, N_C)}}, each a number or a (mean, lo, hi) triple; the
     reference row first, with raw R; in each column the best mean of the other rows in bold where it is above 0
     (``best_shown``); ``seeds`` {policy: training seeds pooled} labels the rows."""
-    cols = [(s, t) for s in ("in", "out") for t in TASKS]
+    cols = [(s, t) for s in ("in", "out") for t in table_tasks(t for cells in table.values() for _, t in cells)]
     head = "| Algorithm | " + " | ".join(f"{SPLIT_SHORT[s]} {t} R̂ | {SPLIT_SHORT[s]} {t} N_C"
                                           for s, t in cols) + " |"
     lines = [f"### {title}" if title else "", note, "(ID: in-distribution / seen objects; OOD: out-of-distribution)",
@@ -125,7 +125,7 @@ def rows_to_table(rows: list[dict], reference: str | None = None) -> dict:
 
 def difference_markdown(rows: list[dict], compare_to: str, title: str = "", note: str = "") -> str:
     """Δ R̂ and Δ N_C against ``compare_to`` per Table-1 cell, paired by scene; ≈ marks a tie."""
-    cols = [(s, t) for s in ("in", "out") for t in TASKS]
+    cols = [(s, t) for s in ("in", "out") for t in table_tasks(r["task"] for r in table1_cells(rows))]
     cells = {(r["policy"], r["split"], r["task"]): r for r in table1_cells(rows) if r["policy"] != compare_to}
     policies = list(dict.fromkeys(p for p, _, _ in cells))
     lines = [f"### {title}" if title else "", note, "",
@@ -145,7 +145,7 @@ def difference_markdown(rows: list[dict], compare_to: str, title: str = "", note
 def aggregate_markdown(rows: list[dict], compare_to: str, title: str = "", note: str = "") -> str:
     """R̂ and Δ R̂ per task over both splits, and over every task."""
     agg = {(r["policy"], r["task"]): r for r in rows if r["object"] == ALL and r["split"] == ALL}
-    tasks = [t for t in (*TASKS, ALL) if any(k[1] == t for k in agg)]
+    tasks = [t for t in (*table_tasks(k[1] for k in agg if k[1] != ALL), ALL) if any(k[1] == t for k in agg)]
     policies = list(dict.fromkeys(p for p, _ in agg))
     lines = [f"### {title}" if title else "", note, "",
              "| Algorithm | " + " | ".join(f"{t} R̂ | {t} ΔR̂" for t in tasks) + " |",

@@ -1,11 +1,23 @@
 """Tasks: one module per task (slice, stick, dice, pyramid, cream_writing, scooping), a Task protocol and a
-registry.  Each task owns its goal construction (``make_goal``), its oracle sequence (``oracle``: Cut and
-Turn steps), its success condition (``success``) and its scene set-up (``scene``); callers ask
-``get_task(name)`` instead of branching on the name (docs/tasks.md).
+registry.  Each task module registers its task class (``@register_task``); the task owns its goal construction
+(``make_goal``), its oracle sequence (``oracle``: Cut and Turn steps), its success condition (``success``) and
+which tool its scene holds (``tool``); callers ask ``get_task(name)`` instead of branching on the name
+(docs/tasks.md).  A task of your own is a class named ``module.path:ClassName`` (docs/architecture.md).
 """
 from __future__ import annotations
 
-from topocut.tasks.base import Cut, Goal, KnifeTask, Task, Turn, object_axes, truncate_steps, turns_after
+from topocut.tasks.base import (
+    REGISTRY,
+    Cut,
+    Goal,
+    KnifeTask,
+    Task,
+    Turn,
+    object_axes,
+    register_task,
+    truncate_steps,
+    turns_after,
+)
 from topocut.tasks.config import (
     CUTTING_TASKS,
     TASKS,
@@ -16,21 +28,44 @@ from topocut.tasks.config import (
     check_stage,
 )
 
-_MODULES = {"slice": "slice", "stick": "stick", "dice": "dice", "pyramid": "pyramid",
-            "cream_writing": "cream_writing", "scooping": "scooping"}
+BUILTIN = {name: f"topocut.tasks.{name}" for name in TASKS}  # each module registers its task on import
+
+
+def is_task_path(entry) -> bool:
+    """``module.path:ClassName``: a task class of your own (docs/architecture.md, "Add a task")."""
+    return isinstance(entry, str) and ":" in entry
 
 
 def get_task(name) -> Task:
-    """The task object of ``name`` (a str or a TaskConfig); unknown names fail with the list of tasks."""
+    """The task object of ``name`` (a str or a TaskConfig): a registered name (the built-in modules import on
+    first use), or ``module.path:ClassName``, which imports the module and registers the class under that entry
+    (its episodes, goals and tables carry the entry as the task's name).  Anything else fails naming what is valid."""
     import importlib
 
     name = getattr(name, "name", name)
-    if name not in _MODULES:
-        raise ValueError(f"task.name={name!r}; valid: {', '.join(TASKS)}")
-    return importlib.import_module(f"topocut.tasks.{_MODULES[name]}").TASK
+    if name not in REGISTRY:
+        if name in BUILTIN:
+            importlib.import_module(BUILTIN[name])
+        elif is_task_path(name):
+            _register_path(name)
+    if name not in REGISTRY:
+        raise ValueError(f"task.name={name!r}; valid: {', '.join(TASKS)}, or a task class of your own as "
+                         f"module.path:ClassName (docs/architecture.md)")
+    return REGISTRY[name]
 
 
-REGISTRY = _MODULES  # name -> module under topocut.tasks
+def _register_path(entry: str) -> None:
+    import importlib
+
+    module_name, _, cls_name = entry.partition(":")
+    try:
+        cls = getattr(importlib.import_module(module_name), cls_name)
+    except (ImportError, AttributeError) as e:
+        raise ValueError(f"task {entry!r}: cannot import {cls_name} from {module_name!r} ({e}); the module must be "
+                         f"importable (PYTHONPATH) and define the class") from None
+    task = cls()
+    task.name = entry  # goals, episodes and tables name the task by its entry
+    REGISTRY[entry] = task
 
 
 def task_for_stage(task, stage: str) -> Task:
@@ -55,4 +90,4 @@ TASK_STAGES = {name: get_task(name).stages for name in TASKS}  # the stages each
 
 __all__ = ["TASKS", "CUTTING_TASKS", "TASK_STAGES", "TaskConfig", "PenConfig", "SpoonConfig", "check_stage",
            "check_max_cuts", "Goal", "Cut", "Turn", "Task", "KnifeTask", "get_task", "task_for_stage", "make_goal",
-           "object_axes", "truncate_steps", "turns_after", "REGISTRY"]
+           "object_axes", "truncate_steps", "turns_after", "REGISTRY", "register_task", "is_task_path", "BUILTIN"]

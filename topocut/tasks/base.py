@@ -138,8 +138,18 @@ class Task(Protocol):
     def success(self, result, cfg) -> bool:
         """Episode success from a RewardResult."""
 
-    def scene(self, cfg, sim):
-        """Scene set-up: what the simulate stage builds for this task (docs/tasks.md)."""
+
+REGISTRY: dict[str, object] = {}  # task name -> the task object (register_task)
+
+
+def register_task(cls):
+    """Class decorator: the task ``cls`` (a Task) is known by ``cls.name`` to ``topocut.tasks.get_task``, and so to
+    every stage.  A second class under a taken name is refused (the same class re-imported replaces itself)."""
+    old = REGISTRY.get(cls.name)
+    if old is not None and (type(old).__module__, type(old).__qualname__) != (cls.__module__, cls.__qualname__):
+        raise ValueError(f"task name {cls.name!r} is taken by {type(old).__module__}.{type(old).__qualname__}")
+    REGISTRY[cls.name] = cls()
+    return cls
 
 
 class KnifeTask(ABC):
@@ -207,10 +217,6 @@ class KnifeTask(ABC):
         report and MPPI's stopping rule all call this."""
         G = len(getattr(result, "per_goal", []))
         return bool(G and result.cut_count >= G and result.total >= cfg.success_threshold)
-
-    def scene(self, cfg, sim):
-        """The object on the board and the knife (topocut.sim.CuttingEnv); push after each cut iff cfg.push."""
-        return {"env": "topocut.sim.CuttingEnv", "push": bool(cfg.push), "turns": self.turns}
 
 
 # -- geometry ---------------------------------------------------------------------------------------------

@@ -11,7 +11,10 @@ topocut.tasks.writing_scene (goal layout, scripted primitives, stroke clusters).
 """
 from __future__ import annotations
 
+from topocut.tasks.base import register_task
 
+
+@register_task
 class CreamWritingTask:
     name = "cream_writing"
     tool = "pen"
@@ -33,11 +36,3 @@ class CreamWritingTask:
     def success(self, result, cfg) -> bool:
         return bool(result.total >= cfg.success_threshold)
 
-    def scene(self, cfg, sim):
-        """The cream solver settings on a copy of ``sim`` (topocut.sim.pen.cream_sim_config)."""
-        from topocut.sim.pen import cream_sim_config
-
-        return cream_sim_config(sim, cfg.pen)
-
-
-TASK = CreamWritingTask()

@@ -18,10 +18,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from topocut.tasks.base import KnifeTask, first_slab, lay_flat, plane
+from topocut.tasks.base import KnifeTask, first_slab, lay_flat, plane, register_task
 from topocut.tasks.grid import best_grid
 
 
+@register_task
 class DiceTask(KnifeTask):
     name = "dice"
     turns = True
@@ -44,5 +45,3 @@ class DiceTask(KnifeTask):
         chops = [plane(a1, t + (c - c0 @ z) * a1, board_z) for c in cuts[1]]
         return [cut0, turn] + sticks + chops, labels
 
-
-TASK = DiceTask()

@@ -11,9 +11,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from topocut.tasks.base import KnifeTask, plane
+from topocut.tasks.base import KnifeTask, plane, register_task
 
 
+@register_task
 class PyramidTask(KnifeTask):
     name = "pyramid"
 
@@ -24,5 +25,3 @@ class PyramidTask(KnifeTask):
         labels = ((pts - corner) @ n >= -cfg.size / np.sqrt(3.0)).astype(np.int32)
         return [plane(n, corner - cfg.size * axes[0], board_z)], labels
 
-
-TASK = PyramidTask()

@@ -10,7 +10,10 @@ Stages: simulate only.  Scene: topocut.tasks.scooping_scene.ScoopScene (spoon, c
 """
 from __future__ import annotations
 
+from topocut.tasks.base import register_task
 
+
+@register_task
 class ScoopingTask:
     name = "scooping"
     tool = "spoon"
@@ -32,11 +35,3 @@ class ScoopingTask:
     def success(self, result, cfg) -> bool:
         return bool(result.total >= cfg.success_threshold)
 
-    def scene(self, cfg, sim):
-        """The scooping scene class (topocut.tasks.scooping_scene.ScoopScene); the pipeline builds it."""
-        from topocut.tasks.scooping_scene import ScoopScene
-
-        return ScoopScene
-
-
-TASK = ScoopingTask()

@@ -10,14 +10,13 @@ within reward.success_distance, i.e. its thickness within ~0.86-1.16 t) and the 
 """
 from __future__ import annotations
 
-from topocut.tasks.base import KnifeTask, slices
+from topocut.tasks.base import KnifeTask, register_task, slices
 
 
+@register_task
 class SliceTask(KnifeTask):
     name = "slice"
 
     def pieces(self, cfg, pts, axes, pad, spacing, board_z):
         return slices(pts, axes, cfg.thickness, cfg.max_cuts, board_z, pad)
 
-
-TASK = SliceTask()

@@ -17,10 +17,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from topocut.tasks.base import KnifeTask, first_slab, lay_flat, move_aside, plane
+from topocut.tasks.base import KnifeTask, first_slab, lay_flat, move_aside, plane, register_task
 from topocut.tasks.grid import best_grid
 
 
+@register_task
 class StickTask(KnifeTask):
     name = "stick"
     turns = True
@@ -57,5 +58,3 @@ class StickTask(KnifeTask):
             steps += [turn] + [plane(a1, t + (c - c0 @ z) * a1, board_z) for c in cuts[0]]
         return steps, labels
 
-
-TASK = StickTask()
