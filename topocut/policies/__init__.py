@@ -8,8 +8,8 @@ from topocut.policies.config import PDDPConfig, PolicyTrainConfig, SamplerConfig
 from topocut.policies.plane import action_from_mask, fit_plane
 
 _LAZY = {
-    "PDDPModule": "topocut.policies.module", "PDDPPolicy": "topocut.policies.module",
-    "PolicyDataset": "topocut.policies.module", "PDDPNet": "topocut.policies.pddp",
+    "PDDPModule": "topocut.policies.module", "PDDPPolicy": "topocut.policies.deploy",
+    "PolicyDataset": "topocut.policies.dataset", "PDDPNet": "topocut.policies.pddp",
     "build_encoder": "topocut.policies.encoders",
 }
 
