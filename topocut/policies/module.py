@@ -18,18 +18,12 @@ from topocut.policies.dataset import PolicyDataset, subsample, to_tensors  # noq
 from topocut.policies.diffusion import build_noise, get_loss, sample
 from topocut.policies.encoders import build_encoder
 from topocut.policies.pddp import PDDPNet
+from topocut.utils.lazy import lazy_exports
 from topocut.utils.training import EpochMeans
 
 # the deployed policy (topocut.policies.deploy imports this module): importable from here on first use
-_DEPLOY = ("PDDPPolicy", "_encoder_overrides", "_mask_action")
-
-
-def __getattr__(name):
-    if name in _DEPLOY:
-        from topocut.policies import deploy
-
-        return getattr(deploy, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = lazy_exports(__name__, dict.fromkeys(("PDDPPolicy", "_encoder_overrides", "_mask_action"),
+                                                   "topocut.policies.deploy"))
 
 
 def _as(cls, value):
