@@ -60,7 +60,7 @@ def test_per_row_draws_equal_batch_one_draws():
 
 @pytest.mark.parametrize("graph,predictor", [("uniform", "analytic"), ("absorbing", "euler")])
 def test_pddp_act_batch_equals_act(graph, predictor, monkeypatch):
-    import topocut.policies.module as pm
+    import topocut.policies.deploy as pm
 
     torch.manual_seed(0)
     module = PDDPModule(PDDPConfig(graph=graph, **TINY), "none",

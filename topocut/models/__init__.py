@@ -4,7 +4,7 @@ Imports are lazy so that ``topocut.models.config`` (used by the Hydra schema) do
 """
 from __future__ import annotations
 
-import importlib
+from topocut.utils.lazy import lazy_exports
 
 _EXPORTS = {
     "DynamicsConfig": "topocut.models.config",
@@ -27,9 +27,4 @@ _EXPORTS = {
 }
 
 __all__ = list(_EXPORTS)
-
-
-def __getattr__(name: str):
-    if name in _EXPORTS:
-        return getattr(importlib.import_module(_EXPORTS[name]), name)
-    raise AttributeError(f"module 'topocut.models' has no attribute {name!r}")
+__getattr__ = lazy_exports(__name__, _EXPORTS)

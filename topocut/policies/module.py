@@ -1,29 +1,29 @@
-"""Training (PDDPModule, a LightningModule) and deployment (PDDPPolicy) of the PDDP policy.
+"""Training of the PDDP policy: PDDPModule (a LightningModule) over PolicyModel (encoder + score network).
 
-Batches come from dataset step dicts (docs/contracts.md: x_t, f_t, mask, history, goal, goal_labels, ...) through
-``topocut.policies.inputs`` -- the one builder of every learned policy's inputs -- FPS-sampled to ``num_points``
-observation and ``num_goal_points`` goal points by PolicyDataset; the mask target is the pose-consistent label of
-``topocut.policies.actions``.
+Its data is ``topocut.policies.dataset`` (PolicyDataset: FPS-sampled step dicts, the mask target the pose-consistent
+label of ``topocut.policies.actions``); its deployment is ``topocut.policies.deploy`` (PDDPPolicy). Both stay
+importable from here.
 """
 from __future__ import annotations
 
 import dataclasses
-from pathlib import Path
 
 import lightning as L
-import numpy as np
 import torch
 import torch.nn as nn
 from torch.optim.swa_utils import AveragedModel
 
-from topocut.policies.base import check_obs
-from topocut.policies.config import PDDPConfig, PolicyTrainConfig, SamplerConfig
+from topocut.policies.config import PDDPConfig, PolicyTrainConfig
+from topocut.policies.dataset import PolicyDataset, subsample, to_tensors  # noqa: F401 - importable from here too
 from topocut.policies.diffusion import build_noise, get_loss, sample
 from topocut.policies.encoders import build_encoder
-from topocut.policies.inputs import goal_inputs, policy_inputs, sample_indices, step_obs, step_targets
 from topocut.policies.pddp import PDDPNet
-from topocut.policies.plane import action_from_mask
+from topocut.utils.lazy import lazy_exports
 from topocut.utils.training import EpochMeans
+
+# the deployed policy (topocut.policies.deploy imports this module): importable from here on first use
+__getattr__ = lazy_exports(__name__, dict.fromkeys(("PDDPPolicy", "_encoder_overrides", "_mask_action"),
+                                                   "topocut.policies.deploy"))
 
 
 def _as(cls, value):
@@ -49,57 +49,6 @@ def ema_with_warmup(decay: float):
         torch._foreach_lerp_(ema_params, params, 1.0 - d)
 
     return update
-
-
-def subsample(n_total: int, points, n: int, seed: int) -> np.ndarray:
-    """Indices of ``n`` of the points (``topocut.policies.inputs.sample_indices`` with a random FPS start; the
-    first ``n_total`` are each point once when there are fewer: ``valid_rows`` marks them)."""
-    return sample_indices(np.asarray(points)[:n_total], n, seed, start="random")
-
-
-class PolicyDataset(torch.utils.data.Dataset):
-    """Step dicts (an EpisodeDataset or a list) -> fixed-size tensors for PDDP (``topocut.policies.inputs``).
-
-    Each access draws a fresh FPS start point for the observation (seed from ``seed`` and a counter), a mild
-    augmentation; the goal fields are the deterministic ones every policy receives (cached per step).
-    ``mask_label``: the target mask (PolicyTrainConfig.mask_label).  Fields: points, labels, valid, history, goal,
-    goal_labels, goal_valid, mask, prev_mask (the plane-from-previous-cut floor), has_prev.
-    """
-
-    def __init__(self, steps, num_points: int = 256, num_goal_points: int = 256, seed: int = 0,
-                 indices=None, mask_label: str = "goal_side", board_z: float = 0.05):
-        self.steps, self.num_points, self.num_goal_points = steps, num_points, num_goal_points
-        self.indices = np.arange(len(steps)) if indices is None else np.asarray(indices)
-        self.seed, self._calls, self.mask_label, self.board_z = seed, 0, mask_label, board_z
-        self._goals: dict[int, dict] = {}
-
-    def __len__(self):
-        return len(self.indices)
-
-    def __getitem__(self, i):
-        j = int(self.indices[i])
-        s = self.steps[j]
-        self._calls += 1
-        seed = (self.seed * 1_000_003 + j * 7919 + self._calls) % (2**31)
-        obs = step_obs(s)
-        if j not in self._goals:
-            self._goals[j] = goal_inputs(obs["goal"], obs["goal_labels"], self.num_goal_points)
-        inp = policy_inputs(obs, self.num_points, self.num_goal_points, seed, goal=self._goals[j])
-        inp.update(step_targets(s, inp["index"], self.board_z, self.mask_label))
-        return to_tensors(inp)
-
-
-def to_tensors(inp: dict) -> dict:
-    """``policy_inputs`` (+ targets) as tensors: history flat (h*7,), ids long, masks bool."""
-    out = {}
-    for k in ("points", "labels", "valid", "goal", "goal_labels", "goal_valid", "mask", "prev_mask", "has_prev"):
-        if k in inp:
-            out[k] = torch.as_tensor(np.asarray(inp[k]))
-    for k in ("labels", "goal_labels", "mask", "prev_mask"):
-        if k in out:
-            out[k] = out[k].long()
-    out["history"] = torch.as_tensor(np.asarray(inp["history"], np.float32).reshape(-1))
-    return out
 
 
 class PolicyModel(nn.Module):
@@ -137,26 +86,6 @@ def _legacy_config(cfg):
     if isinstance(cfg, dict) and "goal_input" not in cfg:
         return {**cfg, "goal_input": "xyz"}
     return cfg
-
-
-def _encoder_overrides(ckpt_path) -> dict:
-    """Where a PDDP checkpoint from before ``encoder_arch`` finds its perception checkpoint.
-
-    Such a checkpoint names Φ's file by the absolute path it was trained with (e.g. /tmp/o/checkpoint/perception/
-    v001/model.ckpt on the GPU machine). Artifact stores move between machines, so when that path is missing the
-    same version is looked up in the store this checkpoint lives in (<root>/checkpoint/pddp/vNNN/model.ckpt →
-    <root>/checkpoint/perception/vNNN/model.ckpt); neither there → one error naming both."""
-    hp = torch.load(str(ckpt_path), map_location="cpu", weights_only=True).get("hyper_parameters", {})
-    recorded = hp.get("encoder_ckpt")
-    if hp.get("encoder") != "pretrained" or hp.get("encoder_arch") or not recorded or Path(recorded).is_file():
-        return {}
-    rel = Path(*Path(recorded).parts[-4:])  # checkpoint/<name>/vNNN/model.ckpt: the store's layout
-    here = Path(ckpt_path).parents[3] / rel  # the root of the store holding <root>/checkpoint/pddp/vNNN/model.ckpt
-    if here.is_file():
-        return {"encoder_ckpt": str(here)}
-    raise FileNotFoundError(f"{ckpt_path} was trained on the perception checkpoint {recorded}, which does not exist "
-                            f"here, nor does {here} (the same version in this checkpoint's artifact store): copy that "
-                            f"checkpoint/perception version beside it")
 
 
 VAL_KEYS = ("val/loss", "val/mask_acc", "val/mask_acc_majority", "val/mask_acc_prev_plane")
@@ -271,154 +200,6 @@ class PDDPModule(L.LightningModule):
         clip = self.train_cfg.grad_clip if gradient_clip_val is None else gradient_clip_val
         if clip and clip > 0:
             torch.nn.utils.clip_grad_norm_([p for g in optimizer.param_groups for p in g["params"]], clip)
-
-
-class PDDPPolicy:
-    """topocut.policies.base.Policy backed by a trained PDDPModule (or its checkpoint path).
-
-    act() returns None ("no cut") when no sampled mask within ``retries`` tries splits the points.
-    """
-
-    def __init__(self, module_or_ckpt, sampler: str | SamplerConfig = "analytic", steps: int = 32,
-                 device: str = "cpu", plane: str = "svm", seed: int = 0, board_z: float = 0.05, retries: int = 3,
-                 use_ema: bool = True):
-        # a SamplerConfig (the `policy.sampler` group) carries every sampling setting; a predictor name
-        # with steps/plane/retries is the short form
-        self.scfg = (sampler if isinstance(sampler, SamplerConfig)
-                     else SamplerConfig(predictor=sampler, steps=steps, plane=plane, retries=retries)).validate()
-        if isinstance(module_or_ckpt, PDDPModule):
-            module = module_or_ckpt
-        else:
-            load = dict(map_location=device, weights_only=True)
-            try:
-                module = PDDPModule.load_from_checkpoint(str(module_or_ckpt), **load)
-            except FileNotFoundError:  # a checkpoint from before encoder_arch whose Φ file is not where it was
-                module = PDDPModule.load_from_checkpoint(str(module_or_ckpt), **load,
-                                                         **_encoder_overrides(module_or_ckpt))
-        self.module = module.to(device).eval()
-        self.history_len = int(module.cfg.history_len)  # policy.net.history_len: the engine's observations hold it
-        self.device, self.board_z, self.use_ema, self.seed = torch.device(device), board_z, use_ema, int(seed)
-        self.generator = torch.Generator(device=self.device).manual_seed(self.seed)
-        self.goal, self.goal_labels = None, None
-        self.last_mask = None
-
-    def reset(self, goal, seed: int | None = None) -> None:
-        from topocut.policies.base import mix_seed
-
-        self.goal = np.asarray(goal.points if hasattr(goal, "points") else goal, np.float32)
-        labels = getattr(goal, "labels", None)
-        self.goal_labels = None if labels is None else np.asarray(labels)
-        if seed is not None:  # an episode's masks do not depend on the episodes sampled before it
-            self.generator = torch.Generator(device=self.device).manual_seed(mix_seed(self.seed, seed))
-
-    def act(self, obs: dict):
-        obs = check_obs(obs)
-        mask, action = self.sample((obs["points"], obs["labels"]), obs["goal"], obs["history"], obs["goal_labels"])
-        self.last_mask = mask
-        return action
-
-    @staticmethod
-    def act_batch(policies: list[PDDPPolicy], observations: list[dict]) -> list:
-        """``[p.act(o) for p, o in zip(policies, observations)]`` with one network batch per sampling step.
-
-        ``policies``: one copy per episode (``topocut.episode``'s slots) sharing the module and the sampling
-        settings, each with its own goal and generator.  Every episode draws its randomness from its own generator
-        in the order and shapes act() does (``topocut.policies.diffusion.rng``), so actions, ``last_mask`` and the
-        generators' states afterwards are those of the one-at-a-time calls (up to float rounding of the batched
-        network, which can in rare cases tip a sampled label).  Policies that do not share a module and settings
-        fall back to act() one by one.
-        """
-        if len(policies) != len(observations):
-            raise ValueError(f"act_batch: {len(policies)} policies for {len(observations)} observations")
-        if not policies:
-            return []
-        lead = policies[0]
-        if len({id(p) for p in policies}) < len(policies) or \
-                not all(p.module is lead.module and p._settings() == lead._settings() for p in policies):
-            # one object twice draws its two actions one after the other; other modules need their own batch
-            return [p.act(o) for p, o in zip(policies, observations)]
-        obs = [check_obs(o) for o in observations]
-        prepared = [p._prepare((o["points"], o["labels"]), o["goal"], o["history"], o["goal_labels"])
-                    for p, o in zip(policies, obs)]
-        results = PDDPPolicy._sample_many(policies, prepared)
-        for p, (mask, _) in zip(policies, results):
-            p.last_mask = mask
-        return [action for _, action in results]
-
-    def _settings(self) -> tuple:
-        """What must agree for policies to share one sampling batch."""
-        return self.scfg, self.device, self.board_z, self.use_ema
-
-    def inputs(self, obs: dict, seed: int = 0) -> dict:
-        """The world-frame input fields (topocut.policies.inputs.policy_inputs) the network gets for ``obs``."""
-        tc = self.module.train_cfg
-        return policy_inputs(obs, tc.num_points, tc.num_goal_points, seed, start="random")
-
-    def _batch(self, obs: dict, seed: int):
-        inp = self.inputs(obs, seed)
-        b = {k: v[None].to(self.device) for k, v in to_tensors(inp).items()}
-        b["history"] = b["history"].reshape(1, -1)
-        return b, inp["index"]
-
-    def _prepare(self, observation, goal=None, history=None, goal_labels=None) -> dict:
-        """sample()'s arguments as an observation dict (goal defaults from reset; history None: no cut yet)."""
-        points, labels = observation
-        points, labels = np.asarray(points, np.float32), np.asarray(labels).astype(np.int64)
-        if goal is None:
-            goal, goal_labels = self.goal, (self.goal_labels if goal_labels is None else goal_labels)
-        if goal is None:
-            raise ValueError("PDDPPolicy.sample needs a goal: pass goal= or call reset(goal) first")
-        goal = np.asarray(goal, np.float32)
-        history = np.zeros((self.history_len, 7), np.float32) if history is None else history
-        return {"points": points, "labels": labels, "goal": goal, "goal_labels": goal_labels, "history": history}
-
-    def sample(self, observation, goal=None, history=None, goal_labels=None):
-        """observation (points (n,3), labels (n,)) -> (mask (n,) uint8 over all n points, KnifeAction | None).
-
-        ``goal`` / ``goal_labels`` default to the goal of ``reset`` (labels: all 0 when it had none).  The network
-        sees an FPS subset; the mask is spread to the other points from their nearest sampled point.
-        """
-        return PDDPPolicy._sample_many([self], [self._prepare(observation, goal, history, goal_labels)])[0]
-
-    @staticmethod
-    def _sample_many(policies: list[PDDPPolicy], observations: list[dict]) -> list[tuple]:
-        """(full mask, action | None) of each policy for its prepared observation (``_prepare``).
-
-        A try draws, from each episode's generator, the FPS seed of its subset and then the sampler's noise; the
-        episodes whose mask does not split the points (action None) try again, up to ``retries`` times, batched
-        among themselves -- so each generator sees the same draws as act() on that episode alone.
-        """
-        lead = policies[0]
-        cfg, results, pending = lead.scfg, [None] * len(policies), list(range(len(policies)))
-        for _ in range(cfg.retries + 1):
-            seeds = [int(torch.randint(0, 2**31 - 1, (1,), generator=policies[b].generator, device=lead.device))
-                     for b in pending]
-            built = [policies[b]._batch(observations[b], seed) for b, seed in zip(pending, seeds)]
-            batch = {k: torch.cat([one[k] for one, _ in built]) for k in built[0][0]}  # points B,N,3 ; history B,21 ...
-            masks = lead.module.sample_masks(batch, steps=cfg.steps, predictor=cfg.predictor, use_ema=lead.use_ema,
-                                             generator=[policies[b].generator for b in pending],
-                                             denoise=cfg.denoise, eps=cfg.eps).cpu().numpy()  # B,N
-            for row, (b, (_, idx)) in enumerate(zip(pending, built)):
-                results[b] = _mask_action(observations[b]["points"], idx, masks[row], cfg.plane, lead.board_z)
-            pending = [b for b in pending if results[b][1] is None]
-            if not pending:
-                break
-        return results
-
-
-def _mask_action(points, idx, mask, plane: str, board_z: float) -> tuple:
-    """(mask over all points, action | None) from the mask sampled on the rows ``idx`` of ``points``: the action
-    from the plane fitted to the sampled points; the other points take the label of their nearest sampled one."""
-    sub = points[idx]
-    action = action_from_mask(sub, mask, plane, board_z=board_z)
-    if len(points) <= len(idx):  # every point was seen (some twice)
-        full = np.zeros(len(points), np.uint8)
-        full[idx] = mask
-    else:
-        from scipy.spatial import cKDTree
-
-        full = mask[cKDTree(sub).query(points)[1]].astype(np.uint8)
-    return full, action
 
 
 def num_parameters(module: nn.Module, trainable: bool = True) -> int:

@@ -318,7 +318,7 @@ def load_learned(name: str, path, device: str = "cpu", seed: int = 0, board_z: f
     spec = get(name)
     if spec.family == "pddp":
         from topocut.policies.config import SamplerConfig
-        from topocut.policies.module import PDDPPolicy
+        from topocut.policies.deploy import PDDPPolicy
 
         return PDDPPolicy(str(path), sampler=sampler or SamplerConfig(), device=device, seed=seed, board_z=board_z)
     if spec.family == "pose":

@@ -6,7 +6,7 @@ the solver is first touched.
 """
 from __future__ import annotations
 
-import importlib
+from topocut.utils.lazy import lazy_exports
 
 _LAZY = {
     "CuttingEnv": "topocut.sim.env", "SimState": "topocut.sim.env", "CutInfo": "topocut.sim.env",
@@ -19,9 +19,4 @@ _LAZY = {
     "TurnRefused": "topocut.sim.primitives",
 }
 __all__ = sorted(_LAZY)
-
-
-def __getattr__(name: str):
-    if name in _LAZY:
-        return getattr(importlib.import_module(_LAZY[name]), name)
-    raise AttributeError(f"module 'topocut.sim' has no attribute {name!r}")
+__getattr__ = lazy_exports(__name__, _LAZY)

@@ -14,6 +14,12 @@ SWITCHES = ("auto", "on", "off")
 LAYOUTS = ("auto", "aos", "soa")
 
 
+def _one_of(key: str, value, valid: tuple) -> None:
+    """A ValueError ``<key>: <value!r>; valid: a, b, c`` unless ``value`` is one of ``valid``."""
+    if value not in valid:
+        raise ValueError(f"{key}: {value!r}; valid: {', '.join(valid)}")
+
+
 @dataclass
 class TuningConfig:
     """GPU/performance switches (Hydra group ``sim/tuning``, keys ``sim.tuning.*``; docs/sim.md, "GPU tuning
@@ -108,21 +114,16 @@ class TuningConfig:
             bad("fuse_substeps", f"{self.fuse_substeps} must lie in [1, 256]")
         if self.check_every < 1:
             bad("check_every", f"{self.check_every} must be >= 1 (substeps between divergence checks)")
-        if self.core_rotation not in ROTATIONS:
-            bad("core_rotation", f"{self.core_rotation!r}; valid: {', '.join(ROTATIONS)}")
-        if self.grid_box not in SWITCHES:
-            bad("grid_box", f"{self.grid_box!r}; valid: {', '.join(SWITCHES)}")
-        if self.warp_scatter not in SWITCHES:
-            bad("warp_scatter", f"{self.warp_scatter!r}; valid: {', '.join(SWITCHES)}")
+        _one_of("sim.tuning.core_rotation", self.core_rotation, ROTATIONS)
+        _one_of("sim.tuning.grid_box", self.grid_box, SWITCHES)
+        _one_of("sim.tuning.warp_scatter", self.warp_scatter, SWITCHES)
         if self.warp_scatter == "on" and arch != "cuda":
             bad("warp_scatter", f"on needs sim.arch=cuda (warp shuffles), got sim.arch={arch!r}; use auto or off")
         if self.warp_scatter_enabled(arch) and batch_size * n_fields * n_grid ** 3 >= 2 ** 31:
             bad("warp_scatter", f"run keys (scene, cell) overflow 32 bits at batch_size={batch_size}, "
                                 f"n_grid={n_grid}; use fewer scenes or sim.tuning.warp_scatter=off")
-        if self.device_split not in SWITCHES:
-            bad("device_split", f"{self.device_split!r}; valid: {', '.join(SWITCHES)}")
-        if self.grid_layout not in LAYOUTS:
-            bad("grid_layout", f"{self.grid_layout!r}; valid: {', '.join(LAYOUTS)}")
+        _one_of("sim.tuning.device_split", self.device_split, SWITCHES)
+        _one_of("sim.tuning.grid_layout", self.grid_layout, LAYOUTS)
         for key in ("scatter_block_dim", "gather_block_dim"):
             bd = getattr(self, key)
             if bd and not (32 <= bd <= 1024 and bd % 32 == 0):
@@ -246,12 +247,9 @@ class SimConfig:
 
         if self.n_grid < 16:
             bad("n_grid", f"{self.n_grid} is too coarse; use >= 16 (the scales use 48: smoke, 128: paper)")
-        if self.arch not in ARCHS:
-            bad("arch", f"{self.arch!r}; valid: {', '.join(ARCHS)}")
-        if self.knife_mode not in KNIFE_MODES:
-            bad("knife_mode", f"{self.knife_mode!r}; valid: {', '.join(KNIFE_MODES)}")
-        if self.push_mode not in PUSH_MODES:
-            bad("push_mode", f"{self.push_mode!r}; valid: {', '.join(PUSH_MODES)}")
+        _one_of("sim.arch", self.arch, ARCHS)
+        _one_of("sim.knife_mode", self.knife_mode, KNIFE_MODES)
+        _one_of("sim.push_mode", self.push_mode, PUSH_MODES)
         self.tuning.validate(self.arch, self.batch_size, self.n_grid, self.fields)
         if self.batch_size < 1:
             bad("batch_size", f"{self.batch_size} must be >= 1")

@@ -214,6 +214,39 @@ class CuttingEnv(Scenes, Primitives):
         # n_fields never shrinks while the solver lives: fields past a smaller count would keep stale nodes the
         # clear no longer visits.  Empty fields cost a mass check per node.
 
+    def _knife_speeds(self, depth: np.ndarray) -> np.ndarray:
+        """Each scene's knife speed (B,): sim.knife_speed, or (sim.cut_substeps) its own depth in that many
+        substeps, refused when that moves the knife more than half a cell per substep or past the CFL bound."""
+        cfg = self.cfg
+        if cfg.cut_substeps is None:
+            return np.full(self.B, cfg.knife_speed)
+        # each scene covers its own depth in cut_substeps substeps
+        speed = np.maximum(depth, 1e-6) / (cfg.cut_substeps * self.dt)
+        if (speed * self.dt > 0.5 * cfg.dx).any():
+            raise ValueError(f"sim.cut_substeps={cfg.cut_substeps} moves the knife more than half a cell "
+                             f"per substep; raise it above {int(depth.max() / (0.5 * cfg.dx)) + 1}")
+        osc = 2 * math.pi * cfg.osc_frequency * cfg.osc_amplitude
+        bound = cfg.dx / (cfg.wave_speed() + float(speed.max()) + osc)  # the CFL bound at this knife speed
+        if self.dt > bound:  # speed <= dx/dt - c - osc  <=>  cut_substeps >= depth / (dx - dt (c + osc))
+            need = int(math.ceil(float(depth.max()) / (cfg.dx - self.dt * (cfg.wave_speed() + osc))))
+            raise ValueError(f"sim.cut_substeps={cfg.cut_substeps} drives the knife at {speed.max():.3g} units/s, "
+                             f"so sim.dt={self.dt:.3g} exceeds the CFL bound {bound:.3g} at that speed; "
+                             f"use sim.cut_substeps >= {need} or a smaller sim.dt")
+        return speed
+
+    def _recorder(self, s, snaps: list, o0, frames, depth, speed, om: float):
+        """simulate()'s on_record for a cut: appends a CutSnapshot (particles, damage, knife edge) of the fields
+        ``s`` to ``snaps``."""
+        cfg = self.cfg
+
+        def record(i):  # the edge as knife.py moves it: along w at speed until depth, oscillating along u
+            te = np.minimum(i * self.dt, depth / np.maximum(speed, 1e-9))[:, None]  # B,1
+            edge = np.asarray(o0) + np.stack([f[1] for f in frames]) * speed[:, None] * te \
+                + np.stack([f[0] for f in frames]) * cfg.osc_amplitude * np.sin(om * te)  # B,3
+            snaps.append(CutSnapshot(i, s.x.to_numpy()[:, :self.n].copy(), s.damage.to_numpy()[:, :self.n].astype(bool),
+                                     edge))
+        return record
+
     def cut(self, action: KnifeAction | list[KnifeAction], record_every: int = 0) -> CutInfo:
         """One cut per scene (a single action goes to every scene), all scenes in one launch sequence.
 
@@ -237,29 +270,8 @@ class CuttingEnv(Scenes, Primitives):
         counts = self.counts
         x = [xb[:c] for xb, c in zip(s.x.to_numpy().astype(np.float64), counts)]  # B x (n_b,3)
         dmg0 = s.damage.to_numpy()[:, :self.n].sum(1)
-        frames, o0, depth, sweeps = [], [], [], []
-        for b, a in enumerate(acts):
-            a = a.canonical()
-            sw, d, o = P.blade_sweep(a, x[b], cfg)
-            sweeps.append(sw)
-            depth.append(d)
-            o0.append(o)
-            frames.append((a.blade_axis, a.travel, a.normal))
-        depth = np.asarray(depth)
-        if cfg.cut_substeps is not None:  # each scene covers its own depth in cut_substeps substeps
-            speed = np.maximum(depth, 1e-6) / (cfg.cut_substeps * self.dt)
-            if (speed * self.dt > 0.5 * cfg.dx).any():
-                raise ValueError(f"sim.cut_substeps={cfg.cut_substeps} moves the knife more than half a cell "
-                                 f"per substep; raise it above {int(depth.max() / (0.5 * cfg.dx)) + 1}")
-            osc = 2 * math.pi * cfg.osc_frequency * cfg.osc_amplitude
-            bound = cfg.dx / (cfg.wave_speed() + float(speed.max()) + osc)  # the CFL bound at this knife speed
-            if self.dt > bound:  # speed <= dx/dt - c - osc  <=>  cut_substeps >= depth / (dx - dt (c + osc))
-                need = int(math.ceil(float(depth.max()) / (cfg.dx - self.dt * (cfg.wave_speed() + osc))))
-                raise ValueError(f"sim.cut_substeps={cfg.cut_substeps} drives the knife at {speed.max():.3g} units/s, "
-                                 f"so sim.dt={self.dt:.3g} exceeds the CFL bound {bound:.3g} at that speed; "
-                                 f"use sim.cut_substeps >= {need} or a smaller sim.dt")
-        else:
-            speed = np.full(self.B, cfg.knife_speed)
+        frames, o0, depth, sweeps = _blade_plans(acts, x, cfg)
+        speed = self._knife_speeds(depth)
         # the swept surface of each scene's blade (P.blade_sweep): what _split separates before the knife moves
         t_split = time.perf_counter()
         self._split(x, sweeps, idle)
@@ -275,16 +287,10 @@ class CuttingEnv(Scenes, Primitives):
         self._set_frozen(self.step_count + totals)  # scene b stops after its budget
         om = 2 * math.pi * cfg.osc_frequency
         snaps = [] if record_every > 0 else None
-
-        def record(i):  # the edge as knife.py moves it: along w at speed until depth, oscillating along u
-            te = np.minimum(i * self.dt, depth / np.maximum(speed, 1e-9))[:, None]  # B,1
-            edge = np.asarray(o0) + np.stack([f[1] for f in frames]) * speed[:, None] * te \
-                + np.stack([f[0] for f in frames]) * cfg.osc_amplitude * np.sin(om * te)  # B,3
-            snaps.append(CutSnapshot(i, s.x.to_numpy()[:, :self.n].copy(), s.damage.to_numpy()[:, :self.n].astype(bool),
-                                     edge))
+        record = self._recorder(s, snaps, o0, frames, depth, speed, om) if snaps is not None else None
         try:
-            self.simulate(total, contact=0 if cfg.knife_mode == "wedge" else 1, on_record=record if snaps is not None
-                          else None, record_every=record_every)
+            self.simulate(total, contact=0 if cfg.knife_mode == "wedge" else 1, on_record=record,
+                          record_every=record_every)
         finally:
             s.k_on.fill(0)
             self._set_frozen()  # outside a cut every scene moves (but a diverged one)
@@ -298,6 +304,20 @@ class CuttingEnv(Scenes, Primitives):
                        newly_damaged=s.damage.to_numpy()[:, :self.n].sum(1) - dmg0, substeps=total,
                        wall_time=time.perf_counter() - t_wall, substeps_per_scene=totals, split_time=t_split,
                        snapshots=snaps)
+
+
+def _blade_plans(acts: list[KnifeAction], x: list[np.ndarray], cfg: SimConfig) -> tuple:
+    """(frames [(blade axis, travel, normal)], start points, depths (B,), sweeps) of each scene's canonical action
+    over its particles (P.blade_sweep)."""
+    frames, o0, depth, sweeps = [], [], [], []
+    for b, a in enumerate(acts):
+        a = a.canonical()
+        sw, d, o = P.blade_sweep(a, x[b], cfg)
+        sweeps.append(sw)
+        depth.append(d)
+        o0.append(o)
+        frames.append((a.blade_axis, a.travel, a.normal))
+    return frames, o0, np.asarray(depth), sweeps
 
 
 _ENV: dict = {}  # this process's shared simulator (stage=mppi's parts): {"key": (sim config, batch size), "env": CuttingEnv}

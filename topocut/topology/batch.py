@@ -180,8 +180,6 @@ def discover_batch(positions: list, damages: list, sweeps: list, previous_labels
                    next_ids: list | None = None) -> list[TopologyResult]:
     """discover() for B scenes in one pass: lists (B,) of positions (N_b,3), damage (N_b,) bool or None, knife
     sweeps (anything discover takes), previous labels (N_b,) or None, next ids or None.  See module docstring."""
-    from topocut.topology import assign as A
-    from topocut.topology import carve as C
     from topocut.topology import sdf as S
 
     cfg = (cfg or TopologyConfig()).validate()
@@ -204,9 +202,20 @@ def discover_batch(positions: list, damages: list, sweeps: list, previous_labels
     live = [b for b in range(nb) if results[b] is None]
     if not live:
         return results
-    scenes = [every[b] for b in live]
-    n_sc = len(scenes)
+    labels, found, sl = _discover_tiled([every[b] for b in live], cfg, device, lap)
+    timings["total"] = time.perf_counter() - t_all
+    for i, b in enumerate(live):
+        results[b] = TopologyResult(labels[sl[i]], found[i][0], dict(timings), found[i][1])
+    return results
 
+
+def _discover_tiled(scenes: list, cfg: TopologyConfig, device, lap) -> tuple[np.ndarray, list, list]:
+    """(labels (N,) of all the scenes' particles, (pieces found, next id) per scene, each scene's slice of the
+    labels): the non-empty scenes discovered side by side in one grid (module docstring)."""
+    from topocut.topology import assign as A
+    from topocut.topology import sdf as S
+
+    n_sc = len(scenes)
     # --- shared scale, tiles, translated particles (inputs go up once) ---------------------------
     xw, scene_d, start = _upload(scenes, device)
     r = _radius(scenes, xw, scene_d, cfg, device)
@@ -223,44 +232,13 @@ def discover_batch(positions: list, damages: list, sweeps: list, previous_labels
     # previous labels: scene i's columns follow scene i-1's; walls and the fallback's owners per scene
     offset = np.concatenate([[0], np.cumsum([s.num_old for s in scenes])]).astype(np.int64)
     num_old = int(offset[-1])
-    prev_d = walls_d = owner_d = None
-    if any(s.prev is not None for s in scenes):
-        col = np.full(n, -1, np.int32)  # N,
-        for i, s in enumerate(scenes):
-            if s.prev is not None:
-                col[sl[i]] = np.where(s.col >= 0, s.col + offset[i], -1)
-        prev_d = wp.array(col, dtype=wp.int32, device=device)
-    if any(s.split for s in scenes):
-        walls = np.full(n, -1, np.int32)  # N, owner -1: walled against nothing (a scene without splits)
-        owner = col.copy()  # N, owner -2: no earlier cluster to prefer in the surface fallback
-        for i, s in enumerate(scenes):
-            if s.split:
-                o = _wall_owners(s.x, s.col)
-                walls[sl[i]] = np.where(o >= 0, o + offset[i], -1)
-            else:
-                owner[sl[i]] = -2
-        walls_d = wp.array(walls, dtype=wp.int32, device=device)
-        owner_d = wp.array(owner, dtype=wp.int32, device=device)
+    prev_d, walls_d, owner_d = _previous_columns(scenes, sl, offset, n, device)
     sdf = S.particle_sdf(xd, r, grid, cfg.band_voxels * h, device, walls_d)  # nx,ny,nz
     lap("sdf")
 
     # --- board clip, knife carving through damaged material, tiny voids ---------------------------
-    licence, carved, sweep_scene = [], [], []
-    dmg = np.zeros(n, np.int32)  # N,
-    for i, s in enumerate(scenes):
-        if not (cfg.carve and s.sweeps and s.dmg.any()):
-            continue
-        dmg[sl[i]] = s.dmg
-        move = tuple(shift[i])
-        for w in s.sweeps:  # snapped to the scene's own board before the move
-            licence.append(_moved(w, move))
-            carved.append(_moved(snap_to_board(w, cfg.board_z, cfg.board_snap_voxels * h), move))
-            sweep_scene.append(i)
-    dmg_d = wp.array(dmg, dtype=wp.int32, device=device) if licence else None
-    tiles = C.Tiles(scene_d, np.asarray(sweep_scene, np.int32), tile_nodes, shift[:, 2])
-    # (the carvers' hash grid is kept until this function returns: kernels may still be queued)
-    _, carvers_grid = C.carve_and_clip(sdf, grid, xd, dmg_d, licence, carved, carve_radius, min_half, cfg.board_z,
-                                       device, tiles)
+    # (what the carvers' kernels use is kept until this function returns: kernels may still be queued)
+    _carving = _carve(sdf, grid, xd, scenes, sl, shift, scene_d, tile_nodes, carve_radius, min_half, h, cfg, device)
     # --- surface and pieces: no piece crosses a tile (empty nodes between), so each has one scene -----
     verts_s, faces, pieces, vpiece = surface_and_pieces(sdf, grid, cfg, device, lap)
     k = pieces.count
@@ -283,8 +261,65 @@ def discover_batch(positions: list, damages: list, sweeps: list, previous_labels
         counts, sum_x, overlap = A.piece_stats(xd, raw, k, prev_d, num_old, device)
     lap("assignment")
 
-    # --- persistent ids, scene by scene: its pieces (rows, in discover()'s order) and its columns ------
-    id_of = np.full(k, -1, np.int64)
+    id_of, found = _track(scenes, tile, counts, sum_x, overlap, offset, shift)
+    labels = A.ids_of_pieces(raw, id_of, device).numpy().astype(np.int32)  # the one N-sized read-back
+    lap("tracking")
+    return labels, found, sl
+
+
+def _previous_columns(scenes: list, sl: list, offset: np.ndarray, n: int, device) -> tuple:
+    """(overlap column of each particle, its wall owner, its surface fallback owner), each (N,) int32 on the
+    device or None: scene i's columns follow scene i-1's (``offset``)."""
+    prev_d = walls_d = owner_d = None
+    if any(s.prev is not None for s in scenes):
+        col = np.full(n, -1, np.int32)  # N,
+        for i, s in enumerate(scenes):
+            if s.prev is not None:
+                col[sl[i]] = np.where(s.col >= 0, s.col + offset[i], -1)
+        prev_d = wp.array(col, dtype=wp.int32, device=device)
+    if any(s.split for s in scenes):
+        walls = np.full(n, -1, np.int32)  # N, owner -1: walled against nothing (a scene without splits)
+        owner = col.copy()  # N, owner -2: no earlier cluster to prefer in the surface fallback
+        for i, s in enumerate(scenes):
+            if s.split:
+                o = _wall_owners(s.x, s.col)
+                walls[sl[i]] = np.where(o >= 0, o + offset[i], -1)
+            else:
+                owner[sl[i]] = -2
+        walls_d = wp.array(walls, dtype=wp.int32, device=device)
+        owner_d = wp.array(owner, dtype=wp.int32, device=device)
+    return prev_d, walls_d, owner_d
+
+
+def _carve(sdf, grid, xd, scenes: list, sl: list, shift: np.ndarray, scene_d, tile_nodes: int, carve_radius: float,
+           min_half: float, h: float, cfg: TopologyConfig, device) -> tuple:
+    """Carve each scene's knife sweeps through its damaged material, clip the board, fill tiny voids (``sdf`` in
+    place; carve.Tiles keeps every sweep to its own scene).  Returns what the kernels use, for the caller to keep
+    until they have run (the damage, the tiles, the carvers' hash grid)."""
+    from topocut.topology import carve as C
+
+    licence, carved, sweep_scene = [], [], []
+    dmg = np.zeros(xd.shape[0], np.int32)  # N,
+    for i, s in enumerate(scenes):
+        if not (cfg.carve and s.sweeps and s.dmg.any()):
+            continue
+        dmg[sl[i]] = s.dmg
+        move = tuple(shift[i])
+        for w in s.sweeps:  # snapped to the scene's own board before the move
+            licence.append(_moved(w, move))
+            carved.append(_moved(snap_to_board(w, cfg.board_z, cfg.board_snap_voxels * h), move))
+            sweep_scene.append(i)
+    dmg_d = wp.array(dmg, dtype=wp.int32, device=device) if licence else None
+    tiles = C.Tiles(scene_d, np.asarray(sweep_scene, np.int32), tile_nodes, shift[:, 2])
+    _, carvers_grid = C.carve_and_clip(sdf, grid, xd, dmg_d, licence, carved, carve_radius, min_half, cfg.board_z,
+                                       device, tiles)
+    return dmg_d, tiles, carvers_grid
+
+
+def _track(scenes: list, tile: np.ndarray, counts, sum_x, overlap, offset: np.ndarray, shift: np.ndarray) -> tuple:
+    """(persistent id of each piece (K,), (pieces found, next id) per scene): scene by scene, its pieces (rows, in
+    discover()'s order) and its overlap columns."""
+    id_of = np.full(len(tile), -1, np.int64)
     found = []
     for i, s in enumerate(scenes):
         rows = np.flatnonzero(tile == i)
@@ -292,12 +327,7 @@ def discover_batch(positions: list, damages: list, sweeps: list, previous_labels
         sx = sum_x[rows] - shift[i, 0] * counts[rows]  # the centroids' tie-break in the scene's own frame
         id_of[rows], nxt = assign_ids(counts[rows], sx, ov, s.used, s.next_id, old_ids=s.old_ids)
         found.append((int((counts[rows] > 0).sum()), int(nxt)))
-    labels = A.ids_of_pieces(raw, id_of, device).numpy().astype(np.int32)  # the one N-sized read-back
-    lap("tracking")
-    timings["total"] = time.perf_counter() - t_all
-    for i, b in enumerate(live):
-        results[b] = TopologyResult(labels[sl[i]], found[i][0], dict(timings), found[i][1])
-    return results
+    return id_of, found
 
 
 def _moved(s, move: tuple):

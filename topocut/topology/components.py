@@ -48,42 +48,34 @@ def find_root(parent: wp.array(dtype=wp.int32), a: int):
 
 if hasattr(wp, "atomic_cas"):
     @wp.func
-    def unite(parent: wp.array(dtype=wp.int32), a0: int, b0: int):
-        # hook the larger root under the smaller one; the compare-and-swap only succeeds on a root,
-        # so a root that another thread hooked first is followed up to its new root and tried again
-        a = find_root(parent, a0)
-        b = find_root(parent, b0)
-        while a != b:
-            if a < b:
-                old = wp.atomic_cas(parent, b, b, a)
-                if old == b:
-                    b = a
-                else:
-                    b = find_root(parent, old)
-            else:
-                old = wp.atomic_cas(parent, a, a, b)
-                if old == a:
-                    a = b
-                else:
-                    a = find_root(parent, old)
+    def _hook(parent: wp.array(dtype=wp.int32), child: int, root: int):
+        # the compare-and-swap only succeeds on a root: one another thread hooked first is left as it is
+        return wp.atomic_cas(parent, child, child, root)
 else:  # Warp without atomic_cas: Playne & Hawick's atomic-min union (may relink a non-root, then goes on)
     @wp.func
-    def unite(parent: wp.array(dtype=wp.int32), a0: int, b0: int):
-        a = find_root(parent, a0)
-        b = find_root(parent, b0)
-        while a != b:
-            if a < b:
-                old = wp.atomic_min(parent, b, a)
-                if old == b:
-                    b = a
-                else:
-                    b = find_root(parent, old)
+    def _hook(parent: wp.array(dtype=wp.int32), child: int, root: int):
+        return wp.atomic_min(parent, child, root)
+
+
+@wp.func
+def unite(parent: wp.array(dtype=wp.int32), a0: int, b0: int):
+    # hook the larger root under the smaller one (_hook returns the parent it found); a root that another
+    # thread hooked first is followed up to its new root and tried again
+    a = find_root(parent, a0)
+    b = find_root(parent, b0)
+    while a != b:
+        if a < b:
+            old = _hook(parent, b, a)
+            if old == b:
+                b = a
             else:
-                old = wp.atomic_min(parent, a, b)
-                if old == a:
-                    a = b
-                else:
-                    a = find_root(parent, old)
+                b = find_root(parent, old)
+        else:
+            old = _hook(parent, a, b)
+            if old == a:
+                a = b
+            else:
+                a = find_root(parent, old)
 
 
 @wp.func

@@ -5,7 +5,7 @@ importing the package does not import torch.
 """
 from __future__ import annotations
 
-import importlib
+from topocut.utils.lazy import lazy_exports
 
 _EXPORTS = {
     "PoseDiffusionModule": "module", "PosePolicy": "module", "PoseStepDataset": "module", "GaussianDiffusion": "module",
@@ -14,9 +14,4 @@ _EXPORTS = {
     "DiffuserActorNet": "diffuser_actor", "RelativeAttention": "diffuser_actor", "Rotary3D": "diffuser_actor",
 }
 __all__ = list(_EXPORTS)
-
-
-def __getattr__(name: str):
-    if name not in _EXPORTS:
-        raise AttributeError(f"module 'topocut.policies.baselines' has no attribute {name!r}")
-    return getattr(importlib.import_module(f"topocut.policies.baselines.{_EXPORTS[name]}"), name)
+__getattr__ = lazy_exports(__name__, {name: "." + module for name, module in _EXPORTS.items()})
