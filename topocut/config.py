@@ -125,7 +125,6 @@ class TopoCutConfig:
     trainer: TrainerConfig = field(default_factory=TrainerConfig)
     data: DataConfig = field(default_factory=DataConfig)
     logger: LoggerConfig = field(default_factory=LoggerConfig)
-    scale_name: str = "smoke"
     seed: int = 0
     device: str = "auto"
     outputs_root: str = "outputs"
