@@ -11,13 +11,10 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from topocut.policies import registry
+from topocut.utils.import_path import is_import_path
 
 SPLITS = ("in", "out")  # in-distribution (seen objects) / out-of-distribution (unseen objects)
 TASKS = ("slice", "stick", "dice")
-
-
-def _is_task_path(entry) -> bool:  # topocut.tasks.is_task_path, without importing the tasks here
-    return isinstance(entry, str) and ":" in entry
 
 
 def table_tasks(present) -> list:
@@ -90,7 +87,7 @@ class EvalConfig:
                                   ("eval.normalize_by", self.normalize_by, NORMALIZE_BY)):
             if value not in valid:
                 raise ValueError(f"{key}={value!r} is not valid; choose one of {', '.join(valid)}")
-        bad = [t for t in self.tasks if t not in TASKS and not _is_task_path(t)]
+        bad = [t for t in self.tasks if t not in TASKS and not is_import_path(t)]
         if bad:
             raise ValueError(f"eval.tasks: unknown task {bad[0]!r}; valid: {', '.join(TASKS)}, or a knife task of "
                              "your own as module.path:ClassName (docs/architecture.md)")

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from topocut.policies.inputs import INPUT_FIELDS
+from topocut.utils.import_path import is_import_path
 
 FAMILIES = ("scripted", "pddp", "pose")
 
@@ -144,10 +145,6 @@ class ExternalPolicy:
         except (OSError, TypeError):
             src = b""
         return f"policy/{self.entry}@{hashlib.sha256(src).hexdigest()[:12]}"
-
-
-def is_import_path(entry) -> bool:
-    return isinstance(entry, str) and ":" in entry
 
 
 def run_dir(entry: str) -> str:

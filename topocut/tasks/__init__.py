@@ -27,13 +27,12 @@ from topocut.tasks.config import (
     check_max_cuts,
     check_stage,
 )
+from topocut.utils.import_path import is_import_path
 
 BUILTIN = {name: f"topocut.tasks.{name}" for name in TASKS}  # each module registers its task on import
 
 
-def is_task_path(entry) -> bool:
-    """``module.path:ClassName``: a task class of your own (docs/architecture.md, "Add a task")."""
-    return isinstance(entry, str) and ":" in entry
+is_task_path = is_import_path  # a task class of your own (docs/architecture.md, "Extending")
 
 
 def get_task(name) -> Task:
