@@ -276,3 +276,29 @@ def test_spacing_of_a_large_piece_from_sampled_queries_matches_every_particles_m
     assert abs(got / full - 1) < 0.002
     small = big[:SPACING_QUERIES]
     assert particle_spacing(small) == np.median(cKDTree(small).query(small, NN_K + 1)[0][:, 1:]) / NN_RATIO
+
+
+@pytest.mark.parametrize("backend", ["scipy", "torch"])
+def test_a_fragment_past_zero_by_size_alone_is_not_described_and_scores_as_if_it_were(backend):
+    """d = d_spec + d_size >= d_size: a fragment whose size terms alone put R at 0 for every goal piece (the uncut
+    stock) is not described spectrally; its reported d is d_size (a lower bound of the full d, recomputed here
+    from spectral_distance + size_distance), and the total and roles equal those of the full distance matrix."""
+    if backend == "torch":
+        pytest.importorskip("torch")
+    from topocut.reward.size import size_descriptor, size_distance
+
+    cfg = RewardConfig(num_point=256, knn=20, num_eig=12, backend=backend)
+    goals = [box(0.016, 0.016, 0.016), box(0.016, 0.016, 0.04)]
+    frags = [box(0.08, 0.06, 0.04, seed=2), moved(box(0.016, 0.016, 0.016, seed=3), 2), box(0.016, 0.02, 0.04, seed=4)]
+    full = np.array([[spectral_distance(f, g, cfg) + size_distance(size_descriptor(f), size_descriptor(g))
+                      for g in goals] for f in frags])
+    got = spectral_reward(frags, goals, cfg)
+    assert (piecewise_reward(full[0], cfg) == 0).all()  # the stock: R = 0 whatever its shape
+    d_size = [size_distance(size_descriptor(frags[0]), size_descriptor(g)) for g in goals]
+    np.testing.assert_allclose(got.distances[0], d_size, rtol=1e-9)  # not described: d_size alone
+    assert (got.distances[0] < full[0] - 1e-6).all() and (got.distances[0] > 0.5).all()  # a strict lower bound
+    np.testing.assert_allclose(got.distances[1:], full[1:], rtol=1e-6)  # the others: described as before
+    vols = [size_descriptor(f)[3] for f in frags]
+    ref = reward_from_distances(full, len(goals), cfg, vols, [size_descriptor(g)[3] for g in goals])
+    assert got.total == pytest.approx(ref.total, abs=1e-9) and got.stock == ref.stock == 0
+    assert got.matching == ref.matching and got.cut_count == ref.cut_count

@@ -29,9 +29,11 @@ class Scoring:
 
 def fragments(x, labels, min_points: int) -> list[np.ndarray]:
     """The pieces (n_i,3) of labelled particles; -1 (unassigned) is no piece, pieces below min_points dropped."""
-    x, labels = np.asarray(x), np.asarray(labels)
-    ids = [c for c in np.unique(labels) if c >= 0]
-    return [f for f in (x[labels == c] for c in ids) if len(f) >= min_points]
+    x, labels = np.asarray(x), np.asarray(labels).reshape(-1)
+    order = np.argsort(labels, kind="stable")  # one sort, not a mask per label: each piece keeps its particles' order
+    ids, start = np.unique(labels[order], return_index=True)
+    pieces = np.split(x[order], start[1:])
+    return [f for c, f in zip(ids, pieces) if c >= 0 and len(f) >= min_points]
 
 
 def discover_labels(x, damage, sweeps, previous, topo_cfg=None, device: str = "cpu") -> np.ndarray:  # N,

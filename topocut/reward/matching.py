@@ -26,6 +26,9 @@ weight (plus offcut_slack of a goal piece) is forgiven, the smallest fragments f
 total = kappa * sum of values (kappa = 1 / G by default), clipped to
 [0, R_max] (``RewardResult.unclipped`` keeps the sum).  N_C counts the fragments assigned to a goal piece
 with d <= success_distance.
+
+A fragment whose size terms alone put R at 0 for every goal piece (d >= d_size: the uncut stock) is not described
+spectrally; its d is reported as d_size, a lower bound, and every value and role is as with the full d.
 """
 from __future__ import annotations
 
@@ -259,17 +262,29 @@ def _score_sets(fragment_sets, goal_fragments, cfg: RewardConfig | None = None, 
     flat = [f for fs in raw for f in fs]
     if not flat or not any(len(g) >= cfg.min_points for g in gres):
         return Ds, vols, gvols
+    d_size = [size_distance(np.asarray(fs)[:, None], np.asarray(gsizes)[row][None], cfg.size_weight,
+                            cfg.fill_weight, cfg.profile_weight) if len(fs) and len(row) else np.zeros((len(fs), len(row)))
+              for fs, row in zip(sizes, set_goals)]  # F_s,G_s
+    # d = d_spec + d_size >= d_size: a fragment whose size alone puts it past R's zero for every goal piece (the
+    # uncut stock, ~10^5 particles at 128^3) scores R = 0 whatever its shape, so it is not described spectrally
+    # (its FPS was most of the reward's device time) and its d is reported as d_size, a lower bound
+    needed = np.concatenate([(piecewise_reward(np.atleast_2d(d), cfg) > 0).any(1) if d.size else np.ones(len(d), bool)
+                             for d in d_size])  # sum F_s,
     sigma = cfg.sigma  # None: each cloud its own graph width (scale-free spectra)
-    fd = iter(_raw_descriptors(flat, sigma, cfg))
+    described = _raw_descriptors([f for f, k in zip(flat, needed) if k], sigma, cfg)
+    fd = iter(described)
     gd = _goal_descriptors([k for k, _ in ugoals], gres, sigma, cfg)
-    for D, fs, row in zip(Ds, sizes, set_goals):
+    need = iter(needed)
+    for D, fs, ds, row in zip(Ds, raw, d_size, set_goals):
         for i in range(D.shape[0]):
-            a = next(fd)
-            for j, u in enumerate(row):
-                if a is not None and gd[u] is not None:
-                    D[i, j] = (descriptor_distance(*a, *gd[u], cfg)
-                               + size_distance(fs[i], gsizes[u], cfg.size_weight, cfg.fill_weight,
-                                                 cfg.profile_weight))
+            if next(need):
+                a = next(fd)
+                spec = [descriptor_distance(*a, *gd[u], cfg) if a is not None and gd[u] is not None else np.inf
+                        for u in row]
+            else:  # below min_points stays inf, as a described fragment would
+                spec = [0.0 if min(len(fs[i]), cfg.num_point) >= cfg.min_points and gd[u] is not None else np.inf
+                        for u in row]
+            D[i] = np.asarray(spec) + ds[i]
     return Ds, vols, gvols
 
 

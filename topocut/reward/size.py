@@ -56,7 +56,9 @@ def particle_spacing(points: np.ndarray) -> float:
     k = min(NN_K, len(p) - 1)
     queries = p if len(p) <= SPACING_QUERIES else p[np.random.default_rng(0).choice(len(p), SPACING_QUERIES,
                                                                                  replace=False)]
-    d = cKDTree(p).query(queries, k + 1)[0][:, 1:]
+    # the sliding-midpoint tree without the median splits: the same exact neighbours, built ~2.5x faster (the
+    # build over the whole stock was half of this function at 128^3)
+    d = cKDTree(p, balanced_tree=False, compact_nodes=False).query(queries, k + 1)[0][:, 1:]
     return float(np.median(d) / NN_RATIO)
 
 
