@@ -65,7 +65,7 @@ def shape_gallery(h: float = H) -> dict:
 
 def loss_matrix(cfg: RewardConfig | None = None) -> tuple[list[str], np.ndarray]:
     """Pairwise d(row, column) = d_spec + d_size over the gallery (the distance R sees; column = goal)."""
-    from topocut.reward.matching import piece_distance
+    from topocut.reward.distance import piece_distance
 
     shapes = shape_gallery()
     names = list(shapes)

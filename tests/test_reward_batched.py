@@ -9,7 +9,8 @@ from scipy.spatial.transform import Rotation
 
 from topocut.metrics.sampling import fps, fps_torch, valid_rows
 from topocut.reward import RewardConfig, spectral_reward, spectral_rewards
-from topocut.reward.matching import _descriptors, _is_per_set, _raw_descriptors, spectral_rewards_per_goal
+from topocut.reward.distance import _descriptors, _raw_descriptors
+from topocut.reward.matching import _is_per_set, spectral_rewards_per_goal
 from topocut.reward.spectral import resample, resample_groups
 
 torch = pytest.importorskip("torch")

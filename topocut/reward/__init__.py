@@ -7,15 +7,17 @@ shape term alone), ``spectral_reward(fragments, goal_fragments, cfg) -> RewardRe
 Pure numpy/scipy at import time; torch is imported only by the batched path.
 """
 from topocut.reward.config import RewardConfig
-from topocut.reward.matching import (
-    RewardResult,
-    assign,
+from topocut.reward.distance import (
     distance_matrices,
     distance_matrix,
     distances_and_volumes,
-    match,
     piece_distance,
     piecewise_reward,
+)
+from topocut.reward.matching import (
+    RewardResult,
+    assign,
+    match,
     reward_from_distances,
     spectral_reward,
     spectral_rewards,
