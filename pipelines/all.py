@@ -110,6 +110,7 @@ def _timed_stage(cfg, run_dir: Path, overrides: list[str]) -> tuple[dict, float]
 
 
 def run(ctx: RunContext, sequence: list[str], trainer=None) -> dict:
+    # past 80 lines on purpose: one(), at_once() and overrides_of() share this run's pins and summaries as closures
     """Each stage of ``sequence`` as its own run under ``<run dir>/<label>``, later ones pinned to what earlier ones
     wrote.  mppi runs once per cell, or per part of a cell (data.episodes_per_job; several runs: shards, data.jobs of
     them at once in worker processes, then one merge of exactly those); bc once per training seed (trainer.jobs of

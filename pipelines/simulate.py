@@ -35,7 +35,7 @@ def run_knife(ctx: RunContext, sim, object, task, topology, frames_per_cut: int 
     cut in motion (``frames_per_cut`` snapshots of the particles during the cut, CuttingEnv.cut's record_every,
     the particles this cut has damaged so far dark) and holds the states between the cuts."""
     from topocut.sim import CuttingEnv
-    from topocut.sim.render import DAMAGED, UNASSIGNED, render_frames, save_png, write_gif
+    from topocut.sim.render import DAMAGED, UNASSIGNED
     from topocut.tasks import get_task, truncate_steps
     from topocut.topology import discover
 
@@ -109,15 +109,22 @@ def run_knife(ctx: RunContext, sim, object, task, topology, frames_per_cut: int 
     np.savez_compressed(writer.path / "states.npz", **arrays)
     (writer.path / "cuts.json").write_text(json.dumps({"object": object.name, "pose": pose.__dict__, "task": task.name,
                                                        "cuts": records, "turns": turns}, indent=2, default=float))
-    images = render_frames([{k: v for k, v in f.items() if k not in ("png", "hold")} for f in frames],
-                           board_z=sim.board_z)
-    pngs = [save_png(img, writer.path / "frames" / f"{f['png']}.png") for f, img in zip(frames, images) if f["png"]]
-    shown = [(img, f["hold"]) for f, img in zip(frames, images) if f["hold"] > 0]
-    write_gif([img for img, _ in shown], writer.path / "cut.gif", durations=[h for _, h in shown])
+    last_png = _render(writer.path, frames, sim.board_z)
     summary = {"cuts": len(records), "turns": len(turns), "pieces": records[-1]["pieces"] if records else 1,
                "particles": int(len(x0)), "sim_s_per_cut": float(np.mean([r["wall_s"] for r in records] or [0])),
                "topology_s_per_cut": float(np.mean([r["topology_s"] for r in records] or [0]))}
-    return _commit(ctx, writer, summary, "simulate", Path(pngs[-1]).relative_to(writer.path))
+    return _commit(ctx, writer, summary, "simulate", Path(last_png).relative_to(writer.path))
+
+
+def _render(path: Path, frames: list[dict], board_z: float):
+    """Every frame drawn with one view box; frames/<png>.png for those named, cut.gif of those held; the last png."""
+    from topocut.sim.render import render_frames, save_png, write_gif
+
+    images = render_frames([{k: v for k, v in f.items() if k not in ("png", "hold")} for f in frames], board_z=board_z)
+    pngs = [save_png(img, path / "frames" / f"{f['png']}.png") for f, img in zip(frames, images) if f["png"]]
+    shown = [(img, f["hold"]) for f, img in zip(frames, images) if f["hold"] > 0]
+    write_gif([img for img, _ in shown], path / "cut.gif", durations=[h for _, h in shown])
+    return pngs[-1]
 
 
 def _commit(ctx, writer, summary: dict, stage: str, image) -> dict:
