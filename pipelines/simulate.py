@@ -28,20 +28,14 @@ def run(ctx: RunContext, sim, object, task, topology, frames_per_cut: int = 10) 
 
 
 def run_knife(ctx: RunContext, sim, object, task, topology, frames_per_cut: int = 10) -> dict:
-    """The goal's ideal steps (at most task.max_cuts cuts, the turns between them), push after cuts iff task.push.
-
-    Renders (topocut.sim.render, one view box over the whole sequence): frames/cut0.png, per cut cutK_damage.png
-    and cutK.png (the knife at the cut's plane, the board, pieces by cluster id), turnK.png; cut.gif plays each
-    cut in motion (``frames_per_cut`` snapshots of the particles during the cut, CuttingEnv.cut's record_every,
-    the particles this cut has damaged so far dark) and holds the states between the cuts."""
+    """The goal's ideal steps (at most task.max_cuts cuts, the turns between them), push after cuts iff task.push;
+    frames/cut0.png, per cut cutK_damage.png and cutK.png, turnK.png, and cut.gif (``_render``)."""
+    from topocut.config import ConfigError
     from topocut.sim import CuttingEnv
-    from topocut.sim.render import DAMAGED, UNASSIGNED
     from topocut.tasks import get_task, truncate_steps
     from topocut.topology import discover
 
-    if frames_per_cut < 0:
-        from topocut.config import ConfigError  # the user's to fix: one message, exit 2
-
+    if frames_per_cut < 0:  # the user's to fix: one message, exit 2
         raise ConfigError(f"stage.run.frames_per_cut={frames_per_cut}: must be >= 0 (0: no motion frames in cut.gif)")
     config = as_dict(("sim", sim), ("object", object), ("task", task), ("topology", topology), ("seed", ctx.seed),
                      ("frames_per_cut", frames_per_cut))
@@ -95,11 +89,8 @@ def run_knife(ctx: RunContext, sim, object, task, topology, frames_per_cut: int 
                             device=ctx.device)
             labels = topo.labels
             arrays.update({f"x_{i}": st.x[0], f"damage_{i}": st.damage[0], f"labels_{i}": labels})
-            dmg = np.where(st.damage[0][:, None], DAMAGED, UNASSIGNED)  # N,3
-            frames.append(dict(x=st.x[0], colors=dmg, legend_extra=(("intact", UNASSIGNED), ("damaged", DAMAGED)),
-                               knife=step.action, title=f"cut {i}: damaged particles", png=f"cut{i}_damage", hold=0))
-            frames.append(dict(x=st.x[0], labels=labels, knife=step.action, png=f"cut{i}", hold=1.2,
-                               title=f"cut {i}{' + push' if task.push else ''}: {topo.num_clusters} pieces"))
+            frames += _cut_frames(st, labels, step.action, f"cut {i}", f"cut {i}{' + push' if task.push else ''}",
+                                  topo.num_clusters)
             records.append({"cut": i, "action": step.action.asdict(), "sweep": info.sweeps[0].asdict(),
                             "pieces": int(topo.num_clusters), "damaged": int(st.damage[0].sum()),
                             "force": float(np.linalg.norm(info.force[0])), "work": float(info.work[0]),
@@ -116,8 +107,22 @@ def run_knife(ctx: RunContext, sim, object, task, topology, frames_per_cut: int 
     return _commit(ctx, writer, summary, "simulate", Path(last_png).relative_to(writer.path))
 
 
+def _cut_frames(st, labels, action, name: str, title: str, pieces: int) -> list[dict]:
+    """The two frames after a cut: its damaged particles (cutK_damage.png) and the pieces by cluster id (cutK.png)."""
+    from topocut.sim.render import DAMAGED, UNASSIGNED
+
+    dmg = np.where(st.damage[0][:, None], DAMAGED, UNASSIGNED)  # N,3
+    png = name.replace(" ", "")
+    return [dict(x=st.x[0], colors=dmg, legend_extra=(("intact", UNASSIGNED), ("damaged", DAMAGED)), knife=action,
+                 title=f"{name}: damaged particles", png=f"{png}_damage", hold=0),
+            dict(x=st.x[0], labels=labels, knife=action, png=png, hold=1.2, title=f"{title}: {pieces} pieces")]
+
+
 def _render(path: Path, frames: list[dict], board_z: float):
-    """Every frame drawn with one view box; frames/<png>.png for those named, cut.gif of those held; the last png."""
+    """Every frame drawn with one view box (topocut.sim.render: pieces pushed aside stay in view); frames/<png>.png
+    for those named (the knife at the cut's plane, the board, pieces by cluster id); cut.gif plays each cut in motion
+    (``frames_per_cut`` snapshots during the cut, CuttingEnv.cut's record_every, the particles this cut has damaged
+    so far dark) and holds the states between the cuts.  Returns the last png."""
     from topocut.sim.render import render_frames, save_png, write_gif
 
     images = render_frames([{k: v for k, v in f.items() if k not in ("png", "hold")} for f in frames], board_z=board_z)
