@@ -1,0 +1,192 @@
+"""What R sees, for every fragment and goal piece at once (docs/reward.md#the-distance-r-sees).
+
+d(X, Y) = d_spec(X, Y) + d_size(X, Y) (topocut.reward.spectral, topocut.reward.size) as (F,G) matrices, one per
+set of fragments (the K scenes of an MPPI batch) against one goal or each set's own, every set's fragments through
+one descriptor call; goal resamplings and descriptors cached by content across calls.  And the paper's
+piecewise map R(d) (``piecewise_reward``).  Roles, values and totals: topocut.reward.matching.
+"""
+from __future__ import annotations
+
+import hashlib
+from collections import OrderedDict
+
+import numpy as np
+
+from topocut.reward.config import RewardConfig
+from topocut.reward.size import size_descriptor, size_descriptors, size_distance
+from topocut.reward.spectral import _points, descriptor, descriptor_distance, resample, resample_groups
+
+
+def piecewise_reward(d, cfg: RewardConfig | None = None):
+    """R(d) elementwise (float or array); inf -> 0."""
+    cfg = cfg or RewardConfig()
+    d = np.asarray(d, dtype=np.float64)
+    r = np.where(d <= cfg.tau, cfg.r_max - cfg.gamma * d, cfg.r_max - cfg.gamma * cfg.tau - cfg.delta * (d - cfg.tau))
+    r = np.clip(np.nan_to_num(r, neginf=0.0), 0.0, cfg.r_max)
+    return float(r) if r.ndim == 0 else r
+
+
+_CACHE: OrderedDict[tuple, object] = OrderedDict()  # goal resamplings / descriptors reused across MPPI rollouts
+_CACHE_SIZE = 256
+
+
+def _cached(key: tuple, make):
+    if key in _CACHE:
+        _CACHE.move_to_end(key)
+        return _CACHE[key]
+    val = _CACHE[key] = make()
+    while len(_CACHE) > _CACHE_SIZE:
+        _CACHE.popitem(last=False)
+    return val
+
+
+def _hash(points: np.ndarray) -> str:
+    return hashlib.blake2b(np.ascontiguousarray(points).tobytes(), digest_size=16).hexdigest()
+
+
+def _descriptors(clouds: list[np.ndarray], sigma, cfg: RewardConfig) -> list:
+    """Descriptor per (resampled) cloud, None for clouds below min_points."""
+    out: list = [None] * len(clouds)
+    todo = [i for i, c in enumerate(clouds) if len(c) >= cfg.min_points]
+    if cfg.backend == "torch" and todo:
+        import torch
+
+        groups = []
+        for size in sorted({len(clouds[i]) for i in todo}):  # equal-size batches
+            idx = [i for i in todo if len(clouds[i]) == size]
+            groups.append((idx, torch.as_tensor(np.stack([clouds[i] for i in idx]), device=cfg.device)))
+        _describe_groups(groups, sigma, cfg, out)
+    else:
+        for i in todo:
+            out[i] = descriptor(clouds[i], sigma, cfg)
+    return out
+
+
+def _describe_groups(groups, sigma, cfg: RewardConfig, out: list) -> None:
+    """Fill out[i] with (eigvals, signature) numpy arrays from [(indices, (b,n,3) tensor)] (torch backend)."""
+    from topocut.reward.spectral import spectral_descriptors_groups
+
+    described = spectral_descriptors_groups([batch for _, batch in groups], cfg, sigma=sigma)  # one eigen call
+    for (idx, _), (w, s) in zip(groups, described):
+        w, s = w.cpu().numpy(), s.cpu().numpy()  # one copy per group, not one sync per fragment
+        for j, i in enumerate(idx):
+            out[i] = (w[j], s[j])
+
+
+def _raw_descriptors(clouds: list[np.ndarray], sigma, cfg: RewardConfig) -> list:
+    """Descriptor per raw (not yet resampled) cloud, None below min_points.  The torch backend resamples
+    every cloud in one batched FPS on cfg.device (``resample_groups``) and never brings points back."""
+    if cfg.backend != "torch":
+        return _descriptors([resample(c, cfg) for c in clouds], sigma, cfg)
+    out: list = [None] * len(clouds)
+    todo = [i for i, c in enumerate(clouds) if min(len(c), cfg.num_point) >= cfg.min_points]
+    if todo:
+        groups = resample_groups([clouds[i] for i in todo], cfg)
+        _describe_groups([([todo[j] for j in ids], batch) for ids, batch in groups], sigma, cfg, out)
+    return out
+
+
+def piece_distance(x, y, cfg: RewardConfig | None = None) -> float:
+    """d(x, y) = d_spec + d_size of one fragment x (n,3) to one goal piece y (m,3); inf below min_points."""
+    return float(distance_matrix([x], [y], cfg)[0, 0])
+
+
+def distance_matrix(fragments, goal_fragments, cfg: RewardConfig | None = None) -> np.ndarray:
+    """(F,G) distances d_spec + d_size.
+
+    Goal resamplings and descriptors are cached (keyed by the goal's bytes and the config),
+    so repeated calls with the same goal, as in MPPI, only pay for the fragments.
+    """
+    return distance_matrices([fragments], goal_fragments, cfg, names=("fragments",))[0]
+
+
+def distance_matrices(fragment_sets, goal_fragments, cfg: RewardConfig | None = None,
+                      names=None) -> list[np.ndarray]:
+    """One (F_s,G) matrix per set of fragments (e.g. the K scenes of an MPPI batch) against one goal."""
+    return _score_sets(fragment_sets, goal_fragments, cfg, names)[0]
+
+
+def distances_and_volumes(fragment_sets, goal_fragments, cfg: RewardConfig | None = None, names=None):
+    """(one (F_s,G) distance matrix per set, fragment volumes per set, goal volumes): what
+    ``reward_from_distances(D, G, cfg, volumes, goal_volumes)`` needs to score each set."""
+    return _score_sets(fragment_sets, goal_fragments, cfg, names)
+
+
+def _score_sets(fragment_sets, goal_fragments, cfg: RewardConfig | None = None, names=None, per_set=False):
+    """(distance matrices, fragment volumes per set, goal volumes).
+
+    goal_fragments: one list of goal clouds for every set, or (per_set=True) one list per set; the goal
+    volumes are then one array per set.  All sets' fragments go through one descriptor call, so the torch
+    backend resamples and decomposes every scene's fragments in one batch instead of one scene at a time.
+    Goals are hashed once per distinct cloud; their resamplings and descriptors are cached across calls.
+    """
+    cfg = (cfg or RewardConfig()).validate()
+    names = names or [f"fragment_sets[{s}]" for s in range(len(fragment_sets))]
+    raw = [[_points(f, f"{name}[{i}]") for i, f in enumerate(fs)] for name, fs in zip(names, fragment_sets)]
+    flat = iter(size_descriptors([f for fs in raw for f in fs]))  # every scene's pieces in one thread pool
+    sizes = [[next(flat) for _ in fs] for fs in raw]
+    goal_sets = goal_fragments if per_set else [goal_fragments]
+    if per_set and len(goal_sets) != len(raw):
+        raise ValueError(f"per-set goals: got {len(goal_sets)} goal lists for {len(raw)} fragment sets")
+    ckey = repr(cfg)
+    keys, ugoals, gidx = {}, [], []  # content hash -> distinct goal index; distinct (hash, cloud); per goal list
+    for s, gs in enumerate(goal_sets):
+        row = []
+        for i, g in enumerate(gs):
+            g = _points(g, f"goal_fragments[{s}][{i}]" if per_set else f"goal_fragments[{i}]")
+            k = _hash(g)
+            if k not in keys:
+                keys[k] = len(ugoals)
+                ugoals.append((k, g))
+            row.append(keys[k])
+        gidx.append(row)
+    gsizes = [_cached(("size", k), lambda g=g: size_descriptor(g)) for k, g in ugoals]
+    gres = [_cached(("resample", k, ckey), lambda g=g: resample(g, cfg)) for k, g in ugoals]
+    uvols = np.array([sz[3] for sz in gsizes])
+    set_goals = gidx if per_set else gidx * len(raw)  # each set's goal indices into ugoals
+    Ds = [np.full((len(fs), len(row)), np.inf) for fs, row in zip(raw, set_goals)]
+    vols = [np.array([sz[3] for sz in fs]) for fs in sizes]
+    gvols = [uvols[row] for row in gidx] if per_set else uvols[gidx[0]]
+    flat = [f for fs in raw for f in fs]
+    if not flat or not any(len(g) >= cfg.min_points for g in gres):
+        return Ds, vols, gvols
+    d_size = [size_distance(np.asarray(fs)[:, None], np.asarray(gsizes)[row][None], cfg.size_weight,
+                            cfg.fill_weight, cfg.profile_weight) if len(fs) and len(row) else np.zeros((len(fs), len(row)))
+              for fs, row in zip(sizes, set_goals)]  # F_s,G_s
+    # d = d_spec + d_size >= d_size: a fragment whose size alone puts it past R's zero for every goal piece (the
+    # uncut stock, ~10^5 particles at 128^3) scores R = 0 whatever its shape, so it is not described spectrally
+    # (its FPS was most of the reward's device time) and its d is reported as d_size, a lower bound
+    needed = np.concatenate([(piecewise_reward(np.atleast_2d(d), cfg) > 0).any(1) if d.size else np.ones(len(d), bool)
+                             for d in d_size])  # sum F_s,
+    sigma = cfg.sigma  # None: each cloud its own graph width (scale-free spectra)
+    described = _raw_descriptors([f for f, k in zip(flat, needed) if k], sigma, cfg)
+    fd = iter(described)
+    gd = _goal_descriptors([k for k, _ in ugoals], gres, sigma, cfg)
+    need = iter(needed)
+    for D, fs, ds, row in zip(Ds, raw, d_size, set_goals):
+        for i in range(D.shape[0]):
+            if next(need):
+                a = next(fd)
+                spec = [descriptor_distance(*a, *gd[u], cfg) if a is not None and gd[u] is not None else np.inf
+                        for u in row]
+            else:  # below min_points stays inf, as a described fragment would
+                spec = [0.0 if min(len(fs[i]), cfg.num_point) >= cfg.min_points and gd[u] is not None else np.inf
+                        for u in row]
+            D[i] = np.asarray(spec) + ds[i]
+    return Ds, vols, gvols
+
+
+def _goal_descriptors(keys: list, clouds: list, sigma, cfg: RewardConfig) -> list:
+    """Cached descriptor per distinct goal (resampled) cloud; the misses go through one batched call."""
+    ckey = repr(cfg)
+    missing = [j for j, k in enumerate(keys) if ("desc", k, ckey) not in _CACHE]
+    fresh = dict(zip(missing, _descriptors([clouds[j] for j in missing], sigma, cfg)))
+    # fresh.get: an entry evicted since the check above (more distinct goals than _CACHE_SIZE) is recomputed
+    return [_cached(("desc", k, ckey), lambda j=j: fresh[j] if j in fresh else _descriptors([clouds[j]], sigma, cfg)[0])
+            for j, k in enumerate(keys)]
+
+
+def _offcut_volumes(offcuts) -> np.ndarray:
+    """(O,) volumes of a goal's planned offcuts (cached by content, as the goal pieces' descriptors are)."""
+    clouds = [_points(o, f"offcuts[{i}]") for i, o in enumerate(offcuts or [])]
+    return np.array([_cached(("size", _hash(o)), lambda o=o: size_descriptor(o))[3] for o in clouds])
