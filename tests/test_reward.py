@@ -280,9 +280,10 @@ def test_spacing_of_a_large_piece_from_sampled_queries_matches_every_particles_m
 
 @pytest.mark.parametrize("backend", ["scipy", "torch"])
 def test_a_fragment_past_zero_by_size_alone_is_not_described_and_scores_as_if_it_were(backend):
-    """d = d_spec + d_size >= d_size: a fragment whose size terms alone put R at 0 for every goal piece (the uncut
-    stock) is not described spectrally; its reported d is d_size (a lower bound of the full d, recomputed here
-    from spectral_distance + size_distance), and the total and roles equal those of the full distance matrix."""
+    """d = d_spec + d_size >= the extent and fill terms of d_size: a fragment whose extents and fill alone put R at 0
+    for every goal piece (the uncut stock) is neither described spectrally nor profiled; its reported d is those
+    terms (a lower bound of the full d, recomputed here from spectral_distance + size_distance), and the total and
+    roles equal those of the full distance matrix."""
     if backend == "torch":
         pytest.importorskip("torch")
     from topocut.reward.size import size_descriptor, size_distance
@@ -294,8 +295,9 @@ def test_a_fragment_past_zero_by_size_alone_is_not_described_and_scores_as_if_it
                       for g in goals] for f in frags])
     got = spectral_reward(frags, goals, cfg)
     assert (piecewise_reward(full[0], cfg) == 0).all()  # the stock: R = 0 whatever its shape
-    d_size = [size_distance(size_descriptor(frags[0]), size_descriptor(g)) for g in goals]
-    np.testing.assert_allclose(got.distances[0], d_size, rtol=1e-9)  # not described: d_size alone
+    # not described, not profiled: its extent and fill terms alone (the profile term is >= 0)
+    d_size = [size_distance(size_descriptor(frags[0]), size_descriptor(g), profile_weight=0.0) for g in goals]
+    np.testing.assert_allclose(got.distances[0], d_size, rtol=1e-9)
     assert (got.distances[0] < full[0] - 1e-6).all() and (got.distances[0] > 0.5).all()  # a strict lower bound
     np.testing.assert_allclose(got.distances[1:], full[1:], rtol=1e-6)  # the others: described as before
     vols = [size_descriptor(f)[3] for f in frags]

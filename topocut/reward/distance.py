@@ -13,7 +13,7 @@ from collections import OrderedDict
 import numpy as np
 
 from topocut.reward.config import RewardConfig
-from topocut.reward.size import size_descriptor, size_descriptors, size_distance
+from topocut.reward.size import particle_spacing, size_descriptor, size_descriptors, size_distance
 from topocut.reward.spectral import _points, descriptor, descriptor_distance, resample, resample_groups
 
 
@@ -119,12 +119,15 @@ def _score_sets(fragment_sets, goal_fragments, cfg: RewardConfig | None = None, 
     volumes are then one array per set.  All sets' fragments go through one descriptor call, so the torch
     backend resamples and decomposes every scene's fragments in one batch instead of one scene at a time.
     Goals are hashed once per distinct cloud; their resamplings and descriptors are cached across calls.
+
+    d = d_spec + d_size >= d_size >= its extent and fill terms: a fragment whose size alone puts it past R's zero
+    for every goal piece of its set (the uncut stock, ~10^5 particles at 128^3) scores R = 0 whatever its shape, so
+    it is not described spectrally (its FPS was most of the reward's device time) nor, where its extents and fill
+    already say so, profiled; its d is reported as the size terms it was measured with, a lower bound.
     """
     cfg = (cfg or RewardConfig()).validate()
     names = names or [f"fragment_sets[{s}]" for s in range(len(fragment_sets))]
     raw = [[_points(f, f"{name}[{i}]") for i, f in enumerate(fs)] for name, fs in zip(names, fragment_sets)]
-    flat = iter(size_descriptors([f for fs in raw for f in fs]))  # every scene's pieces in one thread pool
-    sizes = [[next(flat) for _ in fs] for fs in raw]
     goal_sets = goal_fragments if per_set else [goal_fragments]
     if per_set and len(goal_sets) != len(raw):
         raise ValueError(f"per-set goals: got {len(goal_sets)} goal lists for {len(raw)} fragment sets")
@@ -140,27 +143,26 @@ def _score_sets(fragment_sets, goal_fragments, cfg: RewardConfig | None = None, 
                 ugoals.append((k, g))
             row.append(keys[k])
         gidx.append(row)
-    gsizes = [_cached(("size", k), lambda g=g: size_descriptor(g)) for k, g in ugoals]
+    gsizes = np.array([_cached(("size", k), lambda g=g: size_descriptor(g)) for k, g in ugoals])  # U,4+Q
     gres = [_cached(("resample", k, ckey), lambda g=g: resample(g, cfg)) for k, g in ugoals]
-    uvols = np.array([sz[3] for sz in gsizes])
     set_goals = gidx if per_set else gidx * len(raw)  # each set's goal indices into ugoals
+    # every scene's pieces in one thread pool, each profiled only where its extents and fill leave R > 0
+    todo = [(f, gsizes[row]) for fs, row in zip(raw, set_goals) for f in fs]
+    flat_sizes = iter(size_descriptors(todo, fn=lambda t: _fragment_size(t[0], t[1], cfg)))
+    sizes = [[next(flat_sizes) for _ in fs] for fs in raw]
+    uvols = gsizes[:, 3] if len(gsizes) else np.zeros(0)
     Ds = [np.full((len(fs), len(row)), np.inf) for fs, row in zip(raw, set_goals)]
     vols = [np.array([sz[3] for sz in fs]) for fs in sizes]
     gvols = [uvols[row] for row in gidx] if per_set else uvols[gidx[0]]
     flat = [f for fs in raw for f in fs]
     if not flat or not any(len(g) >= cfg.min_points for g in gres):
         return Ds, vols, gvols
-    d_size = [size_distance(np.asarray(fs)[:, None], np.asarray(gsizes)[row][None], cfg.size_weight,
-                            cfg.fill_weight, cfg.profile_weight) if len(fs) and len(row) else np.zeros((len(fs), len(row)))
+    d_size = [_size_matrix(np.asarray(fs), gsizes[row], cfg) if len(fs) and len(row) else np.zeros((len(fs), len(row)))
               for fs, row in zip(sizes, set_goals)]  # F_s,G_s
-    # d = d_spec + d_size >= d_size: a fragment whose size alone puts it past R's zero for every goal piece (the
-    # uncut stock, ~10^5 particles at 128^3) scores R = 0 whatever its shape, so it is not described spectrally
-    # (its FPS was most of the reward's device time) and its d is reported as d_size, a lower bound
     needed = np.concatenate([(piecewise_reward(np.atleast_2d(d), cfg) > 0).any(1) if d.size else np.ones(len(d), bool)
                              for d in d_size])  # sum F_s,
     sigma = cfg.sigma  # None: each cloud its own graph width (scale-free spectra)
-    described = _raw_descriptors([f for f, k in zip(flat, needed) if k], sigma, cfg)
-    fd = iter(described)
+    fd = iter(_raw_descriptors([f for f, k in zip(flat, needed) if k], sigma, cfg))
     gd = _goal_descriptors([k for k, _ in ugoals], gres, sigma, cfg)
     need = iter(needed)
     for D, fs, ds, row in zip(Ds, raw, d_size, set_goals):
@@ -174,6 +176,25 @@ def _score_sets(fragment_sets, goal_fragments, cfg: RewardConfig | None = None, 
                         for u in row]
             D[i] = np.asarray(spec) + ds[i]
     return Ds, vols, gvols
+
+
+def _fragment_size(points: np.ndarray, goal_sizes: np.ndarray, cfg: RewardConfig) -> np.ndarray:
+    """size_descriptor of a fragment (N,3) against its set's goal pieces (G,4+Q): its thickness profile left NaN
+    when its extent and fill terms alone already put R at 0 for every goal piece (the profile term only adds)."""
+    s = particle_spacing(points)
+    base = size_descriptor(points, s, profile=False)
+    if len(goal_sizes):
+        bound = size_distance(base, goal_sizes, cfg.size_weight, cfg.fill_weight, 0.0)  # G,
+        if not (piecewise_reward(np.atleast_1d(bound), cfg) > 0).any():
+            return base
+    return size_descriptor(points, s)
+
+
+def _size_matrix(sizes: np.ndarray, goal_sizes: np.ndarray, cfg: RewardConfig) -> np.ndarray:
+    """(F,G) d_size; a fragment left unprofiled (``_fragment_size``) gets its extent and fill terms alone."""
+    full = size_distance(sizes[:, None], goal_sizes[None], cfg.size_weight, cfg.fill_weight, cfg.profile_weight)
+    part = size_distance(sizes[:, None], goal_sizes[None], cfg.size_weight, cfg.fill_weight, 0.0)
+    return np.where(np.isnan(sizes[:, 4:]).any(1)[:, None], part, full)
 
 
 def _goal_descriptors(keys: list, clouds: list, sigma, cfg: RewardConfig) -> list:

@@ -67,40 +67,60 @@ def thickness_profile(local: np.ndarray, s: float, cell: float, q: int = PROFILE
     a column's thickness is sqrt(12 var + s^2) of its particles' local[:, 0] (n lattice layers -> n s)."""
     ij = np.floor(local[:, 1:] / cell).astype(np.int64)
     ij -= ij.min(0)  # one integer key per column (a 1-D unique: rows would be sorted as tuples, ~5x slower)
-    _, col = np.unique(ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1], return_inverse=True)
-    col = col.reshape(-1)
+    col = ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1]
+    if col.max(initial=0) >= 4 * len(col):  # a sparse key range: compact it (a sort); else the keys index bins as
+        col = np.unique(col, return_inverse=True)[1].reshape(-1)  # they are (bincount sums in the same order)
     n = np.bincount(col).astype(np.float64)
-    m1 = np.bincount(col, local[:, 0]) / n
-    m2 = np.bincount(col, local[:, 0] ** 2) / n
+    with np.errstate(invalid="ignore", divide="ignore"):  # empty bins of the raw keys: never read below
+        m1 = np.bincount(col, local[:, 0]) / n
+        m2 = np.bincount(col, local[:, 0] ** 2) / n
     thick = np.sqrt(np.maximum(12.0 * (m2 - m1 ** 2), 0.0) + s ** 2)
     keep = n[col] >= 3  # a column of one or two particles (a corner clipped by the grid) says nothing
     thick = thick[col][keep] if keep.any() else thick[col]  # each particle carries its column's value
     return np.quantile(thick, 0.1 + 0.8 * (np.arange(q) + 0.5) / q)  # the 10-90% range: robust to the rims
 
 
-def size_descriptor(points, spacing: float | None = None) -> np.ndarray:
-    """(e_1, e_2, e_3, V, thickness profile (PROFILE_QUANTILES,)) of a piece (N,3); extents sorted."""
+def size_descriptor(points, spacing: float | None = None, profile: bool = True) -> np.ndarray:
+    """(e_1, e_2, e_3, V, thickness profile (PROFILE_QUANTILES,)) of a piece (N,3); extents sorted.
+    ``profile=False``: the profile left NaN (size_distance then needs profile_weight 0)."""
     p = np.asarray(points, np.float64)
     s = particle_spacing(p) if spacing is None else float(spacing)
     if len(p) < 4 or not s > 0:
         return np.concatenate([[s, s, s, len(p) * s ** 3], np.full(PROFILE_QUANTILES, s)])
     c, vec = np.linalg.eigh(np.cov(p.T, bias=True))  # ascending: vec[:, 0] the thinnest axis
     e = np.sqrt(np.maximum(12.0 * c, 0.0) + s ** 2)
-    prof = thickness_profile((p - p.mean(0)) @ vec, s, 2.0 * s)
+    prof = thickness_profile((p - p.mean(0)) @ vec, s, 2.0 * s) if profile else np.full(PROFILE_QUANTILES, np.nan)
     return np.concatenate([e, [len(p) * s ** 3], prof])
 
 
-def size_descriptors(clouds: list) -> list[np.ndarray]:
-    """size_descriptor of each cloud, in threads (the KD-tree queries and the sorts release the GIL)."""
+_BLAS = None  # threadpoolctl's controller of the loaded BLAS libraries, made on first use
+
+
+def one_blas_thread():
+    """A context in which BLAS runs on one thread.  The descriptor's products are (N,3) @ (3,3): threaded OpenBLAS
+    spends more on waking and joining its threads than on the product, worst beside other busy threads (a 10^5
+    particle piece: 108 ms a descriptor on 2 busy cores, 39 ms in this context, the same bits)."""
+    global _BLAS
+    from threadpoolctl import ThreadpoolController
+
+    if _BLAS is None:
+        _BLAS = ThreadpoolController()
+    return _BLAS.limit(limits=1, user_api="blas")
+
+
+def size_descriptors(clouds: list, fn=size_descriptor) -> list:
+    """fn (default size_descriptor) of each cloud, in threads (the KD-tree queries and the sorts release the GIL),
+    BLAS on one thread (``one_blas_thread``)."""
     from concurrent.futures import ThreadPoolExecutor
 
     from topocut.utils.runtime import host_threads
 
     workers = max(1, min(len(clouds), host_threads()))
-    if workers == 1:
-        return [size_descriptor(c) for c in clouds]
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        return list(pool.map(size_descriptor, clouds))
+    with one_blas_thread():
+        if workers == 1:
+            return [fn(c) for c in clouds]
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            return list(pool.map(fn, clouds))
 
 
 def size_distance(sx, sy, size_weight: float = 3.0, fill_weight: float = 3.0, profile_weight: float = 3.0):
@@ -114,4 +134,6 @@ def size_distance(sx, sy, size_weight: float = 3.0, fill_weight: float = 3.0, pr
     # wide as thick (slabs).  A stick's or a die's thinnest axis is any direction in a square cross-section
     # and columns along it would see the section at an arbitrary angle.
     flat = np.asarray(sy, np.float64)[..., 1] >= PROFILE_ASPECT * np.asarray(sy, np.float64)[..., 0]
-    return size_weight * (le ** 2).sum(-1) + fill_weight * lphi ** 2 + profile_weight * flat * (lq ** 2).mean(-1)
+    d = size_weight * (le ** 2).sum(-1) + fill_weight * lphi ** 2
+    # the profile term only where it counts (a NaN profile, size_descriptor(profile=False), is never read there)
+    return d + profile_weight * np.where(flat, (lq ** 2).mean(-1), 0.0) if profile_weight else d
