@@ -55,7 +55,7 @@ def draw_writing(path, goals, results: list[tuple[str, np.ndarray, np.ndarray, d
         ax.scatter(x[:, 0], x[:, 1], s=4, c=label_colors(np.asarray(stroke) + 1))
         per = ", ".join(f"{r:.2f}" for r in rew["per_letter"])
         d = ", ".join(f"{v:.3f}" for v in rew["distance"])
-        ax.set_title(f"{title}: {len(x)} particles, reward {rew['total']:.3f} (per letter {per}; d_spec {d})",
+        ax.set_title(f"{title}: {len(x)} particles, reward {rew['total']:.3f} (per letter {per}; d {d})",
                      fontsize=9)
     lo, hi = g[:, :2].min(0) - 0.02, g[:, :2].max(0) + 0.02
     for ax in axes:

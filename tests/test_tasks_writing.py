@@ -12,13 +12,17 @@ def test_letter_L_bead_geometry():
     w = LETTER_ASPECT * h  # 0.06
     np.testing.assert_allclose(poly, [[0.47, 0.55], [0.47, 0.45], [0.53, 0.45]], atol=1e-12)
     assert polyline_length(poly) == pytest.approx(h + w)
-    pts = letter_points(poly, s, bz, bead=(3, 2))
-    assert len(pts) == (round((h + w) / s) + 1) * 3 * 2  # 17 stations x 3 across x 2 layers
-    np.testing.assert_allclose(np.unique(np.round(pts[:, 2].astype(float), 6)), [bz + 0.005, bz + 0.015])
-    # every point lies within one spacing of the stroke (lateral offsets are -s, 0, +s)
+    # the default pen: a layer (the plus of 5) every 1.2 * 0.01 / 1.5 = 8 mm of stroke: 0, 8, ..., 160 mm
+    (pts,), _ = word_goal("L", h, 0.05, s, bz)
+    assert len(pts) == 21 * 5
+    np.testing.assert_allclose(pts[:, 2], bz + s / 2)  # one layer on the board
+    np.testing.assert_allclose(pts[:5, :2], [0.47, 0.55] + np.array([[-s, 0], [0, -s], [0, 0], [0, s], [s, 0]]),
+                               atol=1e-6)  # the first layer: the nozzle's plus at the stroke's start
+    np.testing.assert_allclose(pts[-5:, :2].mean(0), [0.53, 0.45], atol=1e-6)  # 160 mm: the stroke's end
+    # every point lies within one spacing of the stroke (the plus reaches s from the nozzle's axis)
     xy = pts[:, :2]
-    d_stem = np.where((xy[:, 1] >= 0.45) & (xy[:, 1] <= 0.55), np.abs(xy[:, 0] - 0.47), np.inf)
-    d_foot = np.where((xy[:, 0] >= 0.47) & (xy[:, 0] <= 0.53), np.abs(xy[:, 1] - 0.45), np.inf)
+    d_stem = np.where((xy[:, 1] >= 0.45 - s) & (xy[:, 1] <= 0.55 + s), np.abs(xy[:, 0] - 0.47), np.inf)
+    d_foot = np.where((xy[:, 0] >= 0.47 - s) & (xy[:, 0] <= 0.53 + s), np.abs(xy[:, 1] - 0.45), np.inf)
     assert np.minimum(d_stem, d_foot).max() <= s + 1e-6
 
 
@@ -34,8 +38,8 @@ def test_word_layout_and_closed_O():
     a, b = LETTER_ASPECT * h / 2, h / 2
     ram = np.pi * (3 * (a + b) - np.sqrt((3 * a + b) * (a + 3 * b)))
     assert polyline_length(strokes[1]) == pytest.approx(ram, rel=0.01)
-    goals, _ = word_goal("CORL", h, gap, 0.01, 0.05)
-    assert [len(g) for g in goals] == [(round(polyline_length(p) / 0.01) + 1) * 6 for p in strokes]
+    goals, _ = word_goal("CORL", h, gap, 0.01, 0.05)  # a plus of 5 every 8 mm (the default pen's flux)
+    assert [len(g) for g in goals] == [(int(polyline_length(p) / 0.008) + 1) * 5 for p in strokes]
 
 
 def test_identical_strokes_score_the_full_reward_per_letter():
@@ -46,6 +50,26 @@ def test_identical_strokes_score_the_full_reward_per_letter():
     stroke = np.repeat([0, 1], [len(goals[1]), len(goals[0])])
     res = letter_rewards(x, stroke, goals)
     assert res["per_letter"] == pytest.approx([1.0, 1.0]) and sorted(res["matching"]) == [(0, 1), (1, 0)]
+    assert res["total"] == pytest.approx(1.0) and res["extra"] == []
+
+
+def test_missing_and_mirrored_letters_cost_the_word():
+    from topocut.reward import RewardConfig
+    from topocut.tasks.writing_scene import letter_rewards, word_score
+
+    assert word_score([1.0, 0.25]) == pytest.approx(0.5) and word_score([0.9, 0.0]) == 0.0  # geometric mean
+    goals, _ = word_goal("LR", 0.12, 0.06, 0.01, 0.05)
+    # one letter missing: the L scores in full, the R earns 0, so the word earns 0 (a mean would pay 0.5)
+    res = letter_rewards(goals[0], np.zeros(len(goals[0]), int), goals)
+    assert res["per_letter"] == pytest.approx([1.0, 0.0]) and res["total"] == 0.0
+    # the R's stroke mirrored about a vertical axis, off to the right: the same cloud turned over, so d_spec and d_size
+    # are 0, but on the board it fits the mirror image better than the R: its handedness costs
+    mirrored = goals[1] * [-1, 1, 1] + [1.2, 0, 0]
+    res = letter_rewards(np.concatenate([goals[0], mirrored]), np.repeat([0, 1], [len(goals[0]), len(mirrored)]),
+                         goals)
+    assert res["handedness"][0] == 0.0 and res["handedness"][1] > 0.05
+    assert res["distance"][1] == pytest.approx(RewardConfig().handedness_weight * res["handedness"][1], abs=1e-6)
+    assert res["per_letter"] == pytest.approx([1.0, 0.0]) and res["total"] == 0.0  # d > 0.2575: R's zero
 
 
 @pytest.fixture(scope="module")
@@ -60,11 +84,11 @@ def test_extrusion_rate_position_and_velocity(pen):
     pen.reset((0.4, 0.5))
     vel = np.array([[0.6, -0.3]])
     pen.pos = np.array([[0.41, 0.52]])
-    assert pen.emit(vel) == pen.m == 5  # nozzle radius 1 spacing: the centre and 4 neighbours
+    assert pen.emit() == pen.m == 5  # nozzle radius 1 spacing: the centre and 4 neighbours
     st = pen.env.get_state(0)
     s, p = pen.spacing, pen.pen
     np.testing.assert_allclose(st["x"], [0.41, 0.52, pen.cfg.board_z + p.height] + pen.layer, atol=1e-6)
-    np.testing.assert_allclose(st["v"], np.tile([0.6, -0.3, -p.extrude_speed], (5, 1)), atol=1e-6)
+    np.testing.assert_allclose(st["v"], np.tile([0.0, 0.0, -p.extrude_speed], (5, 1)), atol=1e-6)  # laid at rest
     assert (st["material"] == 1).all() and np.allclose(st["sigma_y"], p.yield_stress)
     # a stroke of T substeps extrudes a layer per spacing of column: N = m (1 + floor(T dt v_e / s)) up to one layer
     pen.reset((0.4, 0.5))
@@ -76,6 +100,18 @@ def test_extrusion_rate_position_and_velocity(pen):
     gaps = np.diff(np.flatnonzero(added))
     assert gaps.min() >= np.floor(s / (p.extrude_speed * pen.dt)) and gaps.max() <= np.ceil(s / (p.extrude_speed * pen.dt))
     np.testing.assert_allclose(pen.pos[0], [0.4 + 0.6 * T * pen.dt, 0.5 - 0.3 * T * pen.dt], atol=1e-9)
+
+
+def test_goal_bead_holds_what_the_pen_lays(pen):
+    """The goal's bead is the pen's: the same particles per unit of stroke (m v_e / (s v_p)), within one layer."""
+    from topocut.tasks.letters import pen_bead
+
+    pen.reset((0.4, 0.5))
+    pen.move([0.1, 0.03], True)  # one straight stroke of 10.4 cm
+    layer, pitch = pen_bead(pen.spacing, pen.pen)
+    goal = letter_points(np.array([[0.4, 0.5], [0.5, 0.53]]), layer, pitch, pen.cfg.board_z)
+    flux = pen.m * pen.pen.extrude_speed / (pen.spacing * pen.pen.speed) * np.hypot(0.1, 0.03)  # particles
+    assert abs(len(goal) - flux) <= pen.m and abs(pen.n - len(goal)) <= pen.m
 
 
 def test_pen_lifted_between_strokes_gives_two_clusters(pen):

@@ -1,4 +1,4 @@
-"""MPPI over the shape of each letter's stroke (cream writing), scored by its spectral reward.
+"""MPPI over the shape of each letter's stroke (cream writing), scored by its reward against its letter.
 
 ``StrokeMPPI`` plans one letter at a time: the stroke is the scripted polyline plus a smooth
 offset field (``controls`` points along the arc length, linearly interpolated), MPPI samples K
@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from topocut.planning.mppi import mppi_weights
-from topocut.tasks.writing_scene import execute, letter_rewards, segment_splits, stroke_actions
+from topocut.tasks.writing_scene import execute, letter_distances, letter_rewards, segment_splits, stroke_actions
 
 
 @dataclass
@@ -38,7 +38,7 @@ def offset_field(poly: np.ndarray, controls: np.ndarray) -> np.ndarray:
 
 
 class StrokeMPPI:
-    """MPPI over the shape of each letter's stroke, scored by its spectral reward against the letter."""
+    """MPPI over the shape of each letter's stroke, scored by its reward against the letter (letter_distances)."""
 
     def __init__(self, pen, goals, cfg: StrokeMPPIConfig | None = None, reward_cfg=None, seed: int = 0):
         self.pen, self.goals, self.cfg, self.reward_cfg = pen, list(goals), cfg or StrokeMPPIConfig(), reward_cfg
@@ -53,10 +53,14 @@ class StrokeMPPI:
         self.cost_cfg = dataclasses.replace(base, delta=max(self.cfg.cost_delta, base.gamma * 1.01))
 
     def _score(self, x, stroke, sid: int, goal) -> float:
-        from topocut.reward import spectral_reward
+        """R(d) of the new stroke against its letter (d as letter_rewards measures it), with the gentler tail."""
+        from topocut.reward import piecewise_reward
 
         frag = x[stroke == sid]
-        return float(spectral_reward([frag], [goal], self.cost_cfg).total) if len(frag) >= 4 else 0.0
+        if len(frag) < 4:
+            return 0.0
+        D, _ = letter_distances([frag], [goal], self.cost_cfg)
+        return float(piecewise_reward(D[0, 0], self.cost_cfg))
 
     def plan_letter(self, poly: np.ndarray, goal: np.ndarray, state: dict) -> tuple[dict, dict]:
         """Best stroke for one letter from ``state``: (state after writing it, info)."""

@@ -10,9 +10,13 @@ Extrusion appends particles: while the pen is on (b = 1) a layer of m particles 
 within ``nozzle_radius`` spacings of the axis, in the horizontal plane) is written at the nozzle
 every time the extruded column has grown by one spacing, i.e. on substep i of a stroke when
 floor(i * dt * extrude_speed / spacing) steps up (and on the stroke's first substep); new particles
-move with the pen (its horizontal velocity) plus the extrusion speed downwards.  The solver's
-active count ``n`` is raised by m.  The layer is the same in every scene (positions follow each
-scene's pen), so n stays common to the batch.
+move straight down at the extrusion speed, at rest horizontally: the bead is laid, not thrown.  The
+cream comes to rest about a cell above the highest node that board_contact holds (board_z + dx): at
+n_grid 48 and 64 at z ~ 0.08, the nozzle's own height (board_z + pen.height), so it does not fall.  Given
+the pen's horizontal velocity, the nozzle ploughed its own bead: the first ~8 layers of every stroke rode
+1-2 cm with it and piled up 1.4 spacings (docs/tasks.md#cream-writing).  The solver's active count ``n``
+is raised by m.  The layer is the same in every scene (positions follow each scene's pen), so n stays
+common to the batch.
 
 Bookkeeping: ``stroke`` (n,) is the stroke id of every particle: a stroke is a maximal run of
 extrusion, a new one starts whenever b goes from 0 to 1.  Strokes that do not touch are the
@@ -27,7 +31,7 @@ import taichi as ti
 
 from topocut.sim.config import SimConfig
 from topocut.sim.env import NO_STEP, CuttingEnv, SimulationDiverged
-from topocut.sim.tools import PenConfig
+from topocut.sim.tools import PenConfig, nozzle_layer  # noqa: F401 - nozzle_layer re-exported
 
 
 def cream_sim_config(sim: SimConfig, pen: PenConfig) -> SimConfig:
@@ -35,13 +39,6 @@ def cream_sim_config(sim: SimConfig, pen: PenConfig) -> SimConfig:
     return dataclasses.replace(sim, mu=pen.mu, lam=pen.lam, yield_stress=pen.yield_stress, softening=0.0,
                                eps_c=0.9, eps_s=1e3, m=1.0, cut_substeps=None, friction=pen.friction,
                                fields=1)  # cream is never cut: one velocity field
-
-
-def nozzle_layer(spacing: float, radius: float) -> np.ndarray:
-    """Offsets (m,3) of one extruded layer: the horizontal lattice points within radius spacings of the axis."""
-    r = int(math.floor(radius + 1e-9))
-    ij = np.array([(i, j) for i in range(-r, r + 1) for j in range(-r, r + 1) if i * i + j * j <= radius ** 2 + 1e-9])
-    return np.concatenate([ij * spacing, np.zeros((len(ij), 1))], 1).astype(np.float32)
 
 
 @ti.data_oriented
@@ -125,14 +122,13 @@ class CreamPen:
             s.damage[b, p] = 0
             s.material[b, p] = 1
 
-    def emit(self, vel_xy: np.ndarray) -> int:
-        """Append one layer at every scene's nozzle moving with vel_xy (B,2) + the extrusion speed; returns m."""
+    def emit(self) -> int:
+        """Append one layer at every scene's nozzle, moving down at the extrusion speed; returns m."""
         if self.n + self.m > self.capacity:
             raise RuntimeError(f"cream pen: {self.n + self.m} particles exceed task.pen.max_particles="
                                f"{self.capacity}; raise it")
         pos = np.concatenate([self.pos, np.full((self.B, 1), self.nozzle_z)], 1)
-        vel = np.concatenate([np.asarray(vel_xy, np.float64).reshape(self.B, 2),
-                              np.full((self.B, 1), -self.pen.extrude_speed)], 1)
+        vel = np.tile([0.0, 0.0, -self.pen.extrude_speed], (self.B, 1))  # B,3: laid at rest (module docstring)
         self._pos.from_numpy(pos.astype(np.float32))
         self._vel.from_numpy(vel.astype(np.float32))
         self._emit(self.n, self.pen.yield_stress)
@@ -174,7 +170,7 @@ class CreamPen:
             due = self.layers_due(self.stroke_steps) - (self.layers_due(self.stroke_steps - 1)
                                                         if self.stroke_steps else 0)
             for _ in range(due):
-                added += self.emit(vel_xy)
+                added += self.emit()
             self.stroke_steps += 1
         s, k = self.solver, self.env.step_count
         if self.n:

@@ -6,7 +6,17 @@ topocut.tasks.config re-exports both for TaskConfig (docs/tasks.md).
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
+
+import numpy as np
+
+
+def nozzle_layer(spacing: float, radius: float) -> np.ndarray:
+    """Offsets (m,3) of one extruded layer: the horizontal lattice points within radius spacings of the axis."""
+    r = int(math.floor(radius + 1e-9))
+    ij = np.array([(i, j) for i in range(-r, r + 1) for j in range(-r, r + 1) if i * i + j * j <= radius ** 2 + 1e-9])
+    return np.concatenate([ij * spacing, np.zeros((len(ij), 1))], 1).astype(np.float32)
 
 
 @dataclass
@@ -25,6 +35,11 @@ class PenConfig:
     lam: float = 800.0
     settle_substeps: int = 300  # free settling after the last stroke
     max_particles: int = 12000  # capacity reserved for extruded particles
+
+    def layer_pitch(self, spacing: float) -> float:
+        """Stroke length between two extruded layers: the column grows one spacing at extrude_speed while the pen
+        moves at speed (so m * extrude_speed / (spacing * speed) particles per unit of stroke)."""
+        return self.speed * spacing / self.extrude_speed
 
 
 @dataclass

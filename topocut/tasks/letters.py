@@ -3,18 +3,17 @@
 A letter lives in a box of width LETTER_ASPECT and height 1 (x right, y up); ``LETTERS[c]`` is
 its single stroke, a polyline (m,2) written in that order by the pen without lifting (so a letter
 is one cluster).  ``layout`` places a word's letters left to right on the board (letter "up" is
-world +y), ``letter_points`` samples a stroke as the bead a pen leaves: points every ``spacing``
-along the polyline, each carrying a small lattice cross-section (``bead`` = lateral x vertical
-particle counts) resting on the board.
+world +y).  ``letter_points`` lays the bead the pen leaves along a stroke: the nozzle's layer
+(topocut.sim.tools.nozzle_layer, m points) at every ``pitch`` of arc length, the stroke length the pen
+covers while the extruded column grows one spacing (PenConfig.layer_pitch), in one particle layer on
+the board.  So the goal holds the pen's m / pitch particles per unit of stroke (its volume flux) in the
+nozzle's footprint, and the pen's own bead is what the goal asks for (docs/tasks.md#cream-writing).
 """
 from __future__ import annotations
 
 import numpy as np
 
 LETTER_ASPECT = 0.6  # letter width / height
-# cross-section of the goal bead (particles across x layers): the pen's default bead (nozzle radius 1, extrusion
-# 1.5 / pen 1.2 units/s) lays ~6 particles per spacing of stroke, 3 across and 2 high where it piles up
-BEAD = (3, 2)
 
 
 def _arc(cx, cy, rx, ry, a0, a1, n=24) -> np.ndarray:
@@ -64,44 +63,46 @@ def layout(word: str, height: float, gap: float, center=(0.5, 0.5)) -> list[np.n
     return [LETTERS[c] * height + np.array([x0 + i * (w + gap), y0]) for i, c in enumerate(word)]
 
 
-def resample_polyline(poly, spacing: float) -> tuple[np.ndarray, np.ndarray]:
-    """Points every ``spacing`` of arc length along poly (m,2) (both ends kept) and unit tangents; (k,2) each."""
-    poly = np.asarray(poly, np.float64)
-    seg = np.diff(poly, axis=0)
-    length = np.linalg.norm(seg, axis=1)
-    keep = length > 1e-12
-    poly = np.concatenate([poly[:1], poly[1:][keep]])
-    seg, length = seg[keep], length[keep]
-    s = np.concatenate([[0.0], np.cumsum(length)])
-    k = max(int(round(s[-1] / spacing)), 1)
-    t = np.linspace(0.0, s[-1], k + 1)
-    i = np.clip(np.searchsorted(s, t, side="right") - 1, 0, len(seg) - 1)
-    pts = poly[i] + seg[i] * ((t - s[i]) / length[i])[:, None]
-    tan = seg[i] / length[i][:, None]
-    return pts, tan
-
-
 def polyline_length(poly) -> float:
     return float(np.linalg.norm(np.diff(np.asarray(poly, np.float64), axis=0), axis=1).sum())
 
 
-def letter_points(poly, spacing: float, board_z: float, bead=(2, 2)) -> np.ndarray:
-    """The bead along stroke poly (m,2): (k * bead[0] * bead[1], 3) points on the board.
+def stations(poly, pitch: float) -> np.ndarray:
+    """Points (k,2) at arc length 0, pitch, 2 pitch, ... <= the length of poly (m,2): where the pen lays a layer."""
+    poly = np.asarray(poly, np.float64)
+    seg = np.diff(poly, axis=0)
+    length = np.linalg.norm(seg, axis=1)
+    keep = length > 1e-12
+    poly, seg, length = np.concatenate([poly[:1], poly[1:][keep]]), seg[keep], length[keep]
+    s = np.concatenate([[0.0], np.cumsum(length)])
+    t = np.arange(int(np.floor(s[-1] / pitch + 1e-9)) + 1) * pitch
+    i = np.clip(np.searchsorted(s, t, side="right") - 1, 0, len(seg) - 1)
+    return poly[i] + seg[i] * ((t - s[i]) / length[i])[:, None]
 
-    Along the stroke every ``spacing``; across it ``bead[0]`` points ``spacing`` apart centred on the
-    line; vertically ``bead[1]`` layers from half a spacing above the board.
+
+def letter_points(poly, layer, pitch: float, z: float) -> np.ndarray:
+    """The bead along stroke poly (m,2): (k * len(layer), 3) points at height z.
+
+    ``layer`` (l,2) or (l,3): the nozzle layer's horizontal offsets, laid at every station (``stations``):
+    one particle layer, as the pen lays it (the cream rests where it leaves the nozzle).
     """
-    pts, tan = resample_polyline(poly, spacing)
-    nrm = np.stack([-tan[:, 1], tan[:, 0]], -1)  # k,2 in-plane normal of the stroke
-    lat = (np.arange(bead[0]) - (bead[0] - 1) / 2) * spacing
-    ver = board_z + spacing * (0.5 + np.arange(bead[1]))
-    xy = (pts[:, None, :] + lat[None, :, None] * nrm[:, None, :]).reshape(-1, 2)  # k*bw,2
-    out = np.concatenate([np.repeat(xy, len(ver), 0), np.tile(ver, len(xy))[:, None]], 1)
-    return out.astype(np.float32)
+    lay = np.asarray(layer, np.float64)[:, :2]  # l,2
+    xy = (stations(poly, pitch)[:, None, :] + lay[None]).reshape(-1, 2)  # k*l,2
+    return np.concatenate([xy, np.full((len(xy), 1), z)], 1).astype(np.float32)
 
 
-def word_goal(word: str, height: float, gap: float, spacing: float, board_z: float, bead=BEAD,
+def pen_bead(spacing: float, pen=None) -> tuple[np.ndarray, float]:
+    """(nozzle layer offsets (m,3), pitch) of the pen's bead at particle spacing ``spacing``."""
+    from topocut.sim.tools import PenConfig, nozzle_layer
+
+    pen = pen or PenConfig()
+    return nozzle_layer(spacing, pen.nozzle_radius), pen.layer_pitch(spacing)
+
+
+def word_goal(word: str, height: float, gap: float, spacing: float, board_z: float, pen=None,
               center=(0.5, 0.5)) -> tuple[list[np.ndarray], list[np.ndarray]]:
-    """Per-letter goal point clouds (k_i,3) and the letters' world stroke polylines."""
+    """Per-letter goal point clouds (k_i,3): the bead of ``pen`` (a PenConfig; None: the default pen) along each
+    letter, one layer on the board at ``board_z``; and the letters' world stroke polylines."""
     strokes = layout(word, height, gap, center)
-    return [letter_points(p, spacing, board_z, bead) for p in strokes], strokes
+    layer, pitch = pen_bead(spacing, pen)
+    return [letter_points(p, layer, pitch, board_z + spacing / 2) for p in strokes], strokes

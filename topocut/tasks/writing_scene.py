@@ -5,8 +5,9 @@ Actions are (dx, dy, b): move the pen by (dx, dy) in a straight line, extruding 
 (travel with b = 0 to a stroke's start, then its segments with b = 1, split into moves of at most
 pen.step).  Clusters are the strokes (by construction: CreamPen bookkeeps a stroke id per
 particle); ``stroke_fragments`` groups particles by it, ``cluster_check`` compares that with
-topology discovery.  The reward is topocut.reward.spectral_reward of the strokes against the
-letters' goal clouds (Hungarian matching, one goal piece per letter).
+topology discovery.  ``letter_rewards`` scores each letter against its own stroke (Hungarian pairing on
+R(d), d = d_spec + d_size + the stroke's handedness on the board) and the word by the geometric mean of its
+letters (``word_score``): docs/tasks.md#cream-writing.
 
 MPPI over the strokes' shapes is a planner: topocut.planning.stroke_mppi.StrokeMPPI.
 """
@@ -63,7 +64,7 @@ def writing_scene(sim, task):
     from topocut.sim.render import render_particles
     from topocut.tasks.letters import word_goal
 
-    goals, strokes = word_goal(task.word, task.letter_height, task.letter_gap, sim.spacing, sim.board_z)
+    goals, strokes = word_goal(task.word, task.letter_height, task.letter_gap, sim.spacing, sim.board_z, task.pen)
     allp = np.concatenate(strokes)
     lo, hi = allp.min(0) - 0.02, allp.max(0) + 0.02
     limits = ((lo[0], lo[1], sim.board_z), (hi[0], hi[1], sim.board_z + 0.1))
@@ -100,17 +101,52 @@ def cluster_check(x: np.ndarray, stroke: np.ndarray, topo_cfg=None, device: str 
             "agree": bool(agree and back == len(stroke)), "labels": lab}
 
 
-def letter_rewards(x, stroke, goals, reward_cfg=None) -> dict:
-    """Spectral reward of the strokes against the letters; per_letter[i] = R of the stroke matched to letter i."""
-    from topocut.reward import spectral_reward
+def letter_distances(fragments, goals, reward_cfg=None) -> tuple[np.ndarray, np.ndarray]:
+    """(F,G) distances of strokes (list of (n,3)) to letters (list of (m,3)) and the handedness part (F,G).
 
+    d = d_spec + d_size (topocut.reward.distance_matrix: what R sees for every task) + reward.handedness_weight x
+    handedness (topocut.reward.planar: a mirrored letter is a rigid motion of the letter, which the first two
+    terms cannot see; on the board it is not).  inf where a stroke is below reward.min_points.
+    """
+    from topocut.reward import RewardConfig, distance_matrix, handedness
+
+    cfg = (reward_cfg or RewardConfig()).validate()
+    D = distance_matrix(list(fragments), list(goals), cfg)
+    H = np.zeros_like(D)
+    if cfg.handedness_weight > 0:
+        for f, g in zip(*np.nonzero(np.isfinite(D))):
+            H[f, g] = handedness(fragments[f], goals[g])
+    return D + cfg.handedness_weight * H, H
+
+
+def word_score(per_letter) -> float:
+    """The word's total: the geometric mean of its letters' rewards.  A word is read whole: a missing letter, or one
+    past R's zero (mirrored, unrecognisable), makes it 0, where a mean would still pay (G-1)/G of it."""
+    r = np.asarray(per_letter, np.float64)
+    return float(np.exp(np.log(r).mean())) if len(r) and (r > 0).all() else 0.0
+
+
+def letter_rewards(x, stroke, goals, reward_cfg=None) -> dict:
+    """Each letter scored against its own stroke (writing, not cutting: no stock, no waste).
+
+    Strokes (particles by stroke id) and letters are paired one-to-one by the Hungarian algorithm on R(d)
+    (topocut.reward.match); per_letter[i] = R(d) of the stroke paired with letter i, 0 if none is (a missing
+    letter); total = word_score(per_letter).  Strokes left unpaired (more strokes than letters) are listed in
+    ``extra`` and not charged.
+    """
+    from topocut.reward import RewardConfig, match, piecewise_reward
+
+    cfg = (reward_cfg or RewardConfig()).validate()
     frags, ids = stroke_fragments(x, stroke)
-    res = spectral_reward(frags, list(goals), reward_cfg)
-    d = np.full(len(goals), np.inf)
-    for f, g in res.matching:
-        d[g] = res.distances[f, g]
-    return {"total": float(res.total), "per_letter": [float(r) for r in res.per_goal], "distance": d.tolist(),
-            "matching": [(ids[f], g) for f, g in res.matching]}
+    G = len(goals)
+    D, H = letter_distances(frags, goals, cfg) if frags else (np.zeros((0, G)), np.zeros((0, G)))
+    pairs = match(D, cfg)
+    d, hand, per = np.full(G, np.inf), np.zeros(G), np.zeros(G)
+    for f, g in pairs:
+        d[g], hand[g], per[g] = D[f, g], H[f, g], piecewise_reward(D[f, g], cfg)
+    paired = {f for f, _ in pairs}
+    return {"total": word_score(per), "per_letter": per.tolist(), "distance": d.tolist(), "handedness": hand.tolist(),
+            "matching": [(ids[f], g) for f, g in pairs], "extra": [ids[f] for f in range(len(frags)) if f not in paired]}
 
 
 def write_scripted(pen, strokes, goals, reward_cfg=None, on_letter=None) -> dict:
