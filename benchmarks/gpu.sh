@@ -139,7 +139,7 @@ PY
   oracle-check)  # the answer key (#47): the oracle through stage=eval at scale=paper (128^3, 3 cm pieces) and at 64^3
     # with 5 cm pieces, EPC episodes a cell (default 5: 135 episodes each), EVAL_JOBS processes under MPS;
     # experiments/oracle_audit.py --summary tabulates R per task x split and object, success, and the worst IoU of a
-    # discovered piece with the simulator's own piece
+    # discovered piece with the simulator's own piece; EVAL_ARGS: more overrides (e.g. topology.min_piece_particles=8)
     mps_start
     for grid in ${GRIDS:-128 64}; do
       extra=""; [ "$grid" = 64 ] && extra="eval.task_overrides={slice:{thickness:0.05},stick:{thickness:0.05,width:0.05},dice:{thickness:0.05,width:0.05,size:0.05}} eval.name=oracle64"
@@ -147,7 +147,7 @@ PY
       t0=$(date +%s)
       timeout ${LIMIT:-560} python3 -m topocut.run stage=eval scale=paper device=cuda reward=torch sim.n_grid=$grid \
         sim.batch_size=4 "eval.policies=[oracle]" eval.train_seeds=1 eval.jobs=${EVAL_JOBS:-12} eval.gifs=0 eval.videos=0 \
-        eval.episodes_per_cell=${EPC:-5} logger=none progress=false outputs_root=/tmp/o $extra 2>&1 \
+        eval.episodes_per_cell=${EPC:-5} logger=none progress=false outputs_root=/tmp/o $extra ${EVAL_ARGS:-} 2>&1 \
         | grep -v -i warn | tail -5 | tee -a "$OUT/oracle_check.txt"
       echo "== ${grid}^3: wall $(( $(date +%s) - t0 )) s" | tee -a "$OUT/oracle_check.txt"
       d=$(ls -d /tmp/o/eval/oracle$grid/v* | tail -1)
