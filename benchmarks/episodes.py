@@ -106,12 +106,12 @@ def demo_cuts(args, batch_scenes: bool) -> dict:
     from topocut.reward.config import RewardConfig
     from topocut.sim.env import CuttingEnv
     from topocut.sim.objects import ObjectPose
-    from topocut.tasks import TaskConfig, get_task
+    from topocut.tasks import get_task, task_config
     from topocut.topology.config import TopologyConfig
 
     env = CuttingEnv(sim_config(args, args.K), batch_size=args.K)
     instrument(env)
-    task = TaskConfig(name=args.task, max_cuts=args.cuts).validate()
+    task = task_config(args.task, max_cuts=args.cuts, push=False).validate()  # no push: as docs/benchmarks.md timed
     rcfg = RewardConfig(backend=args.reward_backend, device=args.device if args.reward_backend == "torch" else "cpu")
     topo = TopologyConfig(resolution=args.topo_resolution, batch_scenes=batch_scenes)
     pose = ObjectPose()
@@ -170,14 +170,15 @@ def bench_eval(args) -> dict:
     from topocut.planning.heuristic import HeuristicPolicy
     from topocut.reward.config import RewardConfig
     from topocut.sim.env import CuttingEnv
-    from topocut.tasks import TaskConfig
+    from topocut.tasks import task_config
     from topocut.topology.config import TopologyConfig
 
     ecfg = EvalConfig()
     specs = episode_specs(ecfg)
     stride = max(1, len(specs) // args.eval_episodes)
     chosen = specs[::stride][: args.eval_episodes]
-    task_cfgs = {t: TaskConfig(name=t, max_cuts=ecfg.max_cuts).validate() for t in ecfg.tasks}
+    # no push, as docs/benchmarks.md timed (the protocol's stick and dice push: topocut.eval.runner.task_configs)
+    task_cfgs = {t: task_config(t, max_cuts=ecfg.max_cuts, push=False).validate() for t in ecfg.tasks}
     rcfg = RewardConfig(backend=args.reward_backend, device=args.device if args.reward_backend == "torch" else "cpu")
     topo = TopologyConfig(resolution=args.topo_resolution)
     out = {}

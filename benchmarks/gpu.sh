@@ -142,7 +142,7 @@ PY
     # discovered piece with the simulator's own piece; EVAL_ARGS: more overrides (e.g. topology.min_piece_particles=8)
     mps_start
     for grid in ${GRIDS:-128 64}; do
-      extra=""; [ "$grid" = 64 ] && extra="eval.task_overrides={slice:{thickness:0.05},stick:{thickness:0.05,width:0.05},dice:{thickness:0.05,width:0.05,size:0.05}} eval.name=oracle64"
+      extra=""; [ "$grid" = 64 ] && extra="eval.task_overrides={slice:{thickness:0.05},stick:{thickness:0.05,width:0.05},dice:{size:0.05}} eval.name=oracle64"
       [ "$grid" = 128 ] && extra="eval.name=oracle128"
       t0=$(date +%s)
       timeout ${LIMIT:-560} python3 -m topocut.run stage=eval scale=paper device=cuda reward=torch sim.n_grid=$grid \
@@ -166,7 +166,7 @@ PY
       planner.iterations=2 planner.horizon=1 "eval.policies=[oracle,mppi]" eval.train_seeds=1 \
       eval.jobs=${EVAL_JOBS:-12} eval.gifs=0 eval.videos=0 eval.episodes_per_cell=${EPC:-2} eval.name=mppi64 logger=none \
       progress=false outputs_root=/tmp/o \
-      "eval.task_overrides={slice:{thickness:0.05},stick:{thickness:0.05,width:0.05},dice:{thickness:0.05,width:0.05,size:0.05}}" \
+      "eval.task_overrides={slice:{thickness:0.05},stick:{thickness:0.05,width:0.05},dice:{size:0.05}}" \
       2>&1 | grep -v -i warn | grep -v ticache | tail -40 | tee -a "$OUT/mppi_check.txt"
     echo "== wall $(( $(date +%s) - t0 )) s" | tee -a "$OUT/mppi_check.txt"
     d=$(ls -d /tmp/o/eval/mppi64/v* | tail -1) && tar -czf "$OUT/mppi64.tgz" -C "$d" episodes
@@ -200,7 +200,7 @@ PY
             reward=torch sim.n_grid=64 sim.batch_size=4 "eval.policies=[oracle]" eval.train_seeds=1 \
             eval.jobs=${EVAL_JOBS:-12} eval.gifs=0 eval.videos=0 eval.episodes_per_cell=${EPC:-2} eval.name=$tag logger=none \
             progress=false outputs_root=/tmp/o \
-            "eval.task_overrides={slice:{thickness:0.05},stick:{thickness:0.05,width:0.05},dice:{thickness:0.05,width:0.05,size:0.05}}" \
+            "eval.task_overrides={slice:{thickness:0.05},stick:{thickness:0.05,width:0.05},dice:{size:0.05}}" \
             ${EVAL_ARGS:-} \
             2>&1 | grep -v -i warn | tail -3 ;;
         demos) CUDA_VISIBLE_DEVICES=$vis timeout ${LIMIT:-280} python3 -m topocut.run -m stage=mppi \

@@ -39,7 +39,7 @@ def bench_sim(args, cfg: MPPIConfig) -> dict:
     from topocut.sim.config import SimConfig
     from topocut.sim.env import CuttingEnv
     from topocut.sim.objects import ObjectPose
-    from topocut.tasks import TaskConfig, make_goal
+    from topocut.tasks import make_goal, task_config
 
     pose, out = ObjectPose(), {}
     for label, batch in (("sequential B=1", 1), (f"batched B={args.K}", args.K)):
@@ -49,7 +49,7 @@ def bench_sim(args, cfg: MPPIConfig) -> dict:
             sim.n_grid = args.n_grid
         env = CuttingEnv(sim, batch_size=batch)
         env.reset(args.object, pose, seed=0)
-        goal = make_goal(TaskConfig(name=args.task), args.object, pose, getattr(sim, "spacing", 0.01))
+        goal = make_goal(task_config(args.task), args.object, pose, getattr(sim, "spacing", 0.01))
         rcfg = RewardConfig(backend=args.reward_backend,
                             device=args.device if args.reward_backend == "torch" else "cpu")
         rollout = make_sim_rollout(env, env.get_state(0), goal, reward_cfg=rcfg, board_z=sim.board_z)

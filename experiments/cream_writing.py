@@ -14,11 +14,11 @@ def writing_experiment(word: str = "CORL", n_grid: int = 48, num_samples: int = 
     from topocut.planning.stroke_mppi import StrokeMPPI, StrokeMPPIConfig
     from topocut.sim import SimConfig, init_taichi
     from topocut.sim.pen import CreamPen
-    from topocut.tasks.config import TaskConfig
+    from topocut.tasks import task_config
     from topocut.tasks.writing_scene import write_scripted, writing_scene
 
     init_taichi("cpu", cpu_threads=1)
-    sim, task = SimConfig(n_grid=n_grid), TaskConfig(name="cream_writing", word=word).validate()
+    sim, task = SimConfig(n_grid=n_grid), task_config("cream_writing", word=word).validate()
     goals, strokes, start, _ = writing_scene(sim, task)
     pen = CreamPen(sim, task.pen, 1, start=start)
     scripted = write_scripted(pen, strokes, goals)

@@ -19,7 +19,7 @@ from topocut.data.store import write_json_atomic
 from topocut.envs import CuttingVectorEnv
 from topocut.eval.config import EvalConfig
 from topocut.sim.config import SimConfig
-from topocut.tasks import Cut, TaskConfig
+from topocut.tasks import Cut, piece_sizes, task_config
 
 
 def main(argv=None) -> int:
@@ -34,8 +34,8 @@ def main(argv=None) -> int:
     eval_cfg = EvalConfig(randomize_pose=False)
     rows = []
     for task in args.tasks:
-        task_cfg = TaskConfig(name=task, thickness=args.piece, width=args.piece, size=args.piece,
-                              push=task != "slice")  # conf/task: stick and dice push after each cut
+        task_cfg = task_config(task, **piece_sizes(task, args.piece),
+                               push=task != "slice")  # conf/task: stick and dice push after each cut
         env = CuttingVectorEnv(task=task, objects=args.objects[0], num_envs=len(args.offsets_mm),
                                sim_cfg=SimConfig(n_grid=args.n_grid), task_cfg=task_cfg, eval_cfg=eval_cfg,
                                max_cuts=1, num_points=256, num_goal_points=256)

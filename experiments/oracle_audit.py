@@ -79,7 +79,7 @@ def simulated(args):
     from topocut.sim.env import CuttingEnv
     from topocut.sim.mpm import init_taichi
     from topocut.sim.render import render_sequences
-    from topocut.tasks import TaskConfig
+    from topocut.tasks import piece_sizes, task_config
 
     init_taichi(args.device)
     overrides = {k: yaml.safe_load(v) for k, v in (a.split("=", 1) for a in args.sim)}
@@ -92,8 +92,8 @@ def simulated(args):
     for e in range(args.first, args.first + args.episodes):
         seed = eval_episode_seed(args.seed, args.task, args.object, e)
         pose = episode_pose(EvalConfig(seed=args.seed), seed)
-        task = TaskConfig(name=args.task, thickness=args.size, width=args.size, size=args.size, max_cuts=args.max_cuts,
-                          push=args.task in ("stick", "dice"))
+        task = task_config(args.task, **piece_sizes(args.task, args.size), max_cuts=args.max_cuts,
+                           push=args.task in ("stick", "dice"))
         engine = EpisodeBatch(env, scoring, max_cuts=args.max_cuts, frames=bool(args.render))
         t0 = time.perf_counter()
         engine.start([Episode(args.object, pose, seed, task)], alone=True)
@@ -139,7 +139,7 @@ def ideal_sweep(args):
     from topocut.eval.config import EvalConfig
     from topocut.reward import spectral_reward
     from topocut.sim.objects import ObjectPose, sample_object
-    from topocut.tasks import TaskConfig, get_task, ideal
+    from topocut.tasks import get_task, ideal, piece_sizes, task_config
 
     spacing = 0.5 / args.n_grid
     objects = [args.object] if args.object != "all" else EvalConfig().seen + EvalConfig().unseen
@@ -150,7 +150,8 @@ def ideal_sweep(args):
         for obj in objects:
             for i, p in enumerate(POSES):
                 pose = ObjectPose(*p)
-                cfg = TaskConfig(name=task, thickness=args.size, width=args.size, size=args.size, max_cuts=args.max_cuts)
+                # push=False: the audit's plans as recorded (docs/results.md), whatever the task's own push
+                cfg = task_config(task, **piece_sizes(task, args.size), max_cuts=args.max_cuts, push=False)
                 goal = get_task(task).make_goal(cfg, obj, pose, spacing, seed=args.seed)
                 pts, _ = sample_object(obj, pose, spacing, seed=args.seed)
                 run = ideal.execute(pts.astype(np.float64), goal.steps, ideal.sim_config_for(spacing, 0.05))

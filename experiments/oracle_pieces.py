@@ -24,13 +24,15 @@ def simulate(obj, task, n_grid, device):
     from topocut.sim.config import SimConfig
     from topocut.sim.env import CuttingEnv
     from topocut.sim.objects import ObjectPose
-    from topocut.tasks import Cut, TaskConfig, get_task
+    from topocut.tasks import Cut, get_task, task_config
 
     cfg = SimConfig(n_grid=n_grid, arch=device)
     pose = ObjectPose(x=0.5, y=0.5, yaw=0.0, scale=1.0)
     env = CuttingEnv(cfg, batch_size=1)
     x0 = env.reset(obj, pose).x[0].astype(np.float64)
-    goal = get_task(task).make_goal(TaskConfig(name=task), obj, pose, spacing=cfg.spacing, board_z=cfg.board_z)
+    # push=False: the plan this experiment's recorded runs cut (docs/sim.md), whatever the task's own push
+    goal = get_task(task).make_goal(task_config(task, push=False), obj, pose, spacing=cfg.spacing,
+                                    board_z=cfg.board_z)
     pts = np.concatenate(goal.fragments)
     owner = np.concatenate([np.full(len(f), i) for i, f in enumerate(goal.fragments)])
     dist, nn = cKDTree(pts).query(x0)

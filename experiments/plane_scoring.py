@@ -73,12 +73,12 @@ def pyramid_scene(n_grid: int, batch: int, size: float = 0.1, device: str = "cpu
     setting of the pyramid experiments; on the CPU Taichi runs one thread, so a re-run cut is bit-identical."""
     from topocut.sim import CuttingEnv, SimConfig, init_taichi
     from topocut.sim.objects import ObjectPose
-    from topocut.tasks import TaskConfig, make_goal
+    from topocut.tasks import make_goal, task_config
 
     init_taichi(device, cpu_threads=1 if device == "cpu" else None)
     sim = SimConfig(n_grid=n_grid, batch_size=batch, arch=device)
     pose = ObjectPose()
-    goal = make_goal(TaskConfig(name="pyramid", size=size, max_cuts=1), "cube", pose, spacing=sim.spacing,
+    goal = make_goal(task_config("pyramid", size=size, max_cuts=1), "cube", pose, spacing=sim.spacing,
                      board_z=sim.board_z)
     env = CuttingEnv(sim, batch_size=batch)
     env.reset("cube", pose, seed=seed)

@@ -69,12 +69,12 @@ def writing(n_grid: int = 48, device: str = "cpu", seed: int = 0, word: str = "C
     ``seed`` is recorded only: the writer and the pen draw no random numbers."""
     from topocut.reward import RewardConfig
     from topocut.sim import SimConfig, init_taichi
-    from topocut.tasks.config import TaskConfig
+    from topocut.tasks import task_config
     from topocut.tasks.writing_scene import letter_rewards, writing_scene
 
     t0 = time.perf_counter()
     init_taichi(device, cpu_threads=1 if device == "cpu" else None)
-    sim, task = SimConfig(n_grid=n_grid, arch=device), TaskConfig(name="cream_writing", word=word).validate()
+    sim, task = SimConfig(n_grid=n_grid, arch=device), task_config("cream_writing", word=word).validate()
     goals, strokes, start, _ = writing_scene(sim, task)
     reward = RewardConfig() if device == "cpu" else RewardConfig(backend="torch", device=device)
     groups: dict[tuple, list[str]] = {}  # the letters present -> the variants that write them (one pen each)

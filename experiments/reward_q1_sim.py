@@ -66,14 +66,14 @@ def q1_sequence(n_grid: int = 64, thickness: float = 0.03, wrong: str = "yaw", e
     from topocut.sim.action import KnifeAction
     from topocut.sim.config import SimConfig
     from topocut.sim.objects import ObjectPose
-    from topocut.tasks import TaskConfig, make_goal
+    from topocut.tasks import make_goal, task_config
     from topocut.topology import discover
 
     init_taichi("cpu")
     env = CuttingEnv(SimConfig(n_grid=n_grid), batch_size=1)
     st = env.reset(object, ObjectPose(), seed=seed)
     board_z = env.cfg.board_z
-    goal = make_goal(TaskConfig(name="slice", thickness=thickness, max_cuts=4), object, ObjectPose(),
+    goal = make_goal(task_config("slice", thickness=thickness, max_cuts=4), object, ObjectPose(),
                      spacing=env.cfg.spacing, board_z=board_z, seed=seed)
     normal = goal.planes[0].normal  # a1: every ideal slice plane is normal to it
     labels = np.zeros(len(st.x[0]), np.int32)  # one piece before any cut

@@ -15,7 +15,7 @@ from scipy.sparse.csgraph import connected_components
 from topocut.eval.config import EvalConfig
 from topocut.reward import RewardConfig, spectral_reward
 from topocut.sim.objects import ObjectPose, sample_object
-from topocut.tasks import TaskConfig, get_task, ideal
+from topocut.tasks import get_task, ideal, piece_sizes, task_config
 
 OBJECTS = EvalConfig().seen + EvalConfig().unseen  # the 9 evaluation objects
 POSES = [ObjectPose(), ObjectPose(0.52, 0.48, 0.2, 0.8), ObjectPose(0.48, 0.515, -0.25, 1.2),
@@ -30,7 +30,7 @@ CASES128 = [(t, o, (i + j) % len(POSES)) for j, t in enumerate(("slice", "stick"
 def execute_reference(task, obj, pose, n_grid, size, max_cuts=5):
     spacing = 0.5 / n_grid
     # the protocol's settings: stick and dice push after each cut (conf/task), so their plans are push-safe
-    cfg = TaskConfig(name=task, thickness=size, width=size, size=size, max_cuts=max_cuts, push=task != "slice")
+    cfg = task_config(task, **piece_sizes(task, size), max_cuts=max_cuts, push=task != "slice")
     goal = get_task(task).make_goal(cfg, obj, pose, spacing, board_z=0.05, seed=SEED)
     pts, _ = sample_object(obj, pose, spacing, seed=SEED, board_z=0.05)
     run = ideal.execute(pts.astype(np.float64), goal.steps, ideal.sim_config_for(spacing, 0.05))
@@ -77,7 +77,7 @@ def test_reference_steps_earn_full_marks_128(task, obj, pose):
 def test_pyramid_reference_earns_full_marks():
     for pose in POSES:
         spacing = 0.5 / 64
-        cfg = TaskConfig(name="pyramid", size=0.1, max_cuts=1)
+        cfg = task_config("pyramid", size=0.1, max_cuts=1)
         goal = get_task("pyramid").make_goal(cfg, "cube", pose, spacing, seed=SEED)
         pts, _ = sample_object("cube", pose, spacing, seed=SEED)
         run = ideal.execute(pts.astype(np.float64), goal.steps, ideal.sim_config_for(spacing, 0.05))
@@ -139,7 +139,7 @@ def test_success_agrees_with_reward():
     """One success: every goal piece made *and* the total at task.success_threshold (no success at R = 0)."""
     from topocut.reward.matching import RewardResult
 
-    task, cfg = get_task("dice"), TaskConfig(name="dice")
+    task, cfg = get_task("dice"), task_config("dice")
     made = RewardResult(total=0.0, per_goal=np.ones(2), cut_count=2)  # both dice made, the waste ate the reward
     assert not task.success(made, cfg)
     assert task.success(RewardResult(total=0.97, per_goal=np.ones(2), cut_count=2), cfg)
@@ -213,9 +213,9 @@ def test_dice_plans_at_128_push_nothing_a_later_cut_crosses(obj, pose):
     sim_cfg = ideal.sim_config_for(spacing, 0.05)
     pts, _ = sample_object(obj, POSES[pose], spacing, seed=SEED, board_z=0.05)
     x = pts.astype(np.float64)
-    kw = dict(name="dice", size=0.03, max_cuts=5)
-    planned = get_task("dice").make_goal(TaskConfig(**kw, push=False), obj, POSES[pose], spacing, seed=SEED)
-    safe = get_task("dice").make_goal(TaskConfig(**kw, push=True), obj, POSES[pose], spacing, seed=SEED)
+    kw = dict(size=0.03, max_cuts=5)
+    planned = get_task("dice").make_goal(task_config("dice", **kw, push=False), obj, POSES[pose], spacing, seed=SEED)
+    safe = get_task("dice").make_goal(task_config("dice", **kw, push=True), obj, POSES[pose], spacing, seed=SEED)
     assert ideal.push_conflicts(x, planned.steps, sim_cfg) >= 1
     assert ideal.push_conflicts(x, safe.steps, sim_cfg) == 0
     assert len(safe.fragments) == len(planned.fragments)  # the same goal pieces, cut in another order

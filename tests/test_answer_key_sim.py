@@ -11,7 +11,7 @@ import pytest
 
 from tests.test_stages import _ok, topocut
 from topocut.sim.objects import ObjectPose
-from topocut.tasks import TaskConfig, get_task
+from topocut.tasks import get_task, piece_sizes, task_config
 
 
 @pytest.mark.slow
@@ -23,7 +23,7 @@ def test_oracle_through_the_eval_stage_scores_full_marks(tmp_path):
     episodes = sorted(tmp_path.glob("eval/table1/v001/episodes/oracle/*.json"))
     assert len(episodes) == 9, proc.stdout[-2000:]
     by_task = {}
-    threshold = TaskConfig().success_threshold
+    threshold = task_config("slice").success_threshold
     for path in episodes:
         ep = json.loads(path.read_text())
         assert ep["status"] == "ok", (path.name, ep["error"])
@@ -32,7 +32,7 @@ def test_oracle_through_the_eval_stage_scores_full_marks(tmp_path):
         by_task.setdefault(ep["spec"]["task"], []).append(r)
         # one success: every goal piece made (N_C = G, G counted from the episode's own goal) and R at the threshold
         spec = ep["spec"]
-        cfg = TaskConfig(name=spec["task"], thickness=0.05, width=0.05, size=0.05, max_cuts=5)
+        cfg = task_config(spec["task"], **piece_sizes(spec["task"], 0.05), max_cuts=5)
         G = len(get_task(spec["task"]).make_goal(cfg, spec["object"], ObjectPose(**spec["pose"]), 0.5 / 64,
                                                  seed=spec["seed"]).fragments)
         assert ep["success"] == (ep["final_cut_count"] >= G and r >= threshold), (path.name, G, ep["cut_counts"], r)

@@ -2,7 +2,8 @@
 scales; every leaf key (Hydra's own ``_target_``/``_partial_`` aside) must be read somewhere in topocut/ or
 pipelines/: as an attribute (``cfg.key``), a string (``cfg["key"]``, a field name in a tuple), a keyword
 (``key=``) or a parameter of a stage function -- the schema's own field definitions (``key: type = value``) and
-comments do not count.  A key that nothing reads does nothing and says otherwise: delete it, or read it."""
+comments do not count.  A key that nothing reads does nothing and says otherwise: delete it, or read it.  Every
+task is composed too: each has keys of its own (its dataclass, topocut/tasks/<task>.py)."""
 from __future__ import annotations
 
 import re
@@ -13,6 +14,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig, ListConfig
 
 from topocut.config import STAGES, register_configs
+from topocut.tasks import TASKS
 
 REPO = Path(__file__).resolve().parents[1]
 DEFINITION = re.compile(r"^\s+\w+\s*:\s*[\w\[\]|., ]+\s*=")  # a dataclass field: `    n_grid: int = 64`
@@ -59,6 +61,9 @@ def test_every_config_key_is_read_by_the_code(scale):
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
         for stage in STAGES:
             keys |= leaf_keys(compose(config_name="config", overrides=[f"stage={stage}", f"scale={scale}",
+                                                                       "logger=none"]))
+        for task in TASKS:  # each task's own keys (its dataclass) and its scale's (conf/scale_task)
+            keys |= leaf_keys(compose(config_name="config", overrides=[f"task={task}", f"scale={scale}",
                                                                        "logger=none"]))
     code = code_that_reads()
     unread = sorted(".".join(p) for p in keys if p and not p[-1].startswith("_") and not is_read(p[-1], code))

@@ -15,14 +15,14 @@ from topocut.planning.heuristic import GoalPlanesPolicy
 from topocut.reward.config import RewardConfig
 from topocut.sim.config import SimConfig
 from topocut.sim.objects import ObjectPose
-from topocut.tasks.config import TaskConfig
+from topocut.tasks import task_config
 from topocut.topology.config import TopologyConfig
 
 SIM = dict(n_grid=32, push_time=0.008, settle_time=0.0074)
 EPISODES = [
-    Episode("cube", ObjectPose(0.5, 0.5, 0.1, 1.0), 11, TaskConfig("stick", max_cuts=3, push=True)),
-    Episode("cake", ObjectPose(0.51, 0.49, -0.2, 0.9), 12, TaskConfig("slice", max_cuts=3)),
-    Episode("cube", ObjectPose(0.49, 0.5, 0.0, 1.1), 13, TaskConfig("slice", max_cuts=3, thickness=0.05)),
+    Episode("cube", ObjectPose(0.5, 0.5, 0.1, 1.0), 11, task_config("stick", max_cuts=3, push=True)),
+    Episode("cake", ObjectPose(0.51, 0.49, -0.2, 0.9), 12, task_config("slice", max_cuts=3)),
+    Episode("cube", ObjectPose(0.49, 0.5, 0.0, 1.1), 13, task_config("slice", max_cuts=3, thickness=0.05)),
 ]
 
 

@@ -459,14 +459,19 @@ def test_teleop_reference_replays_committed_logs_like_a_policy(tmp_path):
 
 
 def test_eval_task_overrides_reach_the_task_configs_and_are_checked():
-    """eval.task_overrides puts task parameters over conf/task/<task>.yaml (the smoke scale's 5 cm slabs)."""
+    """eval.task_overrides puts task parameters over each task's own config (the smoke scale's 5 cm slabs); a
+    key the task does not have (dice's thickness) is refused naming its keys."""
     from topocut.eval.runner import task_configs
 
     cfgs = task_configs(["slice", "dice"], 2, {"slice": {"thickness": 0.05}})
     assert (cfgs["slice"].thickness, cfgs["slice"].max_cuts, cfgs["slice"].push) == (0.05, 2, False)
-    assert (cfgs["dice"].thickness, cfgs["dice"].size, cfgs["dice"].push) == (0.03, 0.03, True)  # the yaml's
-    with pytest.raises(ValueError, match=r"eval\.task_overrides\.slice\.max_cuts: not a task parameter \(eval\.max_cuts"):
+    assert (cfgs["dice"].size, cfgs["dice"].push, cfgs["dice"].max_cuts) == (0.03, True, 3)  # DiceConfig's; 3 cuts
+    with pytest.raises(ValueError, match=r"eval\.task_overrides\.slice\.max_cuts: not a parameter of task=slice "
+                                         r"\(eval\.max_cuts"):
         EvalConfig(task_overrides={"slice": {"max_cuts": 3}}).validate()
+    with pytest.raises(ValueError, match=r"eval\.task_overrides\.dice\.width: not a parameter of task=dice; valid "
+                                         r"keys of DiceConfig: success_threshold, push, num_goal_points, sample_tilt, size$"):
+        EvalConfig(task_overrides={"dice": {"width": 0.05}}).validate()
     with pytest.raises(ValueError, match=r"eval\.task_overrides\.slize: unknown task"):
         EvalConfig(task_overrides={"slize": {"thickness": 0.05}}).validate()
     with pytest.raises(ValueError, match=r"task\.thickness=-0\.01 must be > 0"):

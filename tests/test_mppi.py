@@ -183,12 +183,11 @@ def _sim_modules():
         from topocut.sim.config import SimConfig
         from topocut.sim.env import CuttingEnv
         from topocut.sim.objects import ObjectPose
-        from topocut.tasks import make_goal
-        from topocut.tasks.config import TaskConfig
+        from topocut.tasks import make_goal, task_config
         from topocut.topology import discover  # noqa: F401
     except ImportError as e:
         pytest.skip(f"simulator/topology/reward/goals not importable yet: {e}")
-    return CuttingEnv, SimConfig, ObjectPose, make_goal, TaskConfig
+    return CuttingEnv, SimConfig, ObjectPose, make_goal, task_config
 
 
 def _small_sim_cfg(SimConfig, batch_size):
@@ -201,22 +200,22 @@ def _small_sim_cfg(SimConfig, batch_size):
 
 def _cube_slice(batch_size):
     """(env of batch_size scenes holding the cube at the nominal pose, its slice goal, scene 0's state)."""
-    CuttingEnv, SimConfig, ObjectPose, make_goal, TaskConfig = _sim_modules()
+    CuttingEnv, SimConfig, ObjectPose, make_goal, task_config = _sim_modules()
     pose = ObjectPose()
     sim = _small_sim_cfg(SimConfig, batch_size)
-    goal = make_goal(TaskConfig(name="slice"), "cube", pose, sim.spacing)
+    goal = make_goal(task_config("slice"), "cube", pose, sim.spacing)
     env = CuttingEnv(sim, batch_size=batch_size)
     env.reset("cube", pose, seed=0)
     return env, goal, env.get_state(0)
 
 
 def test_sim_rollout_batched_matches_sequential_and_restores_state():
-    CuttingEnv, SimConfig, ObjectPose, make_goal, TaskConfig = _sim_modules()
+    CuttingEnv, SimConfig, ObjectPose, make_goal, task_config = _sim_modules()
     from topocut.planning.rollout import make_sim_rollout
 
     pose = ObjectPose()
     sim1 = _small_sim_cfg(SimConfig, 1)
-    goal = make_goal(TaskConfig(name="slice"), "cube", pose, getattr(sim1, "spacing", 0.01))
+    goal = make_goal(task_config("slice"), "cube", pose, getattr(sim1, "spacing", 0.01))
     env1 = CuttingEnv(sim1, batch_size=1)
     env1.reset("cube", pose, seed=0)
     state = env1.get_state(0)

@@ -4,7 +4,7 @@ import pytest
 
 from topocut.planning.oracle import OraclePolicy, planar_rigid
 from topocut.sim.objects import ObjectPose
-from topocut.tasks import TaskConfig, make_goal
+from topocut.tasks import make_goal, task_config
 
 SP = 0.5 / 48
 
@@ -20,7 +20,7 @@ def test_planar_rigid_recovers_a_turn_about_z_and_a_slide():
 
 
 def _goal():
-    return make_goal(TaskConfig(name="slice", thickness=0.05, max_cuts=2), "cube", ObjectPose(), SP)
+    return make_goal(task_config("slice", thickness=0.05, max_cuts=2), "cube", ObjectPose(), SP)
 
 
 def _obs(x, k):
@@ -79,7 +79,7 @@ def test_a_piece_that_did_not_move_as_planned_is_cut_between_its_planned_sides()
 def test_a_plane_turned_across_the_canonical_yaw_wrap_keeps_its_sides():
     """A stick cut normal to a2 (yaw 88.9 deg) whose piece turned 3 deg (to 91.9 deg): the canonical action flips its
     normal, the planned sides must not flip with it (else every such cut would take the midpoint branch)."""
-    goal = make_goal(TaskConfig(name="stick", thickness=0.05, width=0.05, max_cuts=3), "cube", ObjectPose(yaw=-0.02),
+    goal = make_goal(task_config("stick", thickness=0.05, width=0.05, max_cuts=3), "cube", ObjectPose(yaw=-0.02),
                      SP)
     k = 1  # the first stick cut
     anchor = goal.anchors[k]

@@ -14,8 +14,7 @@ from topocut.policies.actions import action_from_pose_feature, action_mask, orie
 from topocut.policies.inputs import GOAL_FIELDS, INPUT_FIELDS, goal_inputs, policy_inputs, step_targets
 from topocut.sim.action import KnifeAction, cut_mask, executed_action
 from topocut.sim.objects import ObjectPose, sample_object
-from topocut.tasks import make_goal
-from topocut.tasks.config import TaskConfig
+from topocut.tasks import make_goal, task_config
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
@@ -31,7 +30,7 @@ def scene():
     """One object and pose, its particles (the observation before the first cut) and the three tasks' goals."""
     pose = ObjectPose(x=0.51, y=0.49, yaw=0.2, scale=1.05)
     pts = sample_object("cake", pose, SPACING)[0]
-    goals = {t: make_goal(TaskConfig(name=t), "cake", pose, SPACING) for t in TASKS}
+    goals = {t: make_goal(task_config(t), "cake", pose, SPACING) for t in TASKS}
     obs = {t: {"points": pts, "labels": np.zeros(len(pts), np.int32), "history": np.zeros((3, 7), np.float32),
                "goal": g.points, "goal_labels": g.labels} for t, g in goals.items()}
     return pts, goals, obs
@@ -162,7 +161,7 @@ def test_the_same_cut_at_yaw_minus_and_plus_one_degree_gets_the_same_mask():
     new, old = {}, {}
     for deg in (-1.0, 1.0):
         yaw = np.radians(deg)
-        goal = make_goal(TaskConfig(name="stick"), "cube", ObjectPose(yaw=yaw), SPACING)
+        goal = make_goal(task_config("stick"), "cube", ObjectPose(yaw=yaw), SPACING)
         normal = _rotated(cut.normal[None] + np.array([0.5, 0.5, 0.0]), yaw)[0] - np.array([0.5, 0.5, 0.0])
         width = KnifeAction.from_plane(normal, _rotated(cut.plane_point()[None], yaw)[0])  # the same cut, turned
         assert np.degrees(abs(width.yaw)) > 88.5  # canonical yaw next to the wrap: +89 deg at one pose, -89 at the other
@@ -272,7 +271,7 @@ def test_demos_evaluation_and_teleop_replay_execute_one_rule():
               reward_fn=lambda *a: result, max_cuts=2)
     for policy in (OneCut(), TeleopReplay([raw.to_vector().tolist()])):
         env = Env()
-        res = evaluate_episode(spec, policy, env, TaskConfig(name="slice"), **kw)
+        res = evaluate_episode(spec, policy, env, task_config("slice"), **kw)
         assert env.cuts == [executed_action(KnifeAction.from_vector(raw.to_vector()))
                             if isinstance(policy, TeleopReplay) else done]
         assert KnifeAction.from_vector(res.actions[0]) == env.cuts[0]  # the stored vector is the executed pose

@@ -18,9 +18,9 @@ def test_every_scripted_spec_names_a_builder_that_exists():
 def test_the_oracle_and_the_heuristic_are_built_from_the_setup():
     from topocut.planning.heuristic import HeuristicPolicy
     from topocut.planning.oracle import OraclePolicy
-    from topocut.tasks.config import TaskConfig
+    from topocut.tasks import task_config
 
-    setup = ScriptedSetup(sim=SimpleNamespace(board_z=0.07, spacing=0.01), task_cfgs={"slice": TaskConfig(name="slice")})
+    setup = ScriptedSetup(sim=SimpleNamespace(board_z=0.07, spacing=0.01), task_cfgs={"slice": task_config("slice")})
     oracle = registry.build_scripted("oracle", setup)
     assert isinstance(oracle, OraclePolicy) and oracle.board_z == pytest.approx(0.07)
     heuristic = registry.build_scripted("heuristic", setup)

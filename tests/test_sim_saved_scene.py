@@ -74,9 +74,9 @@ def test_rollouts_from_the_saved_start_equal_those_loaded_through_numpy(monkeypa
     and keeps it on the device, the second restores it; with restores refused (every chunk through set_state,
     the path before) the costs are the same bit for bit."""
     from topocut.planning.rollout import make_sim_rollout
-    from topocut.tasks import TaskConfig, make_goal
+    from topocut.tasks import make_goal, task_config
 
-    goal = make_goal(TaskConfig(name="slice"), "cube", ObjectPose(), SimConfig(n_grid=32).spacing)
+    goal = make_goal(task_config("slice"), "cube", ObjectPose(), SimConfig(n_grid=32).spacing)
     seqs = np.array([[goal.planes[0].to_vector()], [[0.45, 0.5, 0.0, 0.0]], [[0.55, 0.5, 0.1, 0.0]]], np.float32)
     out = []
     for refuse in (False, True):
@@ -97,10 +97,10 @@ def test_a_demonstration_plans_from_the_engines_saved_scene_without_loading_thro
     """run_episode (MPPI, K = 2 scenes, 2 iterations): the engine keeps the scene on the device before planning
     (obs["sim_saved"]); the rollouts and the restore after planning use it, so nothing goes through set_state."""
     from topocut.planning import MPPIConfig, MPPIPolicy, run_episode, sim_rollout_factory
-    from topocut.tasks import TaskConfig, make_goal
+    from topocut.tasks import make_goal, task_config
 
     env = _env(2)
-    goal = make_goal(TaskConfig(name="slice"), "cube", ObjectPose(), env.cfg.spacing, board_z=env.cfg.board_z)
+    goal = make_goal(task_config("slice"), "cube", ObjectPose(), env.cfg.spacing, board_z=env.cfg.board_z)
     calls = []
     monkeypatch.setattr(env, "set_state", lambda *a, _f=env.set_state, **k: calls.append(1) or _f(*a, **k))
     factory = sim_rollout_factory(env, board_z=env.cfg.board_z)

@@ -85,9 +85,9 @@ def oracle_beats_wrong_thickness(x, x0, goal, first, spacing):
     """Issue #29: the oracle's simulated first slab scores above ideal slabs of the wrong thickness (0.5t, 1.5t),
     cut by hand from the initial particles (the goal's first plane is vertical, normal +x)."""
     from topocut.reward import spectral_reward
-    from topocut.tasks import TaskConfig
+    from topocut.tasks import task_config
 
-    t = TaskConfig(name="slice").thickness
+    t = task_config("slice").thickness
     face = float(first.x) + t
     sim = spectral_reward([x[p] for p in big(components(x, spacing), 50)], goal.fragments).per_goal[0]
     for r in (0.5, 1.5):
@@ -105,13 +105,13 @@ def test_goal_steps_executed_give_the_goal_pieces(object, task):
     every goal piece: IoU >= 0.8 with a discovered piece, and >= 95% of its particles in one of our own
     components, on the cube a different one for each goal piece (the cake's slices may touch after their pushes).  On the cube's slices: after four 3 cm cuts, 5 pieces,
     each slab holding >= 95% of the particles that started between its two planes."""
-    from topocut.tasks import Cut, TaskConfig, get_task
+    from topocut.tasks import Cut, get_task, task_config
     from topocut.topology.discover import discover
 
     cfg = SimConfig(n_grid=64)
     env = CuttingEnv(cfg, batch_size=1)
     x0 = env.reset(object, POSE).x[0].astype(np.float64)
-    goal = get_task(task).make_goal(TaskConfig(name=task), object, POSE, spacing=cfg.spacing, board_z=cfg.board_z)
+    goal = get_task(task).make_goal(task_config(task), object, POSE, spacing=cfg.spacing, board_z=cfg.board_z)
     # the stick slab is set aside first: laid flat (the cake's wide slab) or moved unturned (the cube's)
     assert [s.angle == 0.0 for s in goal.steps if s.kind == "turn"] == ([] if task == "slice" else [object == "cube"])
     labels, next_id, cuts = None, None, 0

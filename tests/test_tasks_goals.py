@@ -5,8 +5,7 @@ import numpy as np
 import pytest
 
 from topocut.sim.objects import ObjectPose
-from topocut.tasks import TASKS, Cut, Turn, get_task, make_goal
-from topocut.tasks.config import TaskConfig
+from topocut.tasks import TASKS, Cut, Turn, get_task, make_goal, task_config
 
 H = 1 / 128  # particle spacing of the 64^3 grid (half a cell)
 OBJECTS = ("cube", "cake", "donut", "steak")
@@ -32,9 +31,9 @@ def test_registry_names_every_task_and_its_module_docstring():
 
 @pytest.mark.parametrize("obj", OBJECTS)
 def test_stick_and_dice_goals_differ_and_have_their_shapes(obj):
-    st = make_goal(TaskConfig(name="stick"), obj, POSE, H)
-    di = make_goal(TaskConfig(name="dice"), obj, POSE, H)
-    size = TaskConfig().size
+    st = make_goal(task_config("stick"), obj, POSE, H)
+    di = make_goal(task_config("dice"), obj, POSE, H)
+    size = task_config("dice").size
     assert len(di.fragments) >= 1 and len(st.fragments) >= 1
     same = len(st.fragments) == len(di.fragments) and all(
         a.shape == b.shape and np.array_equal(a, b) for a, b in zip(st.fragments, di.fragments))
@@ -52,8 +51,8 @@ def test_stick_and_dice_goals_differ_and_have_their_shapes(obj):
 
 @pytest.mark.parametrize("obj", OBJECTS)
 def test_every_slice_has_the_asked_thickness(obj):
-    t = TaskConfig().thickness
-    g = make_goal(TaskConfig(name="slice", max_cuts=2), obj, POSE, H)
+    t = task_config("slice").thickness
+    g = make_goal(task_config("slice", max_cuts=2), obj, POSE, H)
     for f in g.fragments:
         e = principal_extents(f)
         # the thinnest extent: along a1, the slab's normal (a ring's edge slab of the donut is curved: its
@@ -65,7 +64,7 @@ def test_every_slice_has_the_asked_thickness(obj):
 
 def test_turn_lays_the_slab_flat_on_the_board():
     """The dice oracle's turn: the slab's thickness (a1) becomes vertical, its lowest particle on the board."""
-    g = make_goal(TaskConfig(name="dice"), "cube", POSE, H)
+    g = make_goal(task_config("dice"), "cube", POSE, H)
     turn = g.turns[0]
     first = g.steps[0].action
     from topocut.sim.objects import sample_object
@@ -91,7 +90,7 @@ def test_success_asks_the_task():
     class R:
         total, cut_count, per_goal = 0.5, 2, np.zeros(2)
 
-    cfg = TaskConfig(name="slice")
+    cfg = task_config("slice")
     assert get_task("slice").success(R(), cfg)  # N_C = G
     R.cut_count = 1
     assert not get_task("slice").success(R(), cfg)

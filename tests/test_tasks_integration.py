@@ -65,20 +65,20 @@ def test_config_refuses_dice_with_two_cuts_naming_task_max_cuts():
 
 
 def test_pyramid_at_smoke_scale_keeps_its_own_corner():
-    """The smoke scale's 5 cm pieces are the slice / stick / dice sizes, not the pyramid's leg: at smoke scale the
-    pyramid keeps its task yaml's 10 cm corner and one cut (conf/scale_task/smoke_pyramid.yaml), which the 48^3
-    grid resolves (~150 particles; a 5 cm leg leaves a tenth of the volume, (0.05 / 0.1)^3 = 1/8)."""
+    """The smoke scale's 5 cm pieces are the slice / stick / dice sizes (conf/scale_task/smoke_<task>.yaml), not
+    the pyramid's leg: at smoke scale the pyramid keeps its own 10 cm corner and one cut (PyramidConfig's defaults;
+    no smoke_pyramid.yaml), which the 48^3 grid resolves (~150 particles; a 5 cm leg leaves a tenth of the volume,
+    (0.05 / 0.1)^3 = 1/8)."""
     from omegaconf import OmegaConf
 
     from topocut.sim.config import SimConfig
     from topocut.tasks import make_goal
-    from topocut.tasks.config import TaskConfig
 
     cfg = _compose("stage=mppi", "task=pyramid", "object=cube", "scale=smoke")
     validate(cfg)
     assert (cfg.task.size, cfg.task.max_cuts) == (0.1, 1)
     assert _compose("stage=mppi", "task=pyramid", "scale=smoke", "task.size=0.08").task.size == 0.08  # still wins
-    task = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(TaskConfig), cfg.task))
+    task = OmegaConf.to_object(cfg.task)  # a PyramidConfig (the task group's schema)
     goal = make_goal(task, "cube", spacing=SimConfig(n_grid=cfg.sim.n_grid).spacing, board_z=0.05)
     n = len(goal.fragments[0])  # the tetrahedron: leg^3 / 6 of volume, a particle per spacing^3
     assert 0.6 * (0.1 ** 3 / 6) / SimConfig(n_grid=48).spacing ** 3 < n < 1.4 * (0.1 ** 3 / 6) / SimConfig(n_grid=48).spacing ** 3
@@ -88,8 +88,8 @@ def test_pyramid_at_smoke_scale_keeps_its_own_corner():
 def test_dice_smoke_config_composes_and_validates(stage):
     cfg = _compose(f"stage={stage}", "task=dice", "scale=smoke", "logger=csv")
     validate(cfg)
-    assert cfg.task.max_cuts == 3 and cfg.task.size == 0.05  # conf/scale_task/smoke_dice.yaml over the smoke sizes
-    # the other tasks keep the smoke scale's 2 cuts (a cheap pipeline), the paper scale its task yamls' 5
+    assert cfg.task.max_cuts == 3 and cfg.task.size == 0.05  # conf/scale_task/smoke_dice.yaml
+    # slice and stick take 2 cuts at smoke scale (a cheap pipeline: smoke_<task>.yaml), the paper scale the tasks' 5
     assert _compose(f"stage={stage}", "task=slice").task.max_cuts == 2
     assert _compose(f"stage={stage}", "task=dice", "scale=paper").task.max_cuts == 5
     # make run's path: the whole pipeline at smoke scale on the slice task
@@ -133,9 +133,9 @@ def test_turns_after_and_truncated_steps():
 
 
 def _task_cfg(name, **kw):
-    from topocut.tasks import TaskConfig
+    from topocut.tasks import task_config
 
-    return TaskConfig(name=name, **kw)
+    return task_config(name, **kw)
 
 
 class FakeEnv:

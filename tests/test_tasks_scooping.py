@@ -75,13 +75,13 @@ def test_block_and_cup_regions():
 def test_one_scoop_moves_a_chunk_into_the_cup():
     """n_grid 32 (dx 3.1 cm, 1350 particles, ~15 s): the chunk leaves the block, lands in the cup, is its own cluster."""
     from topocut.sim import SimConfig
-    from topocut.tasks.config import TaskConfig
+    from topocut.tasks import task_config
     from topocut.tasks.scooping_scene import scoop_episode
     from topocut.topology import TopologyConfig
 
     sp = SpoonConfig(scoops=[[-0.03, 0.0]])
     sim = SimConfig(n_grid=32)
-    res = scoop_episode(sim, TaskConfig(name="scooping", spoon=sp).validate(), TopologyConfig(resolution=64))
+    res = scoop_episode(sim, task_config("scooping", spoon=sp).validate(), TopologyConfig(resolution=64))
     arr = res["arrays"]
     x, lab, chunk = arr["x"], arr["labels"], arr["chunk"]
     s = sim.spacing

@@ -212,8 +212,7 @@ def test_teleop_replay_in_simulator_matches_live(tmp_path):
         from topocut.sim.config import SimConfig
         from topocut.sim.env import CuttingEnv
         from topocut.sim.objects import ObjectPose
-        from topocut.tasks import make_goal
-        from topocut.tasks.config import TaskConfig
+        from topocut.tasks import make_goal, task_config
         from topocut.topology import discover  # noqa: F401
     except ImportError as e:
         pytest.skip(f"simulator/topology/reward/goals not importable yet: {e}")
@@ -222,7 +221,7 @@ def test_teleop_replay_in_simulator_matches_live(tmp_path):
         if hasattr(cfg, k):
             setattr(cfg, k, v)
     pose = ObjectPose()
-    goal = make_goal(TaskConfig(name="slice"), "cube", pose, getattr(cfg, "spacing", 0.01))
+    goal = make_goal(task_config("slice"), "cube", pose, getattr(cfg, "spacing", 0.01))
     env = CuttingEnv(cfg, batch_size=1)
     s = TeleopSession(env, goal, "cube", pose, 0, "slice", cfg=TeleopConfig(log_path=str(tmp_path / "log.json")))
     p0, p1 = goal.planes[0], goal.planes[min(1, len(goal.planes) - 1)]

@@ -132,7 +132,14 @@ class TopoCutConfig:
 
 
 def register_configs() -> None:
-    ConfigStore.instance().store(name="base_config", node=TopoCutConfig)
+    cs = ConfigStore.instance()
+    cs.store(name="base_config", node=TopoCutConfig)
+    # the task group's schemas: conf/task/<task>.yaml starts from base_<task> (its task's dataclass), so a key the
+    # task does not read (task=pyramid task.width=...) is refused while composing, naming the pyramid's keys
+    from topocut.tasks import TASKS, task_config_class
+
+    for name in TASKS:
+        cs.store(group="task", name=f"base_{name}", node=task_config_class(name))
     # ${pid:} in hydra.run.dir: two runs started in the same second get directories of their own
     if not OmegaConf.has_resolver("pid"):
         OmegaConf.register_new_resolver("pid", lambda: os.getpid())
@@ -153,8 +160,15 @@ def unknown_key_error(full_key: str, schema: type) -> ConfigError:
               if is_dataclass(f.default_factory) and leaf in {g.name for g in fields(f.default_factory)}]
     close = close or nested
     hint = f" (did you mean {group + '.' if group else ''}{close[0]}?)" if close else ""
-    return ConfigError(f"{full_key}: unknown key{hint}; valid keys of {group or 'the root config'}: "
-                       f"{', '.join(valid)}")
+    where = group or "the root config"
+    if issubclass(schema, TaskConfig) and group == "task":  # each task has keys of its own: say whose these are
+        from topocut.tasks import tasks_with_key
+
+        task = next((f.default for f in fields(schema) if f.name == "name"), "")
+        owners = tasks_with_key(leaf)
+        hint = hint or (f" (a key of task={', '.join(owners)})" if owners else "")
+        where = f"task={task} ({schema.__name__})" if task else f"task ({schema.__name__})"
+    return ConfigError(f"{full_key}: unknown key{hint}; valid keys of {where}: {', '.join(valid)}")
 
 
 def check_known_keys(node: DictConfig, prefix: str = "") -> None:
@@ -242,7 +256,8 @@ def validate(cfg: DictConfig) -> None:
            f"{cfg.trainer.max_steps} is not valid; -1 (no limit) or >= 1")
     # Taichi's random_seed is an int32 and episode seeds are mixed modulo 2**31 - 1 (mix_seed)
     _check(0 <= cfg.seed < 2 ** 31 - 1, "seed", f"{cfg.seed} is not valid; must lie in [0, 2**31 - 1)")
-    _check_task_cuts(cfg.task.name, cfg.task.max_cuts)
+    if "max_cuts" in cfg.task:  # the knife tasks' (KnifeTaskConfig); cream writing and scooping cut nothing
+        _check_task_cuts(cfg.task.name, cfg.task.max_cuts)
     sim = OmegaConf.to_object(cfg.sim)
     try:
         sim.validate()

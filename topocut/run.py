@@ -22,7 +22,14 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from topocut.config import ConfigError, check_device, composition_error, register_configs, validate
+from topocut.config import (
+    ConfigError,
+    check_device,
+    check_known_keys,
+    composition_error,
+    register_configs,
+    validate,
+)
 from topocut.data.store import (
     ArtifactBusy,
     ArtifactStore,
@@ -194,11 +201,34 @@ def open_dict_overrides(argv: list[str]) -> list[str]:
     return [f"++{a}" if is_open(a) else a for a in argv]
 
 
+PRINT_FLAGS = {"--cfg": 1, "-c": 1, "--package": 1, "-p": 1, "--resolve": 0}  # Hydra's printing flags: values taken
+
+
+def _overrides_to_check(argv: list[str]) -> tuple[list[str] | None, bool]:
+    """(the overrides preflight composes, whether Hydra only prints the config): a run's argv, or one with Hydra's
+    printing flags (``--cfg job``: the same config, shown), whose overrides are checked alike.  None for Hydra's
+    other modes (``-m``: a sweep's lists are not one config; ``--help``, ...), left to Hydra."""
+    out, printing, i = [], False, 0
+    while i < len(argv):
+        flag = argv[i].split("=", 1)[0]
+        if flag in PRINT_FLAGS:
+            printing = True
+            i += 1 + (PRINT_FLAGS[flag] if "=" not in argv[i] else 0)
+            continue
+        if argv[i].startswith("-"):
+            return None, False
+        out.append(argv[i])
+        i += 1
+    return out, printing
+
+
 def preflight(argv: list[str]) -> None:
     """Compose the config before Hydra does, to refuse a typo'd option or key and an unwritable outputs_root as
     user errors: Hydra reports them (and fails to create the run directory) with status 1 and a traceback.
-    Hydra's own modes (``-m``, ``--cfg``, ``--help``, ...) are left to Hydra."""
-    if any(a.startswith("-") for a in argv):
+    ``--cfg job`` is checked alike (a key the task lacks is the same one-line error), without touching
+    outputs_root; Hydra's other modes (``-m``, ``--help``, ...) are left to Hydra."""
+    overrides, printing = _overrides_to_check(argv)
+    if overrides is None:
         return
     from hydra import compose, initialize_config_dir
     from hydra.errors import HydraException
@@ -206,9 +236,12 @@ def preflight(argv: list[str]) -> None:
 
     try:
         with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-            cfg = compose(config_name="config", overrides=argv)
+            cfg = compose(config_name="config", overrides=overrides)
     except (HydraException, OmegaConfBaseException) as e:
         raise composition_error(e) from e
+    check_known_keys(cfg)  # +task.width=... for a task without one: Hydra adds it silently, validate would refuse it
+    if printing:  # nothing runs: the outputs root is not written
+        return
     root = Path(cfg.outputs_root)
     try:
         root.mkdir(parents=True, exist_ok=True)

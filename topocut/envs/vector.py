@@ -97,8 +97,8 @@ class CuttingVectorEnv(VectorEnv):
                  num_goal_points: int = 1024, max_cuts: int | None = None, push: bool | None = None,
                  reward_mode: str = "total", tilt_max: float | None = None, device: str = "cpu",
                  min_fragment_points: int | None = None, turns: bool = True, render_mode: str | None = None):
-        """task: a task name (knife tasks: slice, stick, dice, pyramid); task_cfg: its TaskConfig (default
-        TaskConfig(name=task)).  objects: one object name, or a list from which each scene draws its own at
+        """task: a task name (knife tasks: slice, stick, dice, pyramid); task_cfg: its task config (default
+        ``task_config(task)``, the task's defaults: stick and dice push).  objects: one object name, or a list from which each scene draws its own at
         every reset.  sim_cfg: SimConfig (its batch_size is replaced by num_envs).  topo_cfg /
         reward_cfg: TopologyConfig / RewardConfig (None: defaults).  eval_cfg: EvalConfig whose pose
         randomisation (randomize_pose, translation, yaw_deg, scale_min/max) and min_fragment_points are used.
@@ -108,12 +108,12 @@ class CuttingVectorEnv(VectorEnv):
         from topocut.eval.config import EvalConfig
         from topocut.sim.config import SimConfig
         from topocut.sim.env import CuttingEnv
-        from topocut.tasks import TaskConfig, get_task
+        from topocut.tasks import get_task, task_config
 
         if reward_mode not in REWARD_MODES:
             raise ValueError(f"reward_mode={reward_mode!r}; choose one of {', '.join(REWARD_MODES)}")
         check_render_mode(render_mode)
-        self.task_cfg = (task_cfg if task_cfg is not None else TaskConfig(name=task)).validate()
+        self.task_cfg = (task_cfg if task_cfg is not None else task_config(task)).validate()
         self.task = get_task(self.task_cfg.name)
         if getattr(self.task, "tool", "knife") != "knife":
             raise ValueError(f"CuttingVectorEnv runs the knife tasks; task {self.task_cfg.name!r} uses a "

@@ -133,18 +133,19 @@ class EvalConfig:
             bad = [o for o in names if o not in OBJECTS]
             if bad:
                 raise ValueError(f"{key}: unknown object {bad[0]!r}; valid: {', '.join(OBJECTS)}")
-        from topocut.tasks.config import TaskConfig
+        from topocut.tasks import task_config_class, task_keys
 
-        params = {f for f in TaskConfig.__dataclass_fields__ if f not in ("name", "max_cuts", "stage")}
         for task, over in self.task_overrides.items():
             if task not in TASKS and task not in self.tasks:
                 raise ValueError(f"eval.task_overrides.{task}: unknown task; valid: {', '.join(TASKS)} and the "
                                  "entries of eval.tasks")
+            # the task's own keys (its dataclass: dice has size, no thickness), but what the evaluation sets itself
+            params = [k for k in task_keys(task) if k not in ("name", "max_cuts", "stage")]
             bad = [k for k in over if k not in params]
             if bad:
                 why = " (eval.max_cuts sets it)" if bad[0] == "max_cuts" else ""
-                raise ValueError(f"eval.task_overrides.{task}.{bad[0]}: not a task parameter{why}; valid: "
-                                 f"{', '.join(sorted(params))}")
+                raise ValueError(f"eval.task_overrides.{task}.{bad[0]}: not a parameter of task={task}{why}; valid "
+                                 f"keys of {task_config_class(task).__name__}: {', '.join(params)}")
         overlap = set(self.seen) & set(self.unseen)
         if overlap:
             raise ValueError(f"eval.seen and eval.unseen share objects {sorted(overlap)}")

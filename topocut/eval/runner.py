@@ -19,24 +19,24 @@ _log = logging.getLogger("topocut")
 
 
 def task_configs(names, max_cuts: int, overrides=None) -> dict:
-    """TaskConfig per task from conf/task/<name>.yaml (one source of truth for task parameters) -- for a task of
-    your own (``module.path:ClassName``) its class's ``defaults`` instead -- with ``overrides[name]``
-    (eval.task_overrides) on top; the cut budget is eval.max_cuts, raised to the task's own minimum (``min_cuts``:
-    a die needs 3)."""
-    from topocut.tasks import get_task, is_task_path
-    from topocut.tasks.config import TaskConfig
+    """The task config per task: its dataclass (``task_config``: DiceConfig for dice, whose defaults are the task's;
+    for a task of your own, ``module.path:ClassName``, its class's ``config`` and ``defaults``), then what
+    conf/task/<name>.yaml sets beside its schema, then ``overrides[name]`` (eval.task_overrides); the cut budget is
+    eval.max_cuts, raised to the task's own minimum (``min_cuts``: a die needs 3)."""
+    from topocut.tasks import get_task, is_task_path, task_config
 
     out = {}
     for name in names:
         f = CONF_TASKS / f"{name}.yaml"
         if is_task_path(name):
-            own = {**dict(getattr(get_task(name), "defaults", {}) or {}), "name": name}
+            own = {}
         elif f.exists():
             own = OmegaConf.load(f)
+            own.pop("defaults", None)  # Hydra's defaults list (base_<name>): the dataclass below is that schema
         else:
             raise KeyError(f"eval.tasks: unknown task {name!r}; valid: {', '.join(sorted(p.stem for p in CONF_TASKS.glob('*.yaml')))}")
         over = (overrides or {}).get(name, {})
-        cfg = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(TaskConfig), own, over))
+        cfg = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(task_config(name)), own, over))
 
         cfg.max_cuts = max(max_cuts, get_task(name).min_cuts)  # dice need 3 cuts even where eval.max_cuts is 2
         cfg.validate()

@@ -2,7 +2,7 @@
 
 The cream pen (``PenConfig``, topocut/sim/pen.py) and the spoon and cup (``SpoonConfig``, topocut/sim/spoon.py)
 are simulator parts, so their settings live here and the simulator needs nothing from topocut.tasks;
-topocut.tasks.config re-exports both for TaskConfig (docs/tasks.md).
+the cream writing and scooping task configs hold them (task.pen, task.spoon; docs/tasks.md).
 """
 from __future__ import annotations
 

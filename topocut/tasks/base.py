@@ -25,6 +25,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from topocut.sim.action import KnifeAction
+from topocut.tasks.config import SIZE_KEYS, KnifeTaskConfig
 
 
 @dataclass(frozen=True)
@@ -123,6 +124,10 @@ class Task(Protocol):
     """What a task provides (module docstrings: Task, Randomisations, Success)."""
 
     name: str
+    # its parameters: a TaskConfig subclass holding only what the task reads (topocut.tasks.task_config builds it;
+    # Hydra's task group is backed by it).  Optional: a class without one gets TaskConfig, a KnifeTask
+    # KnifeTaskConfig, either with the class's ``defaults`` dict over it
+    config: type
     tool: str  # "knife" | "pen" | "spoon": which scene the stages build (pipelines dispatch on it)
     stages: tuple  # the stages with a pipeline for this task (stage.name values)
     min_cuts: int  # the fewest task.max_cuts that makes a goal piece
@@ -156,6 +161,7 @@ class KnifeTask(ABC):
     """Shared behaviour of the knife tasks (slice, stick, dice, pyramid); each defines ``pieces``."""
 
     name = ""
+    config = KnifeTaskConfig  # a task with parameters of its own declares a subclass (SliceConfig, DiceConfig)
     tool = "knife"
     turns = False  # whose oracle lays pieces down between cut directions (Turn steps)
     stages = ("simulate", "mppi", "teleop", "merge", "pretrain", "bc", "eval", "all")
@@ -186,12 +192,13 @@ class KnifeTask(ABC):
         if not goal_ids:
             from topocut.config import ConfigError  # a ValueError: the user's to fix (exit 2 from a stage)
 
-            sizes = ", ".join(f"task.{k}={getattr(cfg, k)}" for k in ("thickness", "width", "size"))
+            keys = [k for k in SIZE_KEYS if hasattr(cfg, k)]  # the sizes this task has
+            sizes = ", ".join(f"task.{k}={getattr(cfg, k)}" for k in keys)
             raise ConfigError(f"task {self.name!r} produced no goal piece on {object!r} at particle spacing "
                               f"{spacing:.4g} ({sizes}): a piece must be thinner than the object "
                               f"({np.ptp(p64 @ axes[0]):.3f} along its longer axis) and at least {3 * spacing:.3f} "
-                              f"(3 particle spacings) thick; set task.thickness/width/size in that range, or a finer "
-                              f"sim.n_grid")
+                              f"(3 particle spacings) thick; set {'/'.join(f'task.{k}' for k in keys) or 'its size'} "
+                              f"in that range, or a finer sim.n_grid")
         fragments = [pts[run.piece == p] for p in goal_ids]
         labels = np.zeros(len(pts), np.int32)  # 0 = not a goal piece, i + 1 = fragments[i]
         for i, p in enumerate(goal_ids):

@@ -1,100 +1,82 @@
 """Task configuration (paper §4 task setup and the appendix's additional tasks; docs/reward.md#goals, docs/tasks.md).
 
-The cutting tasks (slice, stick, dice, pyramid) use the knife; cream_writing uses a cream pen
-(``PenConfig``) and scooping a spoon and a cup (``SpoonConfig``).  What a task needs is the task's to say
-(``topocut.tasks.get_task(name)``): its stages (``check_stage`` refuses the others: cream writing has simulate
-and mppi, scooping simulate), its fewest cuts (``min_cuts``) and its tool's fields (pen, spoon).
+``TaskConfig`` holds what every task has (its name, its success threshold, the stage running it); each task
+module declares its own subclass beside its task class, with only the parameters that task reads
+(``SliceConfig.thickness``, ``DiceConfig.size``, ``CreamWritingConfig.pen``, ...), and names it on the class
+(``config = DiceConfig``).  ``KnifeTaskConfig`` adds what every knife task's code reads (the cut budget, the push,
+the goal's points, MPPI's tilt), so the knife tasks subclass it and cream writing and scooping do not.  A key is
+therefore accepted only by the tasks that read it: ``task=pyramid task.width=0.05`` is refused naming the
+pyramid's keys (topocut.config.unknown_key_error).  ``topocut.tasks.task_config(name, **params)`` builds the
+registered task's config; Hydra's ``task`` group is backed by the same dataclasses (``base_<task>`` in
+topocut.config.register_configs), so a dataclass's defaults are the task's defaults.
+
+What a task needs besides its parameters is the task's to say (``topocut.tasks.get_task(name)``): its stages
+(``check_stage`` refuses the others: cream writing has simulate and mppi, scooping simulate) and its fewest cuts
+(``min_cuts``).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from topocut.sim.tools import PenConfig, SpoonConfig  # noqa: F401 - re-exported: the tools' settings live with the simulator
 
 CUTTING_TASKS = ("slice", "stick", "dice", "pyramid")
 TASKS = CUTTING_TASKS + ("cream_writing", "scooping")  # the registry's names (topocut.tasks.get_task)
+SIZE_KEYS = ("thickness", "width", "size")  # the knife tasks' piece sizes, each on the tasks that read it
 
 
 @dataclass
 class TaskConfig:
-    name: str = "slice"  # slice | stick | dice | pyramid | cream_writing | scooping
-    thickness: float = 0.03  # slice thickness (scene units), along the object's longest horizontal axis
-    width: float = 0.03  # stick width, along the other horizontal axis
-    size: float = 0.03  # dice side; pyramid: leg length of the corner tetrahedron
-    max_cuts: int = 5  # cuts per episode; also bounds the number of goal pieces
+    """What every task has; a task's own parameters live on its subclass (topocut/tasks/<task>.py)."""
+
+    name: str = ""  # slice | stick | dice | pyramid | cream_writing | scooping | module.path:ClassName
     # the least total spectral reward (in [0, r_max]) a success needs: knife tasks also need every goal piece made
-    # (N_C = G; KnifeTask.success, docs/tasks.md#success); cream writing and scooping the total alone (their yaml: 0.95)
+    # (N_C = G; KnifeTask.success, docs/tasks.md#success); cream writing and scooping the total alone (0.95)
     success_threshold: float = 0.5
-    push: bool = False  # after each cut the blade slides the cut-off side aside (stick and dice in the paper)
-    num_goal_points: int = 2048  # Goal.points/labels are FPS-downsampled to this many points (0: keep all)
-    sample_tilt: bool = False  # MPPI also samples the knife tilt (pyramid: the goal plane is tilted)
-    # -- cream writing -----------------------------------------------------------
-    word: str = "CORL"  # letters written, one stroke (cluster) each; topocut.tasks.letters.LETTERS
-    letter_height: float = 0.12  # cap height of a letter [units]; width is LETTER_ASPECT times it
-    letter_gap: float = 0.06  # space between letters [units] (>= ~5 spacings, or discovery joins them)
-    pen: PenConfig = field(default_factory=PenConfig)
-    # -- scooping ----------------------------------------------------------------
-    spoon: SpoonConfig = field(default_factory=SpoonConfig)
     # the stage running this task: conf/task/{cream_writing,scooping}.yaml fill it from ${stage.name} so that
     # validate() refuses a stage without a pipeline for the task ("" = not checked)
     stage: str = ""
 
     def validate(self) -> TaskConfig:
-        from topocut.tasks import get_task
+        """The checks every task shares; a subclass adds its own parameters' after calling this."""
+        from topocut.tasks import task_config_class
 
-        task = get_task(self.name)  # unknown names fail here with the list of tasks
-        for k in ("thickness", "width", "size", "letter_height"):
+        want = task_config_class(self.name)  # unknown names fail here with the list of tasks
+        if not isinstance(self, want):  # e.g. TaskConfig(name="dice"): it has no size, so dice could not run
+            raise ValueError(f"task.name={self.name!r} takes a {want.__name__}, got a {type(self).__name__}; build "
+                             f"it with topocut.tasks.task_config({self.name!r}, ...)")
+        if self.stage:
+            check_stage(self.stage, self.name)
+        return self
+
+    def check_positive(self, *keys: str) -> None:
+        """Refuse a parameter <= 0 (the pieces' sizes, the letters' height), naming its key."""
+        for k in keys:
             if getattr(self, k) <= 0:
                 raise ValueError(f"task.{k}={getattr(self, k)} must be > 0")
+
+
+@dataclass
+class KnifeTaskConfig(TaskConfig):
+    """What the knife tasks' shared code reads (topocut.tasks.base.KnifeTask, the stages, MPPI, the envs): every
+    knife task has these, the pen's and the spoon's tasks none of them."""
+
+    max_cuts: int = 5  # cuts per episode; also bounds the number of goal pieces
+    # after each cut the blade slides the cut-off side aside (stick and dice in the paper); read for every knife
+    # task (KnifeTask.make_goal orders the cuts push-safe, the stages and the envs push), so not one task's own
+    push: bool = False
+    num_goal_points: int = 2048  # Goal.points/labels are FPS-downsampled to this many points (0: keep all)
+    # MPPI also samples the knife tilt (pipelines/mppi.py, topocut.envs): the pyramid's goal plane is tilted, but
+    # any knife task's planner can sample it, so the key is the knife tasks', set true by the pyramid's config
+    sample_tilt: bool = False
+
+    def validate(self) -> KnifeTaskConfig:
+        super().validate()
         if self.max_cuts < 1:  # the task's own minimum (min_cuts): topocut.config.validate and make_goal
             raise ValueError(f"task.max_cuts={self.max_cuts} must be >= 1")
         if self.num_goal_points < 0:
             raise ValueError(f"task.num_goal_points={self.num_goal_points} must be >= 0")
-        if self.stage:
-            check_stage(self.stage, self.name)
-        tool_fields = {"pen": self._validate_writing, "spoon": self._validate_scooping}.get(task.tool)
-        if tool_fields is not None:
-            tool_fields()
         return self
-
-    def _validate_writing(self) -> None:
-        from topocut.tasks.letters import LETTERS
-
-        bad = [c for c in self.word.upper() if c not in LETTERS]
-        if not self.word or bad:
-            raise ValueError(f"task.word={self.word!r}: no stroke for {bad or 'an empty word'}; "
-                             f"valid letters: {''.join(sorted(LETTERS))}")
-        if self.letter_gap < 0:
-            raise ValueError(f"task.letter_gap={self.letter_gap} must be >= 0")
-        p = self.pen
-        for k in ("height", "nozzle_radius", "extrude_speed", "speed", "travel_speed", "step", "yield_stress", "mu",
-                  "lam"):
-            if getattr(p, k) <= 0:
-                raise ValueError(f"task.pen.{k}={getattr(p, k)} must be > 0")
-        if p.max_particles < 100:
-            raise ValueError(f"task.pen.max_particles={p.max_particles} must be >= 100")
-
-    def _validate_scooping(self) -> None:
-        s = self.spoon
-        for k in ("radius", "thickness", "depth", "advance", "speed", "cup_radius", "cup_height", "cup_wall",
-                  "yield_stress"):
-            if getattr(s, k) <= 0:
-                raise ValueError(f"task.spoon.{k}={getattr(s, k)} must be > 0")
-        if not -1.0 < s.opening < 1.0:
-            raise ValueError(f"task.spoon.opening={s.opening} must lie in (-1, 1)")
-        if s.depth >= 2 * s.radius:
-            raise ValueError(f"task.spoon.depth={s.depth} must be < the bowl's diameter 2*radius={2 * s.radius}")
-        if len(s.block) != 3 or min(s.block) <= 0:
-            raise ValueError(f"task.spoon.block must be 3 positive sizes (x, y, z), got {list(s.block)}")
-        for k in ("block_center", "cup_center"):
-            if len(getattr(s, k)) != 2:
-                raise ValueError(f"task.spoon.{k} must be (x, y), got {list(getattr(s, k))}")
-        if not s.scoops or any(len(a) != 2 for a in s.scoops):
-            raise ValueError(f"task.spoon.scoops must be a non-empty list of (x, y) offsets, got {s.scoops}")
-        gap = abs(s.cup_center[0] - s.block_center[0]) - s.block[0] / 2 - s.cup_radius - s.cup_wall
-        if gap < 0:
-            raise ValueError(f"task.spoon.cup_center={list(s.cup_center)} puts the cup inside the block "
-                             f"(x gap {gap:.3f} < 0)")
 
 
 def check_max_cuts(max_cuts: int, task) -> None:

@@ -13,16 +13,53 @@ topocut.tasks.writing_scene (goal layout, scripted primitives, stroke clusters).
 """
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+
+from topocut.sim.tools import PenConfig
 from topocut.tasks.base import register_task
+from topocut.tasks.config import TaskConfig
+
+
+@dataclass
+class CreamWritingConfig(TaskConfig):
+    """No knife: no cut budget, push or tilt (KnifeTaskConfig); the word, its letters' layout and the pen."""
+
+    name: str = "cream_writing"
+    success_threshold: float = 0.95  # the total alone decides success (docs/tasks.md)
+    word: str = "CORL"  # letters written, one stroke (cluster) each; topocut.tasks.letters.LETTERS
+    letter_height: float = 0.12  # cap height of a letter [units]; width is LETTER_ASPECT times it
+    letter_gap: float = 0.06  # space between letters [units] (>= ~5 spacings, or discovery joins them)
+    pen: PenConfig = field(default_factory=PenConfig)  # task.pen.*: topocut/sim/tools.py
+
+    def validate(self) -> CreamWritingConfig:
+        from topocut.tasks.letters import LETTERS
+
+        super().validate()
+        self.check_positive("letter_height")
+        bad = [c for c in self.word.upper() if c not in LETTERS]
+        if not self.word or bad:
+            raise ValueError(f"task.word={self.word!r}: no stroke for {bad or 'an empty word'}; "
+                             f"valid letters: {''.join(sorted(LETTERS))}")
+        if self.letter_gap < 0:
+            raise ValueError(f"task.letter_gap={self.letter_gap} must be >= 0")
+        p = self.pen
+        for k in ("height", "nozzle_radius", "extrude_speed", "speed", "travel_speed", "step", "yield_stress", "mu",
+                  "lam"):
+            if getattr(p, k) <= 0:
+                raise ValueError(f"task.pen.{k}={getattr(p, k)} must be > 0")
+        if p.max_particles < 100:
+            raise ValueError(f"task.pen.max_particles={p.max_particles} must be >= 100")
+        return self
 
 
 @register_task
 class CreamWritingTask:
     name = "cream_writing"
+    config = CreamWritingConfig
     tool = "pen"
     stages = ("simulate", "mppi")
-    min_cuts = 1  # no knife: task.max_cuts is not used
-    min_cuts_why = "task.max_cuts is not used"
+    min_cuts = 1  # no knife: no task.max_cuts (CreamWritingConfig), nothing to check
+    min_cuts_why = "it has no cuts"
 
     def make_goal(self, cfg, object: str = "", pose=None, spacing: float = 0.008, board_z: float = 0.05,
                   seed: int = 0, skin_thickness: float = 0.01):

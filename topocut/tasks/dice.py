@@ -16,15 +16,33 @@ every side (slab cut + one cut each way; faces close the rest).
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from topocut.tasks.base import KnifeTask, first_slab, lay_flat, plane, register_task
+from topocut.tasks.config import KnifeTaskConfig
 from topocut.tasks.grid import best_grid
+
+
+@dataclass
+class DiceConfig(KnifeTaskConfig):
+    """A die's one side sets the slab, the sticks and the chops alike: dice has no thickness or width."""
+
+    name: str = "dice"
+    size: float = 0.03  # a die's side (scene units)
+    push: bool = True  # the paper's dice task pushes the cut-off side aside after each cut
+
+    def validate(self) -> DiceConfig:
+        super().validate()
+        self.check_positive("size")
+        return self
 
 
 @register_task
 class DiceTask(KnifeTask):
     name = "dice"
+    config = DiceConfig
     turns = True
     min_cuts = 3
     min_cuts_why = "a slab cut, a stick cut and a chop to free a die"

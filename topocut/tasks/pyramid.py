@@ -9,14 +9,33 @@ along its edges.  Goal piece: the corner tetrahedron (volume size^3 / 6 for a bo
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from topocut.tasks.base import KnifeTask, plane, register_task
+from topocut.tasks.config import KnifeTaskConfig
+
+
+@dataclass
+class PyramidConfig(KnifeTaskConfig):
+    name: str = "pyramid"
+    # the corner tetrahedron's leg (scene units): 0.1 of the 0.16 cube holds ~150 particles at n_grid 48 (0.08
+    # gives 76, a noisy spectrum; 0.05 ~18), and the 128^3 grid resolves it as well
+    size: float = 0.1
+    max_cuts: int = 1  # the one tilted cut
+    sample_tilt: bool = True  # the goal plane is tilted 35 deg: MPPI samples tilt as well as x, y, yaw
+
+    def validate(self) -> PyramidConfig:
+        super().validate()
+        self.check_positive("size")
+        return self
 
 
 @register_task
 class PyramidTask(KnifeTask):
     name = "pyramid"
+    config = PyramidConfig
 
     def pieces(self, cfg, pts, axes, pad, spacing, board_z):
         local = pts @ axes.T  # N,3 coordinates along a1, a2, z

@@ -10,12 +10,50 @@ Stages: simulate only.  Scene: topocut.tasks.scooping_scene.ScoopScene (spoon, c
 """
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+
+from topocut.sim.tools import SpoonConfig
 from topocut.tasks.base import register_task
+from topocut.tasks.config import TaskConfig
+
+
+@dataclass
+class ScoopingConfig(TaskConfig):
+    """No knife: no cut budget, push or tilt (KnifeTaskConfig); the spoon, the block, the cup and the scoops."""
+
+    name: str = "scooping"
+    success_threshold: float = 0.95  # the total alone decides success (docs/tasks.md)
+    spoon: SpoonConfig = field(default_factory=SpoonConfig)  # task.spoon.*: topocut/sim/tools.py
+
+    def validate(self) -> ScoopingConfig:
+        super().validate()
+        s = self.spoon
+        for k in ("radius", "thickness", "depth", "advance", "speed", "cup_radius", "cup_height", "cup_wall",
+                  "yield_stress"):
+            if getattr(s, k) <= 0:
+                raise ValueError(f"task.spoon.{k}={getattr(s, k)} must be > 0")
+        if not -1.0 < s.opening < 1.0:
+            raise ValueError(f"task.spoon.opening={s.opening} must lie in (-1, 1)")
+        if s.depth >= 2 * s.radius:
+            raise ValueError(f"task.spoon.depth={s.depth} must be < the bowl's diameter 2*radius={2 * s.radius}")
+        if len(s.block) != 3 or min(s.block) <= 0:
+            raise ValueError(f"task.spoon.block must be 3 positive sizes (x, y, z), got {list(s.block)}")
+        for k in ("block_center", "cup_center"):
+            if len(getattr(s, k)) != 2:
+                raise ValueError(f"task.spoon.{k} must be (x, y), got {list(getattr(s, k))}")
+        if not s.scoops or any(len(a) != 2 for a in s.scoops):
+            raise ValueError(f"task.spoon.scoops must be a non-empty list of (x, y) offsets, got {s.scoops}")
+        gap = abs(s.cup_center[0] - s.block_center[0]) - s.block[0] / 2 - s.cup_radius - s.cup_wall
+        if gap < 0:
+            raise ValueError(f"task.spoon.cup_center={list(s.cup_center)} puts the cup inside the block "
+                             f"(x gap {gap:.3f} < 0)")
+        return self
 
 
 @register_task
 class ScoopingTask:
     name = "scooping"
+    config = ScoopingConfig
     tool = "spoon"
     stages = ("simulate",)
     min_cuts = 1  # no knife: task.max_cuts is not used

@@ -10,12 +10,27 @@ within reward.success_distance, i.e. its thickness within ~0.86-1.16 t) and the 
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 from topocut.tasks.base import KnifeTask, register_task, slices
+from topocut.tasks.config import KnifeTaskConfig
+
+
+@dataclass
+class SliceConfig(KnifeTaskConfig):
+    name: str = "slice"
+    thickness: float = 0.03  # slab thickness (scene units), along the object's longest horizontal axis
+
+    def validate(self) -> SliceConfig:
+        super().validate()
+        self.check_positive("thickness")
+        return self
 
 
 @register_task
 class SliceTask(KnifeTask):
     name = "slice"
+    config = SliceConfig
 
     def pieces(self, cfg, pts, axes, pad, spacing, board_z):
         return slices(pts, axes, cfg.thickness, cfg.max_cuts, board_z, pad)

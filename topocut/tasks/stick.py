@@ -15,15 +15,32 @@ a full stick's particles; topocut.tasks.ideal), initial pose.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from topocut.tasks.base import KnifeTask, first_slab, lay_flat, move_aside, plane, register_task
+from topocut.tasks.config import KnifeTaskConfig
 from topocut.tasks.grid import best_grid
+
+
+@dataclass
+class StickConfig(KnifeTaskConfig):
+    name: str = "stick"
+    thickness: float = 0.03  # the slab's thickness (scene units), along the object's longest horizontal axis
+    width: float = 0.03  # each stick's width, across the slab
+    push: bool = True  # the paper's stick task pushes the cut-off side aside after each cut
+
+    def validate(self) -> StickConfig:
+        super().validate()
+        self.check_positive("thickness", "width")
+        return self
 
 
 @register_task
 class StickTask(KnifeTask):
     name = "stick"
+    config = StickConfig
     turns = True
     min_cuts = 2
     min_cuts_why = "a slab cut, then a cut across the slab"
