@@ -81,8 +81,11 @@ def demo_runs(config: dict) -> list[tuple[str, dict, tuple[int, int]]]:
         raise ConfigError(f"data.episodes_per_job: {per_job} is not valid; must be >= 1 (or null: one run per cell)")
     runs = []
     for i, (t, o) in enumerate(cells(config)):
+        # the cell's own task parameters (data.task_overrides), spelled as its stage=mppi run takes them
+        task_keys = dict(_flat("task", (data.get("task_overrides") or {}).get(t) or {}))
         if per_job is None:
-            runs.append(((0, 0, i), f"mppi-{t}-{o}", {"task": t, "object": o, "data.shard": "true"}, (i, 0)))
+            runs.append(((0, 0, i), f"mppi-{t}-{o}", {"task": t, "object": o, "data.shard": "true", **task_keys},
+                         (i, 0)))
             continue
         end = first + data["episodes"]
         for j, start in enumerate(range(first, end, per_job)):
@@ -90,8 +93,15 @@ def demo_runs(config: dict) -> list[tuple[str, dict, tuple[int, int]]]:
             cost = n * EPISODE_COST.get(t, max(EPISODE_COST.values()))
             runs.append(((j, -cost, i), f"mppi-{t}-{o}-e{start}-{start + n - 1}",
                          {"task": t, "object": o, "data.shard": "true", "data.first_episode": start,
-                          "data.episodes": n}, (i, j)))
+                          "data.episodes": n, **task_keys}, (i, j)))
     return [run[1:] for run in sorted(runs, key=lambda run: run[0])]
+
+
+def _flat(prefix: str, node) -> list[tuple[str, object]]:
+    """Dotted override keys of a nested dict: ("task", {"pen": {"speed": 1}}) -> [("task.pen.speed", 1)]."""
+    if not isinstance(node, dict):
+        return [(prefix, node)]
+    return [kv for k, v in node.items() for kv in _flat(f"{prefix}.{k}", v)]
 
 
 def train_seeds(config: dict) -> list[int]:

@@ -343,6 +343,36 @@ def test_stage_all_parts_keep_the_unsplit_plan_by_default_and_refuse_a_bad_size(
     assert [own["task"] for _, own, _ in runs[:15]] == ["dice"] * 5 + ["stick"] * 5 + ["slice"] * 5
 
 
+def test_stage_all_gives_each_demonstration_cell_its_own_task_parameters():
+    """data.task_overrides: each cell's stage=mppi run gets its task's keys (composed there as that task's config);
+    a key the task lacks, or an unknown task, is refused with the key's name and what is valid."""
+    from hydra import compose, initialize_config_dir
+
+    from pipelines.all import CONF_DIR, _compose, demo_runs
+    from topocut.config import ConfigError, register_configs, validate
+
+    register_configs()  # the task group's schemas (topocut.run does this on import)
+    config = {"data": {"tasks": ["slice", "stick", "dice"], "objects": ["cake"], "episodes": 2,
+                       "task_overrides": {"stick": {"thickness": 0.05, "width": 0.04}, "dice": {"size": 0.05}}},
+              "task": {"name": "slice"}, "object": {"name": "cake"}}
+    own = {label: o for label, o, _ in demo_runs(config)}
+    assert own["mppi-slice-cake"] == {"task": "slice", "object": "cake", "data.shard": "true"}
+    assert own["mppi-stick-cake"]["task.thickness"] == 0.05 and own["mppi-stick-cake"]["task.width"] == 0.04
+    assert own["mppi-dice-cake"]["task.size"] == 0.05 and "task.width" not in own["mppi-dice-cake"]
+    cell = _compose(["stage=mppi"] + [f"{k}={v}" for k, v in own["mppi-stick-cake"].items()])
+    assert cell.task.name == "stick" and cell.task.width == 0.04 and cell.task.thickness == 0.05
+    for bad, match in (({"dice": {"width": 0.05}}, r"data.task_overrides.dice.width: not a parameter of task=dice"),
+                       ({"dicer": {"size": 0.05}}, r"data.task_overrides.dicer: unknown task")):
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            cfg = compose(config_name="config", overrides=["stage=all", f"++data.task_overrides={_yaml(bad)}"])
+        with pytest.raises(ConfigError, match=match):
+            validate(cfg)
+
+
+def _yaml(d: dict) -> str:
+    return "{" + ",".join(f"{k}:{_yaml(v) if isinstance(v, dict) else v}" for k, v in d.items()) + "}"
+
+
 def test_mppi_keeps_one_simulator_per_process_for_equal_configs():
     """The process's env cache (topocut.sim.env.cached_env, stage=mppi's): parts of the same sim config (and batch size) reuse the env; another config
     destroys the held env's solver before building its own."""

@@ -84,6 +84,11 @@ class DataConfig:
     # merge. [] = the run's own task / object (one cell, no shard). scale=paper: 3 tasks x the 5 seen objects.
     tasks: list[str] = field(default_factory=list)
     objects: list[str] = field(default_factory=list)
+    # stage=all's demonstration cells: task parameters per task over conf/task/<task>.yaml, as eval.task_overrides
+    # is the evaluation's (`data.task_overrides={stick:{thickness:0.05,width:0.05},dice:{size:0.05}}`): each task
+    # takes only the keys it reads (issue #50), so `task.width=...` on stage=all's command line (its own task:
+    # slice) is refused.  A lone stage=mppi run takes `task.<key>=...` itself.
+    task_overrides: dict[str, dict[str, Any]] = field(default_factory=dict)
     shard: bool = False  # stage=mppi writes a shard of ``dataset`` (set by stage=all's cells; multiruns always do)
     # stage=all: demonstration cells made at once, each in its own process (joblib's loky workers).  One process
     # leaves a GPU mostly idle (its host work): on one H100, steady rates of 2.4 cuts/s with 8 processes, 3.9 with
@@ -143,6 +148,18 @@ def register_configs() -> None:
     # ${pid:} in hydra.run.dir: two runs started in the same second get directories of their own
     if not OmegaConf.has_resolver("pid"):
         OmegaConf.register_new_resolver("pid", lambda: os.getpid())
+
+
+def _check_task_overrides(key: str, overrides) -> None:
+    """Each entry names a registered task and only keys of that task's own config (its dataclass)."""
+    from topocut.tasks import TASKS, task_config_class, task_keys
+
+    for task, over in (overrides or {}).items():
+        _check(task in TASKS, f"{key}.{task}", f"unknown task; valid: {', '.join(TASKS)}")
+        params = [k for k in task_keys(task) if k not in ("name", "stage")]
+        bad = [k for k in (over or {}) if k not in params]
+        _check(not bad, f"{key}.{task}.{bad[0] if bad else ''}", f"not a parameter of task={task}; valid keys of "
+               f"{task_config_class(task).__name__}: {', '.join(params)}")
 
 
 def _check(cond: bool, key: str, msg: str) -> None:
@@ -245,6 +262,7 @@ def validate(cfg: DictConfig) -> None:
                                     ("data.tasks", cfg.data.tasks, CUTTING_TASKS, "knife task")):
         bad = [o for o in names if o not in valid]
         _check(not bad, key, f"unknown {what} {bad[0]!r}; valid: {', '.join(valid)}" if bad else "")
+    _check_task_overrides("data.task_overrides", cfg.data.task_overrides)
     for key, value, lo in (("data.episodes", cfg.data.episodes, 1), ("data.points_per_step", cfg.data.points_per_step, 1),
                            ("data.jobs", cfg.data.jobs, 1), ("trainer.jobs", cfg.trainer.jobs, 1),
                            ("trainer.batch_size", cfg.trainer.batch_size, 1),

@@ -189,7 +189,7 @@ def main(cfg: DictConfig) -> None:
 # Dicts the schema leaves open: OmegaConf refuses a new key in them under Hydra's struct flag ("not in struct";
 # only `++key=` adds one), so `eval.task_overrides={slice:{thickness:0.05}}` as documented failed wherever the
 # scale set no such key.  Their overrides are given Hydra's add-or-override prefix.
-OPEN_DICTS = ("eval.checkpoints", "eval.task_overrides", "eval.policy_kwargs")
+OPEN_DICTS = ("eval.checkpoints", "eval.task_overrides", "eval.policy_kwargs", "data.task_overrides")
 
 
 def open_dict_overrides(argv: list[str]) -> list[str]:
