@@ -40,6 +40,11 @@ def test_scoop_primitive_phases():
     assert tilt.phi == pytest.approx(math.radians(110))
     # the spoon moves at spoon.speed while lowering (a straight 5 cm drop)
     assert low.t - 1.0 == pytest.approx(0.05 / sp.speed)
+    # a wrong scoop (experiments/reference_scooping.py): 2 cm shallower, poured 2 cm short; the rest as before
+    keys = {k.phase: k for k in scoop_keyframes(sp, (0.3, 0.44), top, cup_top, t0=1.0, depth=0.025, pour_dx=-0.02).keys}
+    assert keys["lower"].c[2] - sp.radius == pytest.approx(top - 0.025)
+    assert keys["move"].c[0] == pytest.approx(sp.cup_center[0] - sp.radius / 2 - 0.02)
+    np.testing.assert_allclose(keys["lift"].c[[0, 2]], lift.c[[0, 2]])
 
 
 def test_shell_sdf():
