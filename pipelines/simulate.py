@@ -194,5 +194,5 @@ def run_scooping(ctx: RunContext, sim, object, task, topology) -> dict:
     (writer.path / "scoops.json").write_text(json.dumps(res, indent=2, default=float))
     write_gif(frames, writer.path / "scoop.gif", fps=2)
     summary = {"scoops": len(task.spoon.scoops), "chunks_in_cup": res["chunks_in_cup"], "reward": res["reward"],
-               "particles": res["particles"], "sim_s": round(res["seconds"], 2)}
+               "spilled": res["spilled"], "particles": res["particles"], "sim_s": round(res["seconds"], 2)}
     return _commit(ctx, writer, summary, "simulate", Path(frames[-1]).relative_to(writer.path))

@@ -80,11 +80,13 @@ class SpoonPath:
         raise AssertionError("unreachable")
 
 
-def scoop_keyframes(spoon: SpoonConfig, place_xy, block_top: float, cup_top: float, t0: float = 0.0) -> SpoonPath:
+def scoop_keyframes(spoon: SpoonConfig, place_xy, block_top: float, cup_top: float, t0: float = 0.0,
+                    depth: float | None = None, pour_dx: float = 0.0) -> SpoonPath:
     """The scooping primitive starting at time t0 for a placement (x, y) of the bowl's centre on the block.
 
-    The bowl's sphere is centred ``radius - depth`` above the block's top, so it dips ``depth`` into
-    it.  lower: opening down (phi = 180 deg), the shell is the sphere's upper half, still in the air;
+    The bowl's sphere is centred ``radius - depth`` above the block's top, so it dips ``depth`` (default
+    ``spoon.depth``) into it.  ``pour_dx`` moves the pour point along x (negative: short of the cup); the two are
+    how experiments/reference_scooping.py makes its wrong scoops, the task itself uses the defaults.  lower: opening down (phi = 180 deg), the shell is the sphere's upper half, still in the air;
     advance: move ``spoon.advance`` along +x while curling upright (phi = 0), so the rim sweeps along
     the sphere through the block and cuts the cap inside it loose (a rigid rotation about the
     sphere's centre moves the shell tangentially: it cuts instead of pushing); lift, level, clear of
@@ -92,9 +94,9 @@ def scoop_keyframes(spoon: SpoonConfig, place_xy, block_top: float, cup_top: flo
     """
     r, v = spoon.radius, spoon.speed
     x, y = float(place_xy[0]), float(place_xy[1])
-    cz = block_top - spoon.depth + r  # sphere centre: its lowest point is depth below the top
+    cz = block_top - (spoon.depth if depth is None else depth) + r  # sphere centre: its lowest point depth below the top
     lift_z = max(block_top, cup_top) + r + spoon.thickness + 0.03
-    cup = np.array([spoon.cup_center[0] - 0.5 * r, y, lift_z])  # tipped to +x, the chunk leaves ahead of c
+    cup = np.array([spoon.cup_center[0] - 0.5 * r + pour_dx, y, lift_z])  # tipped to +x, the chunk leaves ahead of c
     frames = [Keyframe(t0, np.array([x, y, cz + 0.05]), math.pi, "start")]
 
     def go(c, phi, phase, speed=v, hold=0.0):
