@@ -11,13 +11,13 @@ simulated from the same state in one batch (the four scenes of one CuttingEnv) a
     python experiments/reference_check.py pyramid --n-grid 48                 # CPU, ~30 s (the smoke scale)
     python experiments/reference_check.py pyramid --n-grid 128 --device cuda  # the documented scale
 
-Prints one line per plane (reward, N_C, pieces) and, with ``--json``, writes them.  The cube sits at the
+Prints one line per plane (reward, N_C, pieces) and, with ``--json``, writes them.  The other tasks' checks:
+``experiments/reference_writing.py`` (cream writing) and ``experiments/reference_scooping.py`` (scooping).  The cube sits at the
 nominal pose (the task's own corner geometry; the protocol's poses are the oracle audit's business).
 """
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -25,6 +25,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a file: `experiments` from the repository root
+
+from topocut.data.store import write_json_atomic  # noqa: E402
 
 VARIANTS = {  # name: (offset along the normal [units], yaw [deg], tilt [deg]) about the goal face's centre
     "reference": (0.0, 0.0, 0.0),
@@ -73,10 +75,7 @@ def main(argv=None) -> int:
     for r in out["rows"]:
         print(f"  {r['plane']:<12} reward {r['reward']:.3f}  pieces {r['pieces']}")
     if args.json:
-        path = Path(args.json)
-        tmp = path.with_suffix(path.suffix + ".tmp")
-        tmp.write_text(json.dumps(out, indent=2))
-        tmp.replace(path)
+        write_json_atomic(Path(args.json), out)  # a temporary name, then renamed: a killed run leaves no half file
     return 0
 
 

@@ -23,12 +23,13 @@ writes them.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a file: `experiments` from the repository root
+
+from topocut.data.store import write_json_atomic  # noqa: E402
 
 SHORT = 0.02  # [units]: the issue's "the scoop 2 cm short"
 
@@ -46,13 +47,14 @@ def scooping(n_grid: int = 48, device: str = "cpu", seed: int = 0, scoops=None, 
     run (None: all of VARIANTS)."""
     from topocut.reward import RewardConfig
     from topocut.sim import SimConfig
-    from topocut.tasks.config import SpoonConfig, TaskConfig
+    from topocut.tasks import task_config
+    from topocut.tasks.config import SpoonConfig
     from topocut.tasks.scooping_scene import scoop_episode
     from topocut.topology import TopologyConfig
 
     t0 = time.perf_counter()
     spoon = SpoonConfig() if scoops is None else SpoonConfig(scoops=[list(map(float, s)) for s in scoops])
-    task = TaskConfig(name="scooping", spoon=spoon).validate()
+    task = task_config("scooping", spoon=spoon).validate()
     sim = SimConfig(n_grid=n_grid, arch=device)
     reward = RewardConfig() if device == "cpu" else RewardConfig(backend="torch", device=device)
     unknown = sorted(set(names or ()) - set(VARIANTS))
@@ -160,10 +162,7 @@ def main(argv=None) -> int:
         out = scooping(args.n_grid, args.device, args.seed, args.scoop, args.variant)
         _print(out)
     if args.json:
-        path = Path(args.json)
-        tmp = path.with_suffix(path.suffix + ".tmp")
-        tmp.write_text(json.dumps(out, indent=2))
-        tmp.replace(path)
+        write_json_atomic(Path(args.json), out)  # a temporary name, then renamed: a killed run leaves no half file
     return 0
 
 

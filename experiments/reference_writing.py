@@ -20,7 +20,6 @@ Prints one line per variant (total, reward per letter, particles) and, with ``--
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -28,6 +27,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a file: `experiments` from the repository root
+
+from topocut.data.store import write_json_atomic  # noqa: E402
 
 WRONG_LETTER = "R"  # chiral (see the module docstring); the letter both wrong variants change
 
@@ -111,10 +112,7 @@ def main(argv=None) -> int:
         per = ", ".join(f"{v:.2f}" for v in r["per_letter"])
         print(f"  {r['variant']:<26} reward {r['reward']:.3f}  per letter {per}  particles {r['particles']}")
     if args.json:
-        path = Path(args.json)
-        tmp = path.with_suffix(path.suffix + ".tmp")
-        tmp.write_text(json.dumps(out, indent=2))
-        tmp.replace(path)
+        write_json_atomic(Path(args.json), out)  # a temporary name, then renamed: a killed run leaves no half file
     return 0
 
 

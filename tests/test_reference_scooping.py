@@ -88,10 +88,9 @@ def test_targets_are_the_mid_sphere_cap_of_the_block_at_rest():
     # the two placements are mirror images in y about the block's centre: the same count; they share a sliver
     assert len(caps[0]) == len(caps[1]) and 0 < (masks[0] & masks[1]).sum() < 0.05 * len(caps[0])
     # the goal (make_goal) is the same block the scene loads with this seed
-    from topocut.tasks import get_task
-    from topocut.tasks.config import TaskConfig
+    from topocut.tasks import get_task, task_config
 
-    goal = get_task("scooping").make_goal(TaskConfig(name="scooping"), spacing=0.01, board_z=bz, seed=3)
+    goal = get_task("scooping").make_goal(task_config("scooping"), spacing=0.01, board_z=bz, seed=3)
     want = chunk_targets(block_particles(sp, 0.01, bz, seed=3), sp)
     assert all(np.array_equal(g, w) for g, w in zip(goal, want))
 
