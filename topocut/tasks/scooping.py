@@ -6,7 +6,8 @@ bowl's mid-sphere encloses at the placement (topocut.tasks.scooping_scene.chunk_
 topocut.tasks.scooping_reward (the cup's pieces matched to the targets; the block is not waste; spills cost).
 **Oracle.** The spoon primitive at each ``spoon.scoops`` placement (topocut.sim.spoon.scoop_keyframes).
 **Randomisations.** None beyond the placements and the block / cup layout (task.spoon).
-**Success.** Every chunk in the cup as its own cluster and the total at task.success_threshold.
+**Success.** The total at task.success_threshold (0.95): a target without its own piece in the cup earns 0, so
+that total needs every chunk in the cup as its own cluster.
 Stages: simulate only.  Scene: topocut.tasks.scooping_scene.ScoopScene (spoon, cup, block).
 """
 from __future__ import annotations
