@@ -11,7 +11,7 @@ import time
 from pathlib import Path
 
 from topocut.utils.context import RunContext
-from topocut.utils.progress import print_summary
+from topocut.utils.progress import flatten, print_summary
 
 CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
 
@@ -82,7 +82,7 @@ def demo_runs(config: dict) -> list[tuple[str, dict, tuple[int, int]]]:
     runs = []
     for i, (t, o) in enumerate(cells(config)):
         # the cell's own task parameters (data.task_overrides), spelled as its stage=mppi run takes them
-        task_keys = dict(_flat("task", (data.get("task_overrides") or {}).get(t) or {}))
+        task_keys = flatten((data.get("task_overrides") or {}).get(t) or {}, sep=".", prefix="task.")
         if per_job is None:
             runs.append(((0, 0, i), f"mppi-{t}-{o}", {"task": t, "object": o, "data.shard": "true", **task_keys},
                          (i, 0)))
@@ -95,13 +95,6 @@ def demo_runs(config: dict) -> list[tuple[str, dict, tuple[int, int]]]:
                          {"task": t, "object": o, "data.shard": "true", "data.first_episode": start,
                           "data.episodes": n, **task_keys}, (i, j)))
     return [run[1:] for run in sorted(runs, key=lambda run: run[0])]
-
-
-def _flat(prefix: str, node) -> list[tuple[str, object]]:
-    """Dotted override keys of a nested dict: ("task", {"pen": {"speed": 1}}) -> [("task.pen.speed", 1)]."""
-    if not isinstance(node, dict):
-        return [(prefix, node)]
-    return [kv for k, v in node.items() for kv in _flat(f"{prefix}.{k}", v)]
 
 
 def train_seeds(config: dict) -> list[int]:
