@@ -20,6 +20,8 @@ import numpy as np
 from topocut.planning.heuristic import GoalPlanesPolicy
 from topocut.sim.action import KnifeAction
 
+MIN_TRACKED = 16  # goal-piece anchor particles enough to track a cut by (else all of its anchor's)
+
 
 def planar_rigid(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(R 3x3 rotation about z, t 3,) minimising sum |R src_i + t - dst_i|^2 over the horizontal components
@@ -35,10 +37,16 @@ def planar_rigid(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return R, t
 
 
-def moved_plane(action: KnifeAction, R: np.ndarray, t: np.ndarray, board_z: float) -> KnifeAction:
-    """``action``'s plane carried by the rigid motion x -> R x + t."""
-    point = R @ action.plane_point(board_z) + t
-    return KnifeAction.from_plane(R @ action.normal, point, board_z)
+def _tracked(anchor, m: int) -> np.ndarray:
+    """(m,) bool: the anchor particles a cut is carried by.  A cut that crosses several pieces (a chop across sticks
+    the pushes slid apart, each its own way) cannot follow them all: it follows the pieces it makes goal pieces of,
+    whose size it sets; a planned offcut's material is forgiven by volume wherever the plane parts it
+    (docs/reward.md#planned-offcuts).  All of them where the anchor does not say (an older goal) or too few."""
+    goal, piece = getattr(anchor, "goal", None), getattr(anchor, "piece", None)
+    if goal is None or piece is None:
+        return np.ones(m, bool)
+    sel = np.isin(piece, np.unique(np.asarray(piece)[np.asarray(goal, bool)]))
+    return sel if sel.sum() >= MIN_TRACKED else np.ones(m, bool)
 
 
 class OraclePolicy(GoalPlanesPolicy):
@@ -79,18 +87,23 @@ class OraclePolicy(GoalPlanesPolicy):
             return action
         _, idx = cKDTree(self.initial).query(np.asarray(anchor.initial, np.float64))
         y = x[idx]  # m,3 the anchor particles now
-        R, t = planar_rigid(anchor.planned, y)
-        moved = moved_plane(action, R, t, self.board_z)
+        planned = np.asarray(anchor.planned, np.float64)
         side = getattr(anchor, "side", None)
-        if side is None or side.sum() < 5 or (~side).sum() < 5:
-            return moved
-        # a soft piece also spreads or sags when laid down or pushed: where the rigidly moved plane no longer parts
-        # the particles the plan leaves on either side of it (more than 5% on the wrong side), put it between them.
-        # The sides are the plan's normal's, carried by R (moved.normal may be flipped into canonical form)
-        n = R @ action.normal
-        s = y @ n
+        sel = _tracked(anchor, len(y))
+        R, t = planar_rigid(planned[sel], y[sel])
+        n = R @ action.normal  # the plan's normal (and sides), carried by R (the action's may flip into canonical form)
         p = R @ action.plane_point(self.board_z) + t
-        if ((s > p @ n) == side).mean() >= 0.95:
+        # along the normal, the median displacement: pieces slid along the plane (a chop across pushed sticks) or
+        # sagging at one end pull a least-squares fit's translation, not the median
+        p = p + float(np.median((y[sel] - planned[sel] @ R.T - t) @ n)) * n
+        moved = KnifeAction.from_plane(n, p, self.board_z)
+        if side is None:
             return moved
+        side = np.asarray(side, bool)[sel]
+        s = y[sel] @ n
+        if side.sum() < 5 or (~side).sum() < 5 or ((s > p @ n) == side).mean() >= 0.95:
+            return moved
+        # a soft piece also spreads or sags when laid down or pushed: where the moved plane no longer parts the
+        # particles the plan leaves on either side of it (more than 5% on the wrong side), put it between them
         c = 0.5 * (np.quantile(s[~side], 0.9) + np.quantile(s[side], 0.1))
         return KnifeAction.from_plane(n, p + (c - p @ n) * n, self.board_z)

@@ -199,6 +199,8 @@ class KnifeTask(ABC):
                               f"({np.ptp(p64 @ axes[0]):.3f} along its longer axis) and at least {3 * spacing:.3f} "
                               f"(3 particle spacings) thick; set {'/'.join(f'task.{k}' for k in keys) or 'its size'} "
                               f"in that range, or a finer sim.n_grid")
+        for anchor in run.anchors:  # the oracle tracks a cut by the goal pieces it makes (topocut.planning.oracle)
+            anchor.goal = np.isin(run.piece[anchor.index], goal_ids)
         fragments = [pts[run.piece == p] for p in goal_ids]
         labels = np.zeros(len(pts), np.int32)  # 0 = not a goal piece, i + 1 = fragments[i]
         for i, p in enumerate(goal_ids):

@@ -28,12 +28,17 @@ MIN_GOAL_SHARE = 0.2  # a piece of a goal cell with less of the cell than this i
 
 @dataclass
 class Anchor:
-    """Where the piece a cut splits was planned to be: initial positions (m,3), positions before the cut, and
-    which of them the cut leaves on the +n side of its plane (m,) bool."""
+    """Where the pieces a cut splits were planned to be: initial positions (m,3), positions before the cut, which
+    of them the cut leaves on the +n side of its plane (m,) bool, their indices in the planned particle set (m,),
+    the piece each lies in before the cut (m,) and whether it ends in a goal piece (m,) bool (``Task.make_goal``
+    sets ``goal`` once the roles are known)."""
 
     initial: np.ndarray
     planned: np.ndarray
     side: np.ndarray = None
+    index: np.ndarray = None
+    piece: np.ndarray = None
+    goal: np.ndarray = None
 
 
 @dataclass
@@ -175,7 +180,7 @@ def _anchor(x0, x, before, after, action) -> Anchor:
         c = cand[(sd[cand] > 0) == on_plus]
         keep.append(c[np.argsort(np.abs(sd[c]), kind="stable")[:ANCHOR_POINTS // 2]])
     keep = np.concatenate(keep)
-    return Anchor(x0[keep].astype(np.float32), x[keep].astype(np.float32), sd[keep] > 0)
+    return Anchor(x0[keep].astype(np.float32), x[keep].astype(np.float32), sd[keep] > 0, keep, before[keep])
 
 
 def roles(piece: np.ndarray, cells: np.ndarray, min_points: int = 32, fallback: int = 8):
