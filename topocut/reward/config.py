@@ -25,6 +25,10 @@ class RewardConfig:
     size_weight: float = 3.0
     fill_weight: float = 3.0
     profile_weight: float = 3.0  # the thickness profile along the thinnest axis (quantiles over 2s columns)
+    # an extent or profile thickness within this many particle spacings of the goal piece's costs nothing (only the
+    # excess counts): below one lattice layer a cut's pieces are the simulator's kerf and jitter, not the policy's
+    # choice (docs/reward.md#resolution).  0: every difference counts
+    size_tolerance: float = 0.0
     # pen tasks only (cream writing: topocut.tasks.writing_scene.letter_distances): the stroke's handedness on the
     # board, max(0, misfit to its letter - misfit to the letter's mirror image) in letter radii
     # (topocut.reward.planar), times this, is added to its distance; a mirrored R is at ~0.05 (docs/reward.md#handedness)
@@ -79,8 +83,8 @@ class RewardConfig:
                 raise ValueError(f"reward.{k}={getattr(self, k)} must be >= 1")
         if self.min_points < self.num_eig + 2:
             raise ValueError(f"reward.min_points={self.min_points} must be >= reward.num_eig + 2 = {self.num_eig + 2}")
-        for k in ("size_weight", "fill_weight", "profile_weight", "handedness_weight", "mismatch_cost", "waste_cost",
-                  "offcut_slack"):
+        for k in ("size_weight", "fill_weight", "profile_weight", "size_tolerance", "handedness_weight", "mismatch_cost",
+                  "waste_cost", "offcut_slack"):
             if getattr(self, k) < 0:
                 raise ValueError(f"reward.{k}={getattr(self, k)} must be >= 0")
         if self.sigma is not None and self.sigma <= 0:

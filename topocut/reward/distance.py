@@ -143,7 +143,7 @@ def _score_sets(fragment_sets, goal_fragments, cfg: RewardConfig | None = None, 
                 ugoals.append((k, g))
             row.append(keys[k])
         gidx.append(row)
-    gsizes = np.array([_cached(("size", k), lambda g=g: size_descriptor(g)) for k, g in ugoals])  # U,4+Q
+    gsizes = np.array([_cached(("size", k), lambda g=g: size_descriptor(g)) for k, g in ugoals])  # U,5+Q
     gres = [_cached(("resample", k, ckey), lambda g=g: resample(g, cfg)) for k, g in ugoals]
     set_goals = gidx if per_set else gidx * len(raw)  # each set's goal indices into ugoals
     # every scene's pieces in one thread pool, each profiled only where its extents and fill leave R > 0
@@ -179,12 +179,12 @@ def _score_sets(fragment_sets, goal_fragments, cfg: RewardConfig | None = None, 
 
 
 def _fragment_size(points: np.ndarray, goal_sizes: np.ndarray, cfg: RewardConfig) -> np.ndarray:
-    """size_descriptor of a fragment (N,3) against its set's goal pieces (G,4+Q): its thickness profile left NaN
+    """size_descriptor of a fragment (N,3) against its set's goal pieces (G,5+Q): its thickness profile left NaN
     when its extent and fill terms alone already put R at 0 for every goal piece (the profile term only adds)."""
     s = particle_spacing(points)
     base = size_descriptor(points, s, profile=False)
     if len(goal_sizes):
-        bound = size_distance(base, goal_sizes, cfg.size_weight, cfg.fill_weight, 0.0)  # G,
+        bound = size_distance(base, goal_sizes, cfg.size_weight, cfg.fill_weight, 0.0, cfg.size_tolerance)  # G,
         if not (piecewise_reward(np.atleast_1d(bound), cfg) > 0).any():
             return base
     return size_descriptor(points, s)
@@ -192,8 +192,9 @@ def _fragment_size(points: np.ndarray, goal_sizes: np.ndarray, cfg: RewardConfig
 
 def _size_matrix(sizes: np.ndarray, goal_sizes: np.ndarray, cfg: RewardConfig) -> np.ndarray:
     """(F,G) d_size; a fragment left unprofiled (``_fragment_size``) gets its extent and fill terms alone."""
-    full = size_distance(sizes[:, None], goal_sizes[None], cfg.size_weight, cfg.fill_weight, cfg.profile_weight)
-    part = size_distance(sizes[:, None], goal_sizes[None], cfg.size_weight, cfg.fill_weight, 0.0)
+    full = size_distance(sizes[:, None], goal_sizes[None], cfg.size_weight, cfg.fill_weight, cfg.profile_weight,
+                         cfg.size_tolerance)
+    part = size_distance(sizes[:, None], goal_sizes[None], cfg.size_weight, cfg.fill_weight, 0.0, cfg.size_tolerance)
     return np.where(np.isnan(sizes[:, 4:]).any(1)[:, None], part, full)
 
 

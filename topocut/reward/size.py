@@ -81,16 +81,17 @@ def thickness_profile(local: np.ndarray, s: float, cell: float, q: int = PROFILE
 
 
 def size_descriptor(points, spacing: float | None = None, profile: bool = True) -> np.ndarray:
-    """(e_1, e_2, e_3, V, thickness profile (PROFILE_QUANTILES,)) of a piece (N,3); extents sorted.
+    """(e_1, e_2, e_3, V, thickness profile (PROFILE_QUANTILES,), s) of a piece (N,3); extents sorted, s its
+    particle spacing.
     ``profile=False``: the profile left NaN (size_distance then needs profile_weight 0)."""
     p = np.asarray(points, np.float64)
     s = particle_spacing(p) if spacing is None else float(spacing)
     if len(p) < 4 or not s > 0:
-        return np.concatenate([[s, s, s, len(p) * s ** 3], np.full(PROFILE_QUANTILES, s)])
+        return np.concatenate([[s, s, s, len(p) * s ** 3], np.full(PROFILE_QUANTILES, s), [s]])
     c, vec = np.linalg.eigh(np.cov(p.T, bias=True))  # ascending: vec[:, 0] the thinnest axis
     e = np.sqrt(np.maximum(12.0 * c, 0.0) + s ** 2)
     prof = thickness_profile((p - p.mean(0)) @ vec, s, 2.0 * s) if profile else np.full(PROFILE_QUANTILES, np.nan)
-    return np.concatenate([e, [len(p) * s ** 3], prof])
+    return np.concatenate([e, [len(p) * s ** 3], prof, [s]])
 
 
 _BLAS = None  # threadpoolctl's controller of the loaded BLAS libraries, made on first use
@@ -123,17 +124,32 @@ def size_descriptors(clouds: list, fn=size_descriptor) -> list:
             return list(pool.map(fn, clouds))
 
 
-def size_distance(sx, sy, size_weight: float = 3.0, fill_weight: float = 3.0, profile_weight: float = 3.0):
-    """d_size between two size descriptors (..., 4 + PROFILE_QUANTILES); broadcasts."""
+def size_distance(sx, sy, size_weight: float = 3.0, fill_weight: float = 3.0, profile_weight: float = 3.0,
+                  tolerance: float = 0.0):
+    """d_size between two size descriptors (..., 5 + PROFILE_QUANTILES); broadcasts.  ``tolerance``: an extent or a
+    profile thickness within this many of the goal's (sy's) particle spacings of the goal's costs nothing, and only
+    the excess counts beyond (reward.size_tolerance, docs/reward.md#resolution)."""
     tiny = 1e-30
-    lx, ly = np.log(np.maximum(np.asarray(sx, np.float64), tiny)), np.log(np.maximum(np.asarray(sy, np.float64), tiny))
-    le = lx[..., :3] - ly[..., :3]
+    sx, sy = np.asarray(sx, np.float64), np.asarray(sy, np.float64)
+    lx, ly = np.log(np.maximum(sx, tiny)), np.log(np.maximum(sy, tiny))
+    q = slice(4, 4 + PROFILE_QUANTILES)
+    ex, eq = sx[..., :3], sx[..., q]
+    if tolerance:  # x's extents and thicknesses moved towards the goal's by up to tolerance spacings
+        band = tolerance * sy[..., -1:]
+        ex = _within(ex, sy[..., :3], band)
+        eq = _within(eq, sy[..., q], band)
+    le = np.log(np.maximum(ex, tiny)) - ly[..., :3]
     lphi = (lx[..., 3] - lx[..., :3].sum(-1)) - (ly[..., 3] - ly[..., :3].sum(-1))
-    lq = lx[..., 4:] - ly[..., 4:]
+    lq = np.log(np.maximum(eq, tiny)) - ly[..., q]
     # the profile needs a well-defined thinnest axis: only for goal pieces (y) at least PROFILE_ASPECT times as
     # wide as thick (slabs).  A stick's or a die's thinnest axis is any direction in a square cross-section
     # and columns along it would see the section at an arbitrary angle.
-    flat = np.asarray(sy, np.float64)[..., 1] >= PROFILE_ASPECT * np.asarray(sy, np.float64)[..., 0]
+    flat = sy[..., 1] >= PROFILE_ASPECT * sy[..., 0]
     d = size_weight * (le ** 2).sum(-1) + fill_weight * lphi ** 2
     # the profile term only where it counts (a NaN profile, size_descriptor(profile=False), is never read there)
     return d + profile_weight * np.where(flat, (lq ** 2).mean(-1), 0.0) if profile_weight else d
+
+
+def _within(x, y, band):
+    """x moved towards y by up to ``band`` (never past it): the part of |x - y| beyond the band, on x's side."""
+    return y + np.sign(x - y) * np.maximum(np.abs(x - y) - band, 0.0)
