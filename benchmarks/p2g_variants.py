@@ -37,6 +37,8 @@ from topocut.sim.config import SimConfig
 from topocut.sim.materials import polar_rotation
 from topocut.sim.mpm import init_taichi
 from topocut.sim.objects import sample_object
+from topocut.sim.scatter import warp_run_add
+from topocut.sim.scenes import cell_order
 
 
 @ti.data_oriented
@@ -110,20 +112,18 @@ class WarpMPM(ReferenceMPM):
     run; each of the 27 stencil values is summed over the run with 5 shuffle steps and the run's first lane
     alone issues the 4 atomics.  Correct for any particle order (a run is only ever contiguous lanes with
     equal keys); fast when particles are ordered by cell (``sort``: 8 per cell here; the lattice order
-    pairs 2 along z)."""
+    pairs 2 along z).  The runs' sums are the full model's (topocut.sim.scatter.warp_run_add), without the
+    in-warp sort by cell that Scatter.scatter_warp does first."""
 
     def __init__(self, x, B, *args, sort: bool = False, **kw):
         if sort:
-            n_grid = args[0]
-            cell = np.floor(x * n_grid - 0.5).astype(np.int64)
-            x = x[np.lexsort((cell[:, 2], cell[:, 1], cell[:, 0]))]
+            x = x[cell_order(x, args[0])]  # args[0]: n_grid
         super().__init__(x, B, *args, **kw)
         self.Np = -(-self.N // 32) * 32  # every warp holds lanes of one scene
 
     @ti.kernel
     def p2g(self):
         self.clear_grid()
-        full = ti.u32(0xFFFFFFFF)
         ti.loop_config(block_dim=128)
         for i in range(self.B * self.Np):
             b, p = i // self.Np, i % self.Np
@@ -136,30 +136,8 @@ class WarpMPM(ReferenceMPM):
                 base, fx, affine = self.stress_update(b, p)
                 mom = self.mass * self.v[b, p]
                 key = ((b * self.n_grid + base[0]) * self.n_grid + base[1]) * self.n_grid + base[2]
-            head = lane == 0 or ti.simt.warp.shfl_up_i32(full, key, 1) != key
-            nxt = ti.simt.warp.shfl_down_i32(full, key, 1)
-            e = lane if (lane == 31 or nxt != key) else 31  # last lane of my run: a suffix min over run tails
-            for s in ti.static([1, 2, 4, 8, 16]):
-                o = ti.simt.warp.shfl_down_i32(full, e, s)
-                if lane + s < 32:
-                    e = ti.min(e, o)
             mass = self.mass if live else 0.0
-            w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1) ** 2, 0.5 * (fx - 0.5) ** 2]
-            for off in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
-                weight = w[off[0]][0] * w[off[1]][1] * w[off[2]][2]
-                val = weight * (mom + affine @ ((off.cast(ti.f32) - fx) * self.dx))
-                m = weight * mass
-                for s in ti.static([1, 2, 4, 8, 16]):
-                    o0 = ti.simt.warp.shfl_down_f32(full, val[0], s)
-                    o1 = ti.simt.warp.shfl_down_f32(full, val[1], s)
-                    o2 = ti.simt.warp.shfl_down_f32(full, val[2], s)
-                    om = ti.simt.warp.shfl_down_f32(full, m, s)
-                    if lane + s <= e:
-                        val += ti.Vector([o0, o1, o2])
-                        m += om
-                if head and live:
-                    self.grid_v[b, base + off] += val
-                    self.grid_m[b, base + off] += m
+            warp_run_add(self.grid_v, self.grid_m, self.dx, lane, key, b, base, fx, mass, mom, affine, live)
 
 
 @ti.data_oriented

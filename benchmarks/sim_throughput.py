@@ -31,7 +31,7 @@ import yaml
 from topocut.sim.action import KnifeAction
 from topocut.sim.config import SimConfig, TuningConfig
 from topocut.sim.env import CuttingEnv, cell_order
-from topocut.sim.mpm import init_taichi
+from topocut.sim.mpm import apic_gather, init_taichi
 from topocut.sim.objects import sample_object
 
 
@@ -118,15 +118,7 @@ class ReferenceMPM:
             Xp = self.x[b, p] * self.inv_dx
             base = ti.cast(Xp - 0.5, ti.i32)
             fx = Xp - base
-            w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1) ** 2, 0.5 * (fx - 0.5) ** 2]
-            new_v = ti.Vector.zero(ti.f32, 3)
-            new_C = ti.Matrix.zero(ti.f32, 3, 3)
-            for off in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
-                dpos = (off.cast(ti.f32) - fx) * self.dx
-                weight = w[off[0]][0] * w[off[1]][1] * w[off[2]][2]
-                g_v = self.grid_v[b, base + off]
-                new_v += weight * g_v
-                new_C += 4 * self.inv_dx ** 2 * weight * g_v.outer_product(dpos)
+            new_v, new_C = apic_gather(self.grid_v, b, base, fx, self.dx, self.inv_dx)  # the full model's gather
             self.v[b, p], self.C[b, p] = new_v, new_C
             self.x[b, p] += self.dt * new_v
 

@@ -26,7 +26,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a file: `experiments` from the repository root
 
-from topocut.data.store import write_json_atomic  # noqa: E402
+from experiments.reference_cli import add_json_option, save_json  # noqa: E402
 
 VARIANTS = {  # name: (offset along the normal [units], yaw [deg], tilt [deg]) about the goal face's centre
     "reference": (0.0, 0.0, 0.0),
@@ -67,16 +67,14 @@ def main(argv=None) -> int:
     q.add_argument("--n-grid", type=int, default=48)
     q.add_argument("--size", type=float, default=0.1, help="the tetrahedron's leg [units] (task.size)")
     q.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
-    q.add_argument("--json", default="", help="also write the rows here")
+    add_json_option(q)
     args = p.parse_args(argv)
     out = pyramid(args.n_grid, args.size, args.device)
     print(f"pyramid, cube, n_grid {out['n_grid']}, leg {out['size']} ({out['goal_particles']} goal particles of "
           f"{out['particles']}), {out['seconds']} s:")
     for r in out["rows"]:
         print(f"  {r['plane']:<12} reward {r['reward']:.3f}  pieces {r['pieces']}")
-    if args.json:
-        write_json_atomic(Path(args.json), out)  # a temporary name, then renamed: a killed run leaves no half file
-    return 0
+    return save_json(out, args.json)
 
 
 if __name__ == "__main__":

@@ -29,7 +29,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a file: `experiments` from the repository root
 
-from topocut.data.store import write_json_atomic  # noqa: E402
+from experiments.reference_cli import add_json_option, save_json  # noqa: E402
 
 SHORT = 0.02  # [units]: the "the scoop 2 cm short"
 
@@ -147,7 +147,7 @@ def main(argv=None) -> int:
                    help="a variant to run (repeat for several; default: all)")
     p.add_argument("--rules", default="", metavar="STATES",
                    help="instead: the candidate target rules against a run's chunks (<run>/states.npz)")
-    p.add_argument("--json", default="", help="also write the rows here")
+    add_json_option(p)
     args = p.parse_args(argv)
     if args.rules:
         out = target_rules(args.rules)
@@ -161,9 +161,7 @@ def main(argv=None) -> int:
     else:
         out = scooping(args.n_grid, args.device, args.seed, args.scoop, args.variant)
         _print(out)
-    if args.json:
-        write_json_atomic(Path(args.json), out)  # a temporary name, then renamed: a killed run leaves no half file
-    return 0
+    return save_json(out, args.json)
 
 
 if __name__ == "__main__":

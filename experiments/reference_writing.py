@@ -28,7 +28,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a file: `experiments` from the repository root
 
-from topocut.data.store import write_json_atomic  # noqa: E402
+from experiments.reference_cli import add_json_option, save_json  # noqa: E402
 
 WRONG_LETTER = "R"  # chiral (see the module docstring); the letter both wrong variants change
 
@@ -101,7 +101,7 @@ def main(argv=None) -> int:
     p.add_argument("--n-grid", type=int, default=48)
     p.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
     p.add_argument("--word", default="CORL", help=f"task.word; must contain {WRONG_LETTER}")
-    p.add_argument("--json", default="", help="also write the rows here")
+    add_json_option(p)
     args = p.parse_args(argv)
     if WRONG_LETTER not in args.word.upper():
         p.error(f"--word={args.word!r} has no {WRONG_LETTER}: the wrong variants mirror and drop the {WRONG_LETTER}")
@@ -111,9 +111,7 @@ def main(argv=None) -> int:
     for r in out["rows"]:
         per = ", ".join(f"{v:.2f}" for v in r["per_letter"])
         print(f"  {r['variant']:<26} reward {r['reward']:.3f}  per letter {per}  particles {r['particles']}")
-    if args.json:
-        write_json_atomic(Path(args.json), out)  # a temporary name, then renamed: a killed run leaves no half file
-    return 0
+    return save_json(out, args.json)
 
 
 if __name__ == "__main__":

@@ -3,20 +3,13 @@ where they have no pipeline; their fields are validated."""
 from pathlib import Path
 
 import pytest
-from hydra import compose, initialize_config_dir
 
-from topocut.config import STAGES, ConfigError, register_configs, validate
+from tests.test_config import CONF, _compose  # conf/'s composer (test_config registers the config schemas)
+from topocut.config import STAGES, ConfigError, validate
 from topocut.tasks import TASKS, PenConfig, TaskConfig, get_task, task_config
 
-CONF = str(Path(__file__).resolve().parents[1] / "conf")
-register_configs()
 # the tasks that run with some stages only (their conf/task yaml fills task.stage from stage.name)
 PARTIAL = sorted(n for n in TASKS if set(STAGES) - set(get_task(n).stages))
-
-
-def _compose(*overrides):
-    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
-        return compose(config_name="config", overrides=list(overrides))
 
 
 @pytest.mark.parametrize("task", PARTIAL)

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from topocut.policies import registry
+from topocut.utils.checks import check_choice
 from topocut.utils.import_path import is_import_path
 
 SPLITS = ("in", "out")  # in-distribution (seen objects) / out-of-distribution (unseen objects)
@@ -83,10 +84,8 @@ class EvalConfig:
     policy_kwargs: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     def validate(self) -> EvalConfig:
-        for key, value, valid in (("eval.observation", self.observation, OBSERVATIONS),
-                                  ("eval.normalize_by", self.normalize_by, NORMALIZE_BY)):
-            if value not in valid:
-                raise ValueError(f"{key}={value!r} is not valid; choose one of {', '.join(valid)}")
+        check_choice("eval.observation", self.observation, OBSERVATIONS)
+        check_choice("eval.normalize_by", self.normalize_by, NORMALIZE_BY)
         bad = [t for t in self.tasks if t not in TASKS and not is_import_path(t)]
         if bad:
             raise ValueError(f"eval.tasks: unknown task {bad[0]!r}; valid: {', '.join(TASKS)}, or a knife task of "

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from topocut.utils.checks import check_choice
+
 GRAPHS = ("uniform", "absorbing")
 NOISES = ("loglinear", "geometric")
 GOAL_MODES = ("pool", "cross")
@@ -17,11 +19,6 @@ ENCODERS = ("none", "pretrained", "graphconv")
 LOSSES = ("dse", "sq")
 PREDICTORS = ("analytic", "euler")
 PLANE_METHODS = ("svm", "lsq")
-
-
-def _check(name: str, value: str, valid: tuple) -> None:
-    if value not in valid:
-        raise ValueError(f"{name}={value!r} is not valid; choose one of {', '.join(valid)}")
 
 
 @dataclass
@@ -54,11 +51,11 @@ class PDDPConfig:
     center_points: bool = False  # subtract the observation centroid from observation and goal points
 
     def validate(self) -> PDDPConfig:
-        _check("policy.graph", self.graph, GRAPHS)
-        _check("policy.noise", self.noise, NOISES)
-        _check("policy.goal_mode", self.goal_mode, GOAL_MODES)
-        _check("policy.goal_input", self.goal_input, GOAL_INPUTS)
-        _check("policy.score_param", self.score_param, SCORE_PARAMS)
+        check_choice("policy.graph", self.graph, GRAPHS)
+        check_choice("policy.noise", self.noise, NOISES)
+        check_choice("policy.goal_mode", self.goal_mode, GOAL_MODES)
+        check_choice("policy.goal_input", self.goal_input, GOAL_INPUTS)
+        check_choice("policy.score_param", self.score_param, SCORE_PARAMS)
         if self.hidden % self.n_heads:
             raise ValueError(f"policy.hidden={self.hidden} must be divisible by policy.n_heads={self.n_heads}")
         if self.num_classes < 2:
@@ -93,9 +90,9 @@ class PolicyTrainConfig:
     seed: int = 0
 
     def validate(self) -> PolicyTrainConfig:
-        _check("policy_train.encoder", self.encoder, ENCODERS)
-        _check("policy_train.loss", self.loss, LOSSES)
-        _check("policy_train.mask_label", self.mask_label, MASK_LABELS)
+        check_choice("policy_train.encoder", self.encoder, ENCODERS)
+        check_choice("policy_train.loss", self.loss, LOSSES)
+        check_choice("policy_train.mask_label", self.mask_label, MASK_LABELS)
         if self.encoder == "pretrained" and not self.encoder_ckpt:
             raise ValueError("policy_train.encoder='pretrained' needs policy_train.encoder_ckpt (a pretrain checkpoint)")
         return self
@@ -111,8 +108,8 @@ class SamplerConfig:
     retries: int = 3  # resample when a mask has one class only
 
     def validate(self) -> SamplerConfig:
-        _check("sampler.predictor", self.predictor, PREDICTORS)
-        _check("sampler.plane", self.plane, PLANE_METHODS)
+        check_choice("sampler.predictor", self.predictor, PREDICTORS)
+        check_choice("sampler.plane", self.plane, PLANE_METHODS)
         if self.steps < 1:
             raise ValueError(f"sampler.steps={self.steps} must be >= 1")
         return self

@@ -67,6 +67,25 @@ def init_taichi(arch: str = "cpu", seed: int = 0, debug: bool = False, cpu_threa
     return arch
 
 
+@ti.func
+def apic_gather(grid_v: ti.template(), g, base, fx, dx: ti.template(), inv_dx: ti.template()):
+    """A particle's APIC gather from the 27 nodes base + off of grid slot g: its velocity (3,) and C (3,3).
+
+    fx (3,): the particle's position past its base node, in cells.  MPMSolver.gather_particle reads its piece's
+    slot; benchmarks/sim_throughput.py's reference, with one slot per scene, reads the same way.
+    """
+    w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1) ** 2, 0.5 * (fx - 0.5) ** 2]
+    new_v = ti.Vector.zero(ti.f32, 3)
+    new_C = ti.Matrix.zero(ti.f32, 3, 3)
+    for off in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
+        dpos = (off.cast(ti.f32) - fx) * dx
+        weight = w[off[0]][0] * w[off[1]][1] * w[off[2]][2]
+        g_v = grid_v[g, base + off]
+        new_v += weight * g_v
+        new_C += 4 * inv_dx * inv_dx * weight * g_v.outer_product(dpos)
+    return new_v, new_C
+
+
 @ti.data_oriented
 class MPMSolver(MaterialUpdate, Knife, Scatter):
     """Fields of B scenes with room for ``capacity`` particles each; kernels read cfg constants."""
@@ -279,15 +298,7 @@ class MPMSolver(MaterialUpdate, Knife, Scatter):
     def gather_particle(self, b, p, step):
         base = self.base_node(self.x[b, p])
         fx = self.x[b, p] * self.inv_dx - base.cast(ti.f32)
-        w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1) ** 2, 0.5 * (fx - 0.5) ** 2]
-        new_v = ti.Vector.zero(ti.f32, 3)
-        new_C = ti.Matrix.zero(ti.f32, 3, 3)
-        for off in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
-            dpos = (off.cast(ti.f32) - fx) * self.dx
-            weight = w[off[0]][0] * w[off[1]][1] * w[off[2]][2]
-            g_v = self.grid_v[b * self.K + self.body[b, p], base + off]
-            new_v += weight * g_v
-            new_C += 4 * self.inv_dx * self.inv_dx * weight * g_v.outer_product(dpos)
+        new_v, new_C = apic_gather(self.grid_v, b * self.K + self.body[b, p], base, fx, self.dx, self.inv_dx)
         self.v[b, p], self.C[b, p] = new_v, new_C
         xn = self.x[b, p] + self.dt * new_v
         if not (xn.norm() < 10.0):  # NaN or escaped

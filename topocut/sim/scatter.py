@@ -10,6 +10,43 @@ import taichi as ti
 from taichi.lang.expr import Expr
 
 
+@ti.func
+def warp_run_add(grid_v: ti.template(), grid_m: ti.template(), dx: ti.template(), lane, key, g, base, fx, mass, mom,
+                 affine, live):
+    """Adds each lane's 27 stencil values into grid slot g at nodes base + off: one atomic per run of lanes.
+
+    The lane's particle gives fx (3,), mass, mom (3,) and affine (3,3), as MPMSolver.particle_update returns
+    them.  A run is lanes side by side in the warp with equal ``key`` (grid slot and base cell; a dead lane's
+    negative key is its own): each value is summed over the run by 5 shuffle steps and the run's first lane
+    alone adds it, where ``live``.  All 32 lanes of the warp must call it (a shuffle takes the whole warp).
+    Scatter.scatter_warp sorts its lanes by key first; benchmarks/p2g_variants.py's WarpMPM takes them as they come.
+    """
+    full = ti.u32(0xFFFFFFFF)
+    head = lane == 0 or ti.simt.warp.shfl_up_i32(full, key, 1) != key
+    nxt = ti.simt.warp.shfl_down_i32(full, key, 1)
+    last = lane if (lane == 31 or nxt != key) else 31  # last lane of my run: a suffix min over run ends
+    for s in ti.static([1, 2, 4, 8, 16]):
+        o = ti.simt.warp.shfl_down_i32(full, last, s)
+        if lane + s < 32:
+            last = ti.min(last, o)
+    w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1) ** 2, 0.5 * (fx - 0.5) ** 2]
+    for off in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
+        weight = w[off[0]][0] * w[off[1]][1] * w[off[2]][2]
+        val = weight * (mom + affine @ ((off.cast(ti.f32) - fx) * dx))
+        m = weight * mass
+        for s in ti.static([1, 2, 4, 8, 16]):  # lane + s <= last: the partner's partial sum is all in my run
+            o0 = ti.simt.warp.shfl_down_f32(full, val[0], s)
+            o1 = ti.simt.warp.shfl_down_f32(full, val[1], s)
+            o2 = ti.simt.warp.shfl_down_f32(full, val[2], s)
+            om = ti.simt.warp.shfl_down_f32(full, m, s)
+            if lane + s <= last:
+                val += ti.Vector([o0, o1, o2])
+                m += om
+        if head and live:
+            grid_v[g, base + off] += val
+            grid_m[g, base + off] += m
+
+
 @ti.data_oriented
 class Scatter:
     """p2g's particle loop and its visiting order; reads the fields MPMSolver owns (x, grid_v, order, ...)."""
@@ -88,29 +125,7 @@ class Scatter:
             mom[d] = ti.simt.warp.shfl_sync_f32(full, mom[d], src)
             for e in ti.static(range(3)):
                 affine[d, e] = ti.simt.warp.shfl_sync_f32(full, affine[d, e], src)
-        head = lane == 0 or ti.simt.warp.shfl_up_i32(full, key, 1) != key
-        nxt = ti.simt.warp.shfl_down_i32(full, key, 1)
-        last = lane if (lane == 31 or nxt != key) else 31  # last lane of my run: a suffix min over run ends
-        for s in ti.static([1, 2, 4, 8, 16]):
-            o = ti.simt.warp.shfl_down_i32(full, last, s)
-            if lane + s < 32:
-                last = ti.min(last, o)
-        w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1) ** 2, 0.5 * (fx - 0.5) ** 2]
-        for off in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
-            weight = w[off[0]][0] * w[off[1]][1] * w[off[2]][2]
-            val = weight * (mom + affine @ ((off.cast(ti.f32) - fx) * self.dx))
-            m = weight * mass
-            for s in ti.static([1, 2, 4, 8, 16]):  # lane + s <= last: the partner's partial sum is all in my run
-                o0 = ti.simt.warp.shfl_down_f32(full, val[0], s)
-                o1 = ti.simt.warp.shfl_down_f32(full, val[1], s)
-                o2 = ti.simt.warp.shfl_down_f32(full, val[2], s)
-                om = ti.simt.warp.shfl_down_f32(full, m, s)
-                if lane + s <= last:
-                    val += ti.Vector([o0, o1, o2])
-                    m += om
-            if head and alive:
-                self.grid_v[slot, base + off] += val
-                self.grid_m[slot, base + off] += m
+        warp_run_add(self.grid_v, self.grid_m, self.dx, lane, key, slot, base, fx, mass, mom, affine, alive)
 
     # -- the scatter's particle order ----------------------------------------------------------------------
     def sort_by_cell(self, n: int, by_cell: bool = True) -> None:

@@ -223,6 +223,7 @@ class ToolColliders:
                 vr = (v_own - vb).dot(nrm)
                 if vr < 0:
                     v_own -= vr * nrm
+                # topocut.sim.mpm.apic_gather, but a node across the shell lends v_own instead of its velocity
                 new_v = ti.Vector.zero(ti.f32, 3)
                 new_C = ti.Matrix.zero(ti.f32, 3, 3)
                 for off in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
