@@ -17,6 +17,7 @@ What a task needs besides its parameters is the task's to say (``topocut.tasks.g
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 from topocut.sim.tools import PenConfig, SpoonConfig  # noqa: F401 - re-exported: the tools' settings live with the simulator
 
@@ -36,6 +37,9 @@ class TaskConfig:
     # the stage running this task: conf/task/{cream_writing,scooping}.yaml fill it from ${stage.name} so that
     # validate() refuses a stage without a pipeline for the task ("" = not checked)
     stage: str = ""
+    # the task's parameters that must be > 0 (its pieces' sizes, the letters' height): validate() refuses them
+    # naming the key; a class attribute, not a config key
+    positive: ClassVar[tuple[str, ...]] = ()
 
     def validate(self) -> TaskConfig:
         """The checks every task shares; a subclass adds its own parameters' after calling this."""
@@ -47,6 +51,7 @@ class TaskConfig:
                              f"it with topocut.tasks.task_config({self.name!r}, ...)")
         if self.stage:
             check_stage(self.stage, self.name)
+        self.check_positive(*self.positive)
         return self
 
     def check_positive(self, *keys: str) -> None:

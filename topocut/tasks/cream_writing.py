@@ -30,12 +30,12 @@ class CreamWritingConfig(TaskConfig):
     letter_height: float = 0.12  # cap height of a letter [units]; width is LETTER_ASPECT times it
     letter_gap: float = 0.06  # space between letters [units] (>= ~5 spacings, or discovery joins them)
     pen: PenConfig = field(default_factory=PenConfig)  # task.pen.*: topocut/sim/tools.py
+    positive = ("letter_height",)
 
     def validate(self) -> CreamWritingConfig:
         from topocut.tasks.letters import LETTERS
 
         super().validate()
-        self.check_positive("letter_height")
         bad = [c for c in self.word.upper() if c not in LETTERS]
         if not self.word or bad:
             raise ValueError(f"task.word={self.word!r}: no stroke for {bad or 'an empty word'}; "

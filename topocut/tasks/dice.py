@@ -32,11 +32,7 @@ class DiceConfig(KnifeTaskConfig):
     name: str = "dice"
     size: float = 0.03  # a die's side (scene units)
     push: bool = True  # the paper's dice task pushes the cut-off side aside after each cut
-
-    def validate(self) -> DiceConfig:
-        super().validate()
-        self.check_positive("size")
-        return self
+    positive = ("size",)
 
 
 @register_task

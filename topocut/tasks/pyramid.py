@@ -25,11 +25,7 @@ class PyramidConfig(KnifeTaskConfig):
     size: float = 0.1
     max_cuts: int = 1  # the one tilted cut
     sample_tilt: bool = True  # the goal plane is tilted 35 deg: MPPI samples tilt as well as x, y, yaw
-
-    def validate(self) -> PyramidConfig:
-        super().validate()
-        self.check_positive("size")
-        return self
+    positive = ("size",)
 
 
 @register_task

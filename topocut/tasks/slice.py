@@ -20,11 +20,7 @@ from topocut.tasks.config import KnifeTaskConfig
 class SliceConfig(KnifeTaskConfig):
     name: str = "slice"
     thickness: float = 0.03  # slab thickness (scene units), along the object's longest horizontal axis
-
-    def validate(self) -> SliceConfig:
-        super().validate()
-        self.check_positive("thickness")
-        return self
+    positive = ("thickness",)
 
 
 @register_task

@@ -30,11 +30,7 @@ class StickConfig(KnifeTaskConfig):
     thickness: float = 0.03  # the slab's thickness (scene units), along the object's longest horizontal axis
     width: float = 0.03  # each stick's width, across the slab
     push: bool = True  # the paper's stick task pushes the cut-off side aside after each cut
-
-    def validate(self) -> StickConfig:
-        super().validate()
-        self.check_positive("thickness", "width")
-        return self
+    positive = ("thickness", "width")
 
 
 @register_task
