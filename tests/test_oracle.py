@@ -97,3 +97,28 @@ def test_a_plane_turned_across_the_canonical_yaw_wrap_keeps_its_sides():
     assert abs(abs(cut.normal @ n_rigid) - 1) < 1e-6  # the rigidly turned plane: no midpoint shift needed
     off = (cut.plane_point() - (R @ (rigid.plane_point() - c) + c)) @ n_rigid
     assert abs(off) < 1e-6
+
+
+def test_a_chop_across_pieces_that_moved_apart_follows_the_goal_pieces():
+    """A chop (normal x) across two sticks: the goal's stick slid 5 mm along -x, the offcut stick was pushed 2 cm
+    aside and 1 cm along +x.  The plane goes with the goal's stick (-5 mm); a least-squares fit of both would have
+    put it ~2.5 mm the other way of its planned place, a layer off the die it sizes."""
+    from topocut.sim.action import KnifeAction
+    from topocut.tasks.ideal import Anchor
+
+    g = np.stack(np.meshgrid(np.arange(-0.018, 0.02, 0.004), np.arange(-0.008, 0.01, 0.004),
+                             np.arange(0.055, 0.08, 0.004), indexing="ij"), -1).reshape(-1, 3)
+    pts = np.concatenate([g + [0.5, 0.45, 0.0], g + [0.5, 0.55, 0.0]])  # 2 sticks along x, split by x = 0.5
+    piece = np.repeat([0, 1], len(g))
+    anchor = Anchor(pts.astype(np.float32), pts.astype(np.float32), pts[:, 0] > 0.5, np.arange(len(pts)), piece,
+                    piece == 0)
+    plan = KnifeAction.from_plane(np.array([1.0, 0.0, 0.0]), np.array([0.5, 0.5, 0.06]), 0.05)
+    now = pts + np.where((piece == 0)[:, None], [-0.005, 0.0, 0.0], [0.01, 0.02, 0.0])
+    pol = OraclePolicy()
+    pol.initial = pts
+    cut = pol._carried(plan, anchor, now)
+    shift = (cut.plane_point(0.05) - plan.plane_point(0.05)) @ np.array([1.0, 0.0, 0.0])
+    assert shift == pytest.approx(-0.005, abs=1e-6) and abs(abs(cut.normal[0]) - 1) < 1e-9
+    anchor.goal = None  # an anchor that does not say: all of it, the median of both sticks' slides
+    both = (pol._carried(plan, anchor, now).plane_point(0.05) - plan.plane_point(0.05))[0]
+    assert abs(both - shift) > 0.002

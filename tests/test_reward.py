@@ -304,3 +304,26 @@ def test_a_fragment_past_zero_by_size_alone_is_not_described_and_scores_as_if_it
     ref = reward_from_distances(full, len(goals), cfg, vols, [size_descriptor(g)[3] for g in goals])
     assert got.total == pytest.approx(ref.total, abs=1e-9) and got.stock == ref.stock == 0
     assert got.matching == ref.matching and got.cut_count == ref.cut_count
+
+
+def test_size_tolerance_forgives_up_to_its_spacings_and_charges_the_excess():
+    """Boxes on an unjittered lattice of spacing s: n layers have extent exactly n s and fill 1 (size.py), so a box
+    one layer thicker than the goal costs size_weight * log((n + 1 - t) / n)^2 with a tolerance of t spacings (none
+    from t = 1), and the default (t = 0) is the plain log ratio."""
+    from topocut.reward.size import size_descriptor, size_distance
+
+    s = 0.004
+
+    def box(nx, ny, nz):
+        g = np.stack(np.meshgrid(*(np.arange(k) * s for k in (nx, ny, nz)), indexing="ij"), -1).reshape(-1, 3)
+        return g @ np.linalg.qr(np.random.default_rng(0).normal(size=(3, 3)))[0].T  # posed: extents are invariant
+
+    goal, thick = size_descriptor(box(8, 12, 16), s), size_descriptor(box(9, 12, 16), s)
+    for t, want in ((0.0, 3 * np.log(9 / 8) ** 2), (0.5, 3 * np.log(8.5 / 8) ** 2), (1.0, 0.0), (2.0, 0.0)):
+        assert size_distance(thick, goal, profile_weight=0.0, tolerance=t) == pytest.approx(want, abs=1e-9), t
+    # two layers thinner: one spacing forgiven, one charged
+    thin = size_descriptor(box(6, 12, 16), s)
+    assert size_distance(thin, goal, profile_weight=0.0, tolerance=1.0) == pytest.approx(3 * np.log(7 / 8) ** 2,
+                                                                                         abs=1e-9)
+    with pytest.raises(ValueError, match="reward.size_tolerance"):
+        RewardConfig(size_tolerance=-1).validate()
