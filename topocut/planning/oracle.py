@@ -6,12 +6,15 @@ and a cut past the plan would only cut a goal piece.
 
 A cook looks where the piece is before each cut.  The plan places every plane on the ideal, unmoved material,
 but the push after a cut slides pieces a couple of centimetres and pieces settle, so each plane is carried with
-the piece it splits: ``Goal.anchors[k]`` holds particles of that piece at their initial and their planned
-positions just before cut k (topocut.tasks.ideal); the oracle finds the same particles in the scene (nearest
-initial position), fits the horizontal rigid motion (rotation about z, translation) from planned to current
-positions, and moves the plane by it; where that plane leaves more than 5% of the anchor particles on the wrong
-side (a soft slab spreads when laid down), it sets the plane between the two sides' particles where they are now.  It reads the scene's particles from the observation's ``particles``
-(N,3), which the episode engine adds only for a policy marked ``privileged`` (a reference, not a contender).
+the pieces it splits: ``Goal.anchors[k]`` holds particles of those pieces at their initial and their planned
+positions just before cut k, the piece each lies in and whether it ends in a goal piece (topocut.tasks.ideal).
+The oracle finds the same particles in the scene (nearest initial position), keeps those of the pieces the cut
+makes goal pieces of (a chop across three sticks the pushes slid apart follows the goal's stick), fits the
+horizontal rigid motion (rotation about z, translation) from planned to current positions, and moves the plane by
+the rotation and by the median displacement along its normal; where that plane leaves more than 5% of those
+particles on the wrong side (a soft slab spreads when laid down), it sets the plane between the two sides'
+particles where they are now.  It reads the scene's particles from the observation's ``particles`` (N,3), which the
+episode engine adds only for a policy marked ``privileged`` (a reference, not a contender).
 """
 from __future__ import annotations
 
