@@ -77,12 +77,17 @@ def scooping(n_grid: int = 48, device: str = "cpu", seed: int = 0, scoops=None, 
 
 
 def target_rules(states: str) -> list[dict]:
-    """How near each candidate target rule comes to the chunks a run made (its states.npz: x_0, x, labels, chunk; the
-    task's default spoon): per scoop, the rule's particle count, its overlap with chunk i (Jaccard, by particle) and
-    R(d) of chunk i's cup piece against it.  The rules: the mid-sphere cap (chunk_targets), the inner sphere's cap,
-    and the inner sphere swept along the advance (the target before issue #54).  Then, per scoop, chunk i at rest,
-    as lifted (x_lift_i) and in the cup against the target: d, its d_size part, and its volume N s^3 as the size
-    terms read it [cm^3]."""
+    """How near each candidate target rule comes to the chunks a run made (its states.npz: x_0, x, labels, chunk,
+    spacing; the task's default spoon): per scoop, the rule's particle count, its overlap with chunk i (Jaccard, by
+    particle) and R(d) of chunk i's cup piece against it (the task's distance: the size terms at the block's particle
+    spacing).  The rules: the mid-sphere cap (chunk_targets), the inner sphere's cap, and the inner sphere swept
+    along the advance (the target before issue #54).  Then, per scoop, chunk i at rest, as lifted (x_lift_i) and in
+    the cup against the target: d, its d_size part, the volume N s^3 with s estimated from the positions (the
+    median 4-NN distance / 0.97, topocut.reward.size.particle_spacing; what the size terms read before they took
+    the spacing) [cm^3], and the chunk's mean det F (J_lift_i, J; the material's own volume change).  And where the
+    chunk's particles crowd: by their distance r from the bowl's centre as lifted, their count and mean 4-NN distance
+    as lifted and at rest [spacings], and how many lay beyond the bowl's inner radius at rest (from the sphere where
+    the advance starts) and as lifted."""
     import numpy as np
 
     from topocut.reward import RewardConfig, piece_distance, piecewise_reward, size_descriptor, spectral_distance
@@ -91,6 +96,9 @@ def target_rules(states: str) -> list[dict]:
 
     f = np.load(states)
     x0, x, lab, chunk = f["x_0"], f["x"], f["labels"], f["chunk"]
+    if "spacing" not in f.files:
+        raise SystemExit(f"{states} has no 'spacing' (written before the size terms took it): simulate it again")
+    s = float(f["spacing"])
     sp = SpoonConfig()
     top = float(x0[:, 2].max())
     rows = []
@@ -105,17 +113,46 @@ def target_rules(states: str) -> list[dict]:
         ids, cnt = np.unique(lab[held], return_counts=True)
         piece = x[lab == ids[cnt.argmax()]]
         for name, m in rules.items():
-            d = piece_distance(piece, x0[m])
+            d = piece_distance(piece, x0[m], spacing=s)
             rows.append({"scoop": i + 1, "rule": name, "particles": int(m.sum()), "held": int(held.sum()),
                          "jaccard": round(float((m & held).sum() / (m | held).sum()), 3), "d": round(d, 4),
                          "R": round(float(piecewise_reward(d)), 3)})
+        rows += crowding(i + 1, x0[held], f[f"x_lift_{i + 1}"][held], c, sp, s)
         target = x0[rules["mid-sphere cap (the target)"]]
-        stages = {"at rest": x0[held], "as lifted": f[f"x_lift_{i + 1}"][held], "in the cup": piece}
-        for name, pts in stages.items():
-            d = piece_distance(pts, target)
+        stages = {"at rest": (x0[held], 1.0), "as lifted": (f[f"x_lift_{i + 1}"][held], f[f"J_lift_{i + 1}"][held]),
+                  "in the cup": (piece, f["J"][lab == ids[cnt.argmax()]])}
+        for name, (pts, J) in stages.items():
+            d = piece_distance(pts, target, spacing=s)
             rows.append({"scoop": i + 1, "chunk": name, "d": round(d, 4),
                          "d_size": round(d - spectral_distance(pts, target, RewardConfig()), 4),
-                         "volume_cm3": round(float(size_descriptor(pts)[3]) * 1e6, 1)})
+                         "volume_estimate_cm3": round(float(size_descriptor(pts)[3]) * 1e6, 1),
+                         "volume_cm3": round(len(pts) * s ** 3 * 1e6, 1), "mean_J": round(float(np.mean(J)), 4)})
+    return rows
+
+
+def crowding(scoop: int, rest, lifted, c_rest, sp, s: float) -> list[dict]:
+    """Rows of target_rules: chunk ``scoop``'s particles (rest (n,3), lifted (n,3)) binned by their distance from the
+    bowl's centre as lifted (the spoon's pose at the end of its lift, scoop_keyframes from the block's top; the
+    bowl's inner radius is sp.radius): count, mean 4-NN distance as lifted and at rest [spacings s]; and the
+    particles beyond sp.radius at rest (from the sphere's centre c_rest where the advance starts) and as lifted."""
+    import numpy as np
+    from scipy.spatial import cKDTree
+
+    from topocut.sim import SimConfig
+    from topocut.sim.spoon import scoop_keyframes
+
+    top = c_rest[2] - sp.radius + sp.depth
+    path = scoop_keyframes(sp, (c_rest[0], c_rest[1]), top, SimConfig().board_z + sp.cup_height)
+    c_lift = path.pose(next(k.t for k in path.keys if k.phase == "lift"))[0]
+    r = np.linalg.norm(lifted - c_lift, axis=1)
+    nn = {name: cKDTree(p).query(p, 5)[0][:, 1:].mean(1) / s for name, p in (("lifted", lifted), ("rest", rest))}
+    rows = [{"scoop": scoop, "beyond_radius_at_rest": int((np.linalg.norm(rest - c_rest, axis=1) > sp.radius).sum()),
+             "beyond_radius_as_lifted": int((r > sp.radius + 1e-3).sum())}]
+    for lo, hi in ((0.0, 0.05), (0.05, 0.055), (0.055, 0.059), (0.059, 0.061), (0.061, 1.0)):
+        m = (r >= lo) & (r < hi)
+        rows.append({"scoop": scoop, "r_cm": [round(lo * 100, 1), round(hi * 100, 1)], "particles": int(m.sum()),
+                     "nn_lifted": round(float(nn["lifted"][m].mean()), 3) if m.any() else None,
+                     "nn_rest": round(float(nn["rest"][m].mean()), 3) if m.any() else None})
     return rows
 
 
@@ -152,12 +189,20 @@ def main(argv=None) -> int:
     if args.rules:
         out = target_rules(args.rules)
         for r in out:
-            if "rule" in r:
+            if "beyond_radius_at_rest" in r:
+                print(f"  scoop {r['scoop']}  chunk particles beyond the bowl's inner radius: {r['beyond_radius_at_rest']} "
+                      f"at rest, {r['beyond_radius_as_lifted']} as lifted")
+            elif "r_cm" in r:
+                if r["particles"]:
+                    print(f"  scoop {r['scoop']}  r {r['r_cm'][0]:.1f}-{r['r_cm'][1]:.1f} cm as lifted: {r['particles']:4d} "
+                          f"particles, mean 4-NN distance {r['nn_lifted']:.3f} s (at rest {r['nn_rest']:.3f} s)")
+            elif "rule" in r:
                 print(f"  scoop {r['scoop']}  {r['rule']:<33} {r['particles']:4d} particles (held {r['held']})  "
                       f"Jaccard {r['jaccard']:.2f}  d {r['d']:.3f}  R {r['R']:.3f}")
             else:
                 print(f"  scoop {r['scoop']}  chunk {r['chunk']:<10} against the target: d {r['d']:.3f} "
-                      f"(d_size {r['d_size']:.3f}), volume {r['volume_cm3']} cm^3")
+                      f"(d_size {r['d_size']:.3f}), volume N s^3 {r['volume_cm3']} cm^3, from the positions' spacing "
+                      f"{r['volume_estimate_cm3']} cm^3, mean det F {r['mean_J']:.4f}")
     else:
         out = scooping(args.n_grid, args.device, args.seed, args.scoop, args.variant)
         _print(out)

@@ -86,7 +86,7 @@ def writing(n_grid: int = 48, device: str = "cpu", seed: int = 0, word: str = "C
     for names in groups.values():
         x, stroke = write_batch(sim, task.pen, start, [todo[n] for n in names])
         for b, name in enumerate(names):
-            res = letter_rewards(x[b], stroke, goals, reward)
+            res = letter_rewards(x[b], stroke, goals, reward, spacing=sim.spacing)
             rows[name] = {"variant": name, "reward": round(res["total"], 4),
                           "per_letter": [round(r, 4) for r in res["per_letter"]],
                           "distance": [round(d, 4) for d in res["distance"]],

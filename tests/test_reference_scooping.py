@@ -11,8 +11,10 @@ from topocut.tasks.config import SpoonConfig
 from topocut.tasks.scooping_reward import scoop_total, scooping_reward
 from topocut.tasks.scooping_scene import block_particles, bowl_cap, cap_volume, chunk_masks, chunk_targets, spilled_mask
 
+S = 0.01  # the particle spacing of the hand-built targets and pieces
 
-def _box(n, spacing=0.01, seed=0):  # (prod n,3): a jittered lattice box of n = (nx, ny, nz) layers
+
+def _box(n, spacing=S, seed=0):  # (prod n,3): a jittered lattice box of n = (nx, ny, nz) layers
     g = np.stack(np.meshgrid(*[np.arange(k) for k in n], indexing="ij"), -1).reshape(-1, 3)
     return ((g + np.random.default_rng(seed).uniform(-0.25, 0.25, g.shape)) * spacing).astype(np.float32)
 
@@ -20,43 +22,64 @@ def _box(n, spacing=0.01, seed=0):  # (prod n,3): a jittered lattice box of n = 
 @pytest.fixture(scope="module")
 def targets():
     """Two different targets: the task's first cap (at 1 cm spacing) and a 12 x 8 x 4 slab."""
-    cap = chunk_targets(block_particles(SpoonConfig(), 0.01, 0.05, seed=0), SpoonConfig())[0]
+    cap = chunk_targets(block_particles(SpoonConfig(), S, 0.05, seed=0), SpoonConfig())[0]
     return [cap, _box((12, 8, 4))]
 
 
 def test_a_chunk_exactly_the_target_scores_one(targets):
-    res = scooping_reward(targets, targets)
+    res = scooping_reward(targets, targets, spacing=S)
     assert res.total == 1.0 and res.per_chunk.tolist() == [1.0, 1.0] and res.matching == [(0, 0), (1, 1)]
     # in the cup in any order, turned and moved: the same (the distance is invariant to rigid motions)
     turn = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], np.float32)  # 90° about z
     moved = [targets[1] @ turn.T + np.float32([0.4, 0.1, 0.0]), targets[0] + np.float32([0.3, 0.0, 0.05])]
-    res = scooping_reward(moved, targets)
+    res = scooping_reward(moved, targets, spacing=S)
     assert res.matching == [(0, 1), (1, 0)] and res.total == pytest.approx(1.0, abs=1e-6)
 
 
 def test_a_missing_chunk_earns_zero_and_the_rest_is_not_waste(targets):
     # one of two chunks in the cup: (1 + 0) / 2
-    res = scooping_reward([targets[0]], targets)
+    res = scooping_reward([targets[0]], targets, spacing=S)
     assert res.per_chunk.tolist() == [1.0, 0.0] and res.total == 0.5
     # nothing in the cup
-    assert scooping_reward([], targets).total == 0.0
+    assert scooping_reward([], targets, spacing=S).total == 0.0
     # a piece that matches no target (the block, had it landed in the cup) costs nothing: (1 + 1) / 2
-    block = block_particles(SpoonConfig(), 0.02, 0.05)
-    assert scooping_reward([*targets, block], targets).total == 1.0
+    block = block_particles(SpoonConfig(), S, 0.05)
+    assert scooping_reward([*targets, block], targets, spacing=S).total == 1.0
     # a piece below reward.min_points (32) is at d = inf: R 0
-    assert scooping_reward([targets[0][:20]], targets[:1]).total == 0.0
+    assert scooping_reward([targets[0][:20]], targets[:1], spacing=S).total == 0.0
 
 
 def test_spilled_material_costs_as_waste(targets):
     m = (len(targets[0]) + len(targets[1])) / 2  # the mean target count
     # both chunks perfect, half a chunk's worth spilled: (1 + 1 - 0.5) / 2
-    res = scooping_reward(targets, targets, spilled=int(m) // 2)
+    res = scooping_reward(targets, targets, spilled=int(m) // 2, spacing=S)
     assert res.spill_weight == pytest.approx((int(m) // 2) / m) and res.total == pytest.approx((2 - res.spill_weight) / 2)
     # reward.waste_cost scales it; three chunks' worth spilled clips the total at 0 (unclipped (2 - 3) / 2)
-    assert scooping_reward(targets, targets, int(m) // 2, RewardConfig(waste_cost=0.5)).total == pytest.approx(
+    assert scooping_reward(targets, targets, int(m) // 2, RewardConfig(waste_cost=0.5), spacing=S).total == pytest.approx(
         (2 - 0.5 * res.spill_weight) / 2)
-    res = scooping_reward(targets, targets, spilled=round(3 * m))
+    res = scooping_reward(targets, targets, spilled=round(3 * m), spacing=S)
     assert res.total == 0.0 and res.unclipped == pytest.approx((2 - round(3 * m) / m) / 2)
+
+
+def test_a_chunk_pressed_together_is_scored_at_the_blocks_spacing():
+    """The block's particles stand for spacing^3 of material each, pieces and targets alike, so the size terms take
+    that spacing (scooping_reward(spacing=)).  A 12 x 8 x 4 lattice box pressed towards its centre by k = 0.965, no
+    particle lost (the spoon puts the particles its rim reaches back on the shell's surface, where they crowd while
+    their det F stays 1): its volume stays N s^3 and its extents shrink to s sqrt(k^2 (n^2 - 1) + 1) for n layers,
+    so d_size = 3 sum (log e_n / n s)^2 + 3 (sum log e_n / n s)^2 (fill) + 3 (log e_4 / 4 s)^2 (profile) = 0.0464;
+    d_spec is ~0 (the spectra are scale-free)."""
+    from topocut.reward import piecewise_reward, spectral_distance
+
+    box = np.stack(np.meshgrid(np.arange(12), np.arange(8), np.arange(4), indexing="ij"), -1).reshape(-1, 3) * S
+    k = 0.965
+    pressed = (box - box.mean(0)) * k + box.mean(0)
+    dlog = np.log([math.sqrt(k * k * (n * n - 1) + 1) / n for n in (4, 8, 12)])
+    d_size = 3 * (dlog ** 2).sum() + 3 * dlog.sum() ** 2 + 3 * dlog[0] ** 2
+    assert d_size == pytest.approx(0.0464, abs=5e-5)
+    res = scooping_reward([pressed], [box], spacing=S)
+    d = d_size + spectral_distance(pressed, box)
+    assert res.distances[0, 0] == pytest.approx(d, abs=1e-9) and res.per_chunk[0] == pytest.approx(piecewise_reward(d))
+    assert spectral_distance(pressed, box) < 1e-3
 
 
 def test_total_by_hand():
@@ -65,9 +88,9 @@ def test_total_by_hand():
     assert scoop_total([0.9, 0.6], 0.0, RewardConfig(kappa=1.0))[0] == 1.0  # clipped at r_max; unclipped 1.5
     assert scoop_total([0.9, 0.6], 0.0, RewardConfig(kappa=1.0))[1] == pytest.approx(1.5)
     with pytest.raises(ValueError, match="at least one target"):
-        scooping_reward([], [])
+        scooping_reward([], [], spacing=S)
     with pytest.raises(ValueError, match="spilled=-1"):
-        scooping_reward([], [np.zeros((40, 3))], spilled=-1)
+        scooping_reward([], [np.zeros((40, 3))], spilled=-1, spacing=S)
 
 
 def test_targets_are_the_mid_sphere_cap_of_the_block_at_rest():
@@ -108,9 +131,9 @@ def test_spilled_is_by_cluster_and_by_place():
 
 
 def test_reference_beats_the_scoop_two_cm_short():
-    """n_grid 32, one scoop (1350 particles, ~40 s on 2 cores).  The scripted scoop scores 0.87 here (the chunk is
-    ~112 particles; the scoop compresses it ~10%, which the size terms see): >= 0.9 needs the smoke scale (n_grid 48,
-    docs/tasks.md).  The scoop 2 cm short brings up a chunk about half as big: R 0."""
+    """n_grid 32, one scoop (1350 particles, ~75 s on 2 shared cores).  The scripted scoop scores 0.86-0.87 here (the
+    chunk is ~112 particles; the pour changes its shape, d_spec 0.018, and its extents shrink 1-3%): >= 0.9 is the
+    smoke scale's (n_grid 48, 0.95, docs/tasks.md).  The scoop 2 cm short brings up a chunk about half as big: R 0."""
     pytest.importorskip("taichi")
     from experiments.reference_scooping import scooping
 

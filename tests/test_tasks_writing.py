@@ -48,9 +48,38 @@ def test_identical_strokes_score_the_full_reward_per_letter():
     goals, _ = word_goal("LO", 0.12, 0.06, 0.01, 0.05)
     x = np.concatenate(goals[::-1])  # strokes written in the other order: matching pairs them up
     stroke = np.repeat([0, 1], [len(goals[1]), len(goals[0])])
-    res = letter_rewards(x, stroke, goals)
+    res = letter_rewards(x, stroke, goals, spacing=0.01)
     assert res["per_letter"] == pytest.approx([1.0, 1.0]) and sorted(res["matching"]) == [(0, 1), (1, 0)]
     assert res["total"] == pytest.approx(1.0) and res["extra"] == []
+
+
+def test_a_bead_laid_across_the_nozzle_differently_has_its_letters_size_at_the_pens_spacing():
+    """The I's bead with the nozzle's plus turned 45° against the stroke (as a diagonal stroke meets the plus): the
+    same stations and count, and the plus's offsets {0, (±s, 0), (0, ±s)} and the turned ones {0, (±a, ±a)},
+    a = s / √2, have the same second moments (variance 2 s² / 5 along either axis, no covariance), so at the pen's
+    spacing the size terms read the same piece (d_size 0); the estimated spacing (median 4-NN distance / 0.97) reads
+    0.62 s for one and 0.74 s for the other, so its volumes differed by 68%."""
+    from topocut.reward import spectral_distance
+    from topocut.reward.size import particle_spacing, size_descriptor, size_distance
+    from topocut.tasks.letters import letter_points, pen_bead
+    from topocut.tasks.writing_scene import letter_distances
+
+    s, bz = 0.01, 0.05
+    (goal,), (poly,) = word_goal("I", 0.12, 0.06, s, bz)
+    layer, pitch = pen_bead(s)
+    a = np.sqrt(0.5)
+    turned = letter_points(poly, layer[:, :2] @ np.array([[a, -a], [a, a]]).T, pitch, bz + s / 2)
+    assert len(turned) == len(goal) == 16 * 5  # 120 mm of stroke: a layer at 0, 8, ..., 120 mm
+    got, want = size_descriptor(turned, s), size_descriptor(goal, s)
+    # by hand: one layer (e1 = s), across the stroke sqrt(12 * 2 s^2 / 5 + s^2) = sqrt(5.8) s, along it
+    # sqrt(12 (0.8 s)^2 (16^2 - 1) / 12 + 12 * 2 s^2 / 5 + s^2) = 13 s; volume 80 s^3
+    for d in (got, want):
+        np.testing.assert_allclose(d[:4], [s, np.sqrt(5.8) * s, 13 * s, 80 * s ** 3], rtol=1e-5)
+    assert float(size_distance(got, want)) < 1e-9
+    D, H = letter_distances([turned], [goal], spacing=s)
+    assert H[0, 0] == 0.0 and D[0, 0] == pytest.approx(spectral_distance(turned, goal), abs=1e-9)
+    assert particle_spacing(goal) / s == pytest.approx(0.62, abs=0.01)
+    assert particle_spacing(turned) / s == pytest.approx(0.74, abs=0.01)
 
 
 def test_missing_and_mirrored_letters_cost_the_word():
@@ -60,13 +89,13 @@ def test_missing_and_mirrored_letters_cost_the_word():
     assert word_score([1.0, 0.25]) == pytest.approx(0.5) and word_score([0.9, 0.0]) == 0.0  # geometric mean
     goals, _ = word_goal("LR", 0.12, 0.06, 0.01, 0.05)
     # one letter missing: the L scores in full, the R earns 0, so the word earns 0 (a mean would pay 0.5)
-    res = letter_rewards(goals[0], np.zeros(len(goals[0]), int), goals)
+    res = letter_rewards(goals[0], np.zeros(len(goals[0]), int), goals, spacing=0.01)
     assert res["per_letter"] == pytest.approx([1.0, 0.0]) and res["total"] == 0.0
     # the R's stroke mirrored about a vertical axis, off to the right: the same cloud turned over, so d_spec and d_size
     # are 0, but on the board it fits the mirror image better than the R: its handedness costs
     mirrored = goals[1] * [-1, 1, 1] + [1.2, 0, 0]
     res = letter_rewards(np.concatenate([goals[0], mirrored]), np.repeat([0, 1], [len(goals[0]), len(mirrored)]),
-                         goals)
+                         goals, spacing=0.01)
     assert res["handedness"][0] == 0.0 and res["handedness"][1] > 0.05
     assert res["distance"][1] == pytest.approx(RewardConfig().handedness_weight * res["handedness"][1], abs=1e-6)
     assert res["per_letter"] == pytest.approx([1.0, 0.0]) and res["total"] == 0.0  # d > 0.2575: R's zero

@@ -59,7 +59,7 @@ class StrokeMPPI:
         frag = x[stroke == sid]
         if len(frag) < 4:
             return 0.0
-        D, _ = letter_distances([frag], [goal], self.cost_cfg)
+        D, _ = letter_distances([frag], [goal], self.cost_cfg, spacing=self.pen.spacing)
         return float(piecewise_reward(D[0, 0], self.cost_cfg))
 
     def plan_letter(self, poly: np.ndarray, goal: np.ndarray, state: dict) -> tuple[dict, dict]:
@@ -101,7 +101,7 @@ class StrokeMPPI:
         self.pen.set_state(state)
         self.pen.settle()
         x, stroke = self.pen.particles()
-        out = letter_rewards(x[0], stroke, self.goals, self.reward_cfg)
+        out = letter_rewards(x[0], stroke, self.goals, self.reward_cfg, spacing=self.pen.spacing)
         out.update(letters=[{k: v for k, v in f.items() if k != "polyline"} for f in infos],
                    polylines=[f["polyline"] for f in infos], particles=int(self.pen.n),
                    rollouts=self.cfg.num_samples * self.cfg.iterations * len(strokes),

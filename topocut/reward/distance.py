@@ -86,33 +86,42 @@ def _raw_descriptors(clouds: list[np.ndarray], sigma, cfg: RewardConfig) -> list
     return out
 
 
-def piece_distance(x, y, cfg: RewardConfig | None = None) -> float:
-    """d(x, y) = d_spec + d_size of one fragment x (n,3) to one goal piece y (m,3); inf below min_points."""
-    return float(distance_matrix([x], [y], cfg)[0, 0])
+def piece_distance(x, y, cfg: RewardConfig | None = None, spacing: float | None = None) -> float:
+    """d(x, y) = d_spec + d_size of one fragment x (n,3) to one goal piece y (m,3); inf below min_points.
+    ``spacing``: as for distance_matrix."""
+    return float(distance_matrix([x], [y], cfg, spacing=spacing)[0, 0])
 
 
-def distance_matrix(fragments, goal_fragments, cfg: RewardConfig | None = None) -> np.ndarray:
+def distance_matrix(fragments, goal_fragments, cfg: RewardConfig | None = None,
+                    spacing: float | None = None) -> np.ndarray:
     """(F,G) distances d_spec + d_size.
+
+    ``spacing``: the particle spacing every fragment and goal piece was made at, where the caller knows that they
+    share it (the pen's and the spoon's scenes: every particle stands for spacing^3 of material, MPMSolver.vol);
+    the size terms then take it instead of estimating it from each cloud's neighbour distances
+    (topocut.reward.size.particle_spacing).  None (the knife tasks): the estimate.
 
     Goal resamplings and descriptors are cached (keyed by the goal's bytes and the config),
     so repeated calls with the same goal, as in MPPI, only pay for the fragments.
     """
-    return distance_matrices([fragments], goal_fragments, cfg, names=("fragments",))[0]
+    return distance_matrices([fragments], goal_fragments, cfg, names=("fragments",), spacing=spacing)[0]
 
 
 def distance_matrices(fragment_sets, goal_fragments, cfg: RewardConfig | None = None,
-                      names=None) -> list[np.ndarray]:
+                      names=None, spacing: float | None = None) -> list[np.ndarray]:
     """One (F_s,G) matrix per set of fragments (e.g. the K scenes of an MPPI batch) against one goal."""
-    return _score_sets(fragment_sets, goal_fragments, cfg, names)[0]
+    return _score_sets(fragment_sets, goal_fragments, cfg, names, spacing=spacing)[0]
 
 
-def distances_and_volumes(fragment_sets, goal_fragments, cfg: RewardConfig | None = None, names=None):
+def distances_and_volumes(fragment_sets, goal_fragments, cfg: RewardConfig | None = None, names=None,
+                          spacing: float | None = None):
     """(one (F_s,G) distance matrix per set, fragment volumes per set, goal volumes): what
     ``reward_from_distances(D, G, cfg, volumes, goal_volumes)`` needs to score each set."""
-    return _score_sets(fragment_sets, goal_fragments, cfg, names)
+    return _score_sets(fragment_sets, goal_fragments, cfg, names, spacing=spacing)
 
 
-def _score_sets(fragment_sets, goal_fragments, cfg: RewardConfig | None = None, names=None, per_set=False):
+def _score_sets(fragment_sets, goal_fragments, cfg: RewardConfig | None = None, names=None, per_set=False,
+                spacing: float | None = None):
     """(distance matrices, fragment volumes per set, goal volumes).
 
     goal_fragments: one list of goal clouds for every set, or (per_set=True) one list per set; the goal
@@ -124,8 +133,14 @@ def _score_sets(fragment_sets, goal_fragments, cfg: RewardConfig | None = None, 
     for every goal piece of its set (the uncut stock, ~10^5 particles at 128^3) scores R = 0 whatever its shape, so
     it is not described spectrally (its FPS was most of the reward's device time) nor, where its extents and fill
     already say so, profiled; its d is reported as the size terms it was measured with, a lower bound.
+
+    spacing: the particle spacing shared by every fragment and goal piece (distance_matrix); None: each cloud's own
+    estimate.
     """
     cfg = (cfg or RewardConfig()).validate()
+    if spacing is not None and not spacing > 0:
+        raise ValueError(f"spacing={spacing} must be > 0 (the particle spacing) or None (estimated per cloud)")
+    skey = () if spacing is None else (float(spacing),)  # the estimate keeps its cache keys
     names = names or [f"fragment_sets[{s}]" for s in range(len(fragment_sets))]
     raw = [[_points(f, f"{name}[{i}]") for i, f in enumerate(fs)] for name, fs in zip(names, fragment_sets)]
     goal_sets = goal_fragments if per_set else [goal_fragments]
@@ -143,12 +158,13 @@ def _score_sets(fragment_sets, goal_fragments, cfg: RewardConfig | None = None, 
                 ugoals.append((k, g))
             row.append(keys[k])
         gidx.append(row)
-    gsizes = np.array([_cached(("size", k), lambda g=g: size_descriptor(g)) for k, g in ugoals])  # U,5+Q
+    gsizes = np.array([_cached(("size", k, *skey), lambda g=g: size_descriptor(g, spacing))  # U,5+Q
+                       for k, g in ugoals])
     gres = [_cached(("resample", k, ckey), lambda g=g: resample(g, cfg)) for k, g in ugoals]
     set_goals = gidx if per_set else gidx * len(raw)  # each set's goal indices into ugoals
     # every scene's pieces in one thread pool, each profiled only where its extents and fill leave R > 0
     todo = [(f, gsizes[row]) for fs, row in zip(raw, set_goals) for f in fs]
-    flat_sizes = iter(size_descriptors(todo, fn=lambda t: _fragment_size(t[0], t[1], cfg)))
+    flat_sizes = iter(size_descriptors(todo, fn=lambda t: _fragment_size(t[0], t[1], cfg, spacing)))
     sizes = [[next(flat_sizes) for _ in fs] for fs in raw]
     uvols = gsizes[:, 3] if len(gsizes) else np.zeros(0)
     Ds = [np.full((len(fs), len(row)), np.inf) for fs, row in zip(raw, set_goals)]
@@ -178,10 +194,12 @@ def _score_sets(fragment_sets, goal_fragments, cfg: RewardConfig | None = None, 
     return Ds, vols, gvols
 
 
-def _fragment_size(points: np.ndarray, goal_sizes: np.ndarray, cfg: RewardConfig) -> np.ndarray:
+def _fragment_size(points: np.ndarray, goal_sizes: np.ndarray, cfg: RewardConfig,
+                   spacing: float | None = None) -> np.ndarray:
     """size_descriptor of a fragment (N,3) against its set's goal pieces (G,5+Q): its thickness profile left NaN
-    when its extent and fill terms alone already put R at 0 for every goal piece (the profile term only adds)."""
-    s = particle_spacing(points)
+    when its extent and fill terms alone already put R at 0 for every goal piece (the profile term only adds).
+    spacing: the known particle spacing (None: estimated from the fragment)."""
+    s = particle_spacing(points) if spacing is None else float(spacing)
     base = size_descriptor(points, s, profile=False)
     if len(goal_sizes):
         bound = size_distance(base, goal_sizes, cfg.size_weight, cfg.fill_weight, 0.0, cfg.size_tolerance)  # G,

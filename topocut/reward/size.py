@@ -6,8 +6,13 @@ measure them directly, invariant to rigid motions and to the point density:
 
 * particle spacing s: the median distance of a particle to its 4 nearest neighbours, divided by
   ``NN_RATIO`` (0.97: the value of that median on the simulator's jittered lattice, ±0.25 s per axis,
-  for slabs of 2-8 layers and blocks, within ±2%), so s is the lattice spacing for any density;
-* volume V = N s^3 (each particle stands for one lattice cell);
+  for slabs of 2-8 layers and blocks, within ±2%), so s is the lattice spacing for any density.  Or s given:
+  where the caller knows the spacing every piece was made at (topocut.reward.distance_matrix(spacing=): the pen's
+  and the spoon's scenes), s is that spacing.  The estimate is calibrated on 3-D lattices and is not that spacing
+  for clouds that are not: a one-particle-layer bead of cream lies at 0.57-0.72 spacings, depending on how its
+  stroke runs across the nozzle's pattern, and particles that a collider put back on its surface crowd there
+  without the material being compressed (docs/tasks.md, cream writing and ice-cream scooping);
+* volume V = N s^3 (each particle stands for one lattice cell: the solver gives it the volume spacing^3);
 * principal extents e_1 <= e_2 <= e_3: e_k = sqrt(12 c_k + s^2), c_k the eigenvalues of the points'
   covariance.  For a box of side L filled by a lattice of n = L / s layers the variance along the side is
   s^2 (n^2 - 1) / 12, so e = n s = L exactly, at any density; for other shapes e is the side of the box with

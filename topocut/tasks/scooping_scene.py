@@ -137,11 +137,16 @@ class ScoopScene:
         self.tools = ToolColliders(self.env.solver, spoon)
         self.chunk = np.zeros(len(x), np.int32)  # 0 = block, i + 1 = chunk of scoop i
         self.lifted: list[np.ndarray] = []  # N,3 per scoop: the particles when the spoon has lifted
+        self.lifted_J: list[np.ndarray] = []  # N, per scoop: their det F then
         self.t = 0.0
 
     @property
     def x(self) -> np.ndarray:  # N,3
         return self.env.solver.x.to_numpy()[0, :self.env.n]
+
+    @property
+    def J(self) -> np.ndarray:  # N, det F: the material's volume change (1 at rest)
+        return self.env.solver.Jp.to_numpy()[0, :self.env.n]
 
     def run(self, path: SpoonPath | None, until: float, on_phase=None) -> None:
         """Advance to time ``until`` with the spoon following path (None: spoon away); on_phase(name) at changes."""
@@ -187,6 +192,7 @@ class ScoopScene:
         held = (np.linalg.norm(d, axis=1) < self.spoon.radius + 0.5 * self.env.cfg.dx) & (d @ a < self.spoon.opening * self.spoon.radius)
         self.chunk[held & (self.chunk == 0)] = i + 1
         self.lifted.append(self.x)  # N,3: the scene as the bowl holds chunk i (its shape before the pour)
+        self.lifted_J.append(self.J)
         self.run(path, path.duration, on_phase)
         return {"held": int(held.sum()), "keyframes": [(k.phase, k.t) for k in path.keys]}
 
@@ -204,7 +210,7 @@ def scoop_episode(sim, task, topology=None, frames_dir=None, seed: int = 0, rewa
     scene = ScoopScene(sim, spoon, seed)
     bz = scene.env.cfg.board_z
     targets = chunk_targets(scene.x, spoon)  # before any physics: the goal is what the bowl's geometry holds
-    frames, arrays, records = [], {"x_0": scene.x}, []
+    frames, arrays, records = [], {"x_0": scene.x, "spacing": np.float64(scene.env.cfg.spacing)}, []
     limits = ((spoon.block_center[0] - 0.1, spoon.block_center[1] - 0.15, bz),
               (spoon.cup_center[0] + 0.1, spoon.block_center[1] + 0.15, bz + 0.25))
 
@@ -231,7 +237,8 @@ def scoop_episode(sim, task, topology=None, frames_dir=None, seed: int = 0, rewa
                           if ph in ("advance", "tilt") else None, **(primitive or {}))
         rec["chunk_in_cup"] = float(in_cup(scene.x[scene.chunk == i + 1], spoon, bz).mean()) if rec["held"] else 0.0
         records.append(rec)
-        arrays[f"x_{i + 1}"], arrays[f"x_lift_{i + 1}"] = scene.x, scene.lifted[i]
+        arrays[f"x_{i + 1}"], arrays[f"x_lift_{i + 1}"], arrays[f"J_lift_{i + 1}"] = scene.x, scene.lifted[i], \
+            scene.lifted_J[i]
         if on_scoop is not None:
             on_scoop(i, {"chunks_in_cup": i + 1, **rec})
     scene.run(None, scene.t + scene.env.cfg.settle_time)
@@ -257,7 +264,7 @@ def score_scene(scene: ScoopScene, targets, topology=None, reward_cfg=None) -> d
     cup_ids = [c for c in ids if in_cup(x[lab == c].mean(0, keepdims=True), spoon, bz)[0]]
     pieces = [x[lab == c] for c in cup_ids]
     spilled = spilled_mask(x, lab, spoon, bz, scene.env.cfg.dx)
-    res = scooping_reward(pieces, targets, int(spilled.sum()), reward_cfg)
+    res = scooping_reward(pieces, targets, int(spilled.sum()), reward_cfg, spacing=scene.env.cfg.spacing)
     chunk_cluster = []
     for i in range(len(spoon.scoops)):
         m = (scene.chunk == i + 1) & np.isin(lab, cup_ids)
@@ -270,5 +277,5 @@ def score_scene(scene: ScoopScene, targets, topology=None, reward_cfg=None) -> d
             "chunks_distinct": bool(distinct), "reward": res.total, "per_chunk": res.per_chunk.tolist(),
             "distances": res.distances.tolist(), "spilled": res.spilled, "spill_weight": res.spill_weight,
             "target_points": [int(len(t)) for t in targets],
-            "arrays": {"x": x, "labels": lab, "chunk": scene.chunk, "damage": st.damage[0], "spilled": spilled,
+            "arrays": {"x": x, "J": scene.J, "labels": lab, "chunk": scene.chunk, "damage": st.damage[0], "spilled": spilled,
                        **{f"target_{i}": t for i, t in enumerate(targets)}}}

@@ -6,8 +6,9 @@ Actions are (dx, dy, b): move the pen by (dx, dy) in a straight line, extruding 
 pen.step).  Clusters are the strokes (by construction: CreamPen bookkeeps a stroke id per
 particle); ``stroke_fragments`` groups particles by it, ``cluster_check`` compares that with
 topology discovery.  ``letter_rewards`` scores each letter against its own stroke (Hungarian pairing on
-R(d), d = d_spec + d_size + the stroke's handedness on the board) and the word by the geometric mean of its
-letters (``word_score``): docs/tasks.md#cream-writing.
+R(d), d = d_spec + d_size + the stroke's handedness on the board; the size terms at the pen's particle spacing,
+which the strokes and the letters share) and the word by the geometric mean of its letters (``word_score``):
+docs/tasks.md#cream-writing.
 
 MPPI over the strokes' shapes is a planner: topocut.planning.stroke_mppi.StrokeMPPI.
 """
@@ -101,17 +102,23 @@ def cluster_check(x: np.ndarray, stroke: np.ndarray, topo_cfg=None, device: str 
             "agree": bool(agree and back == len(stroke)), "labels": lab}
 
 
-def letter_distances(fragments, goals, reward_cfg=None) -> tuple[np.ndarray, np.ndarray]:
+def letter_distances(fragments, goals, reward_cfg=None, *, spacing: float) -> tuple[np.ndarray, np.ndarray]:
     """(F,G) distances of strokes (list of (n,3)) to letters (list of (m,3)) and the handedness part (F,G).
 
     d = d_spec + d_size (topocut.reward.distance_matrix: what R sees for every task) + reward.handedness_weight x
     handedness (topocut.reward.planar: a mirrored letter is a rigid motion of the letter, which the first two
     terms cannot see; on the board it is not).  inf where a stroke is below reward.min_points.
+
+    ``spacing``: the particle spacing the pen writes at and the letters were laid at (sim.spacing; CreamPen.spacing,
+    word_goal's).  The size terms take it rather than estimating it per cloud: a bead is one particle layer, not
+    the 3-D lattice the estimate is calibrated on, and its neighbour distances (0.57-0.72 spacings) depend on how
+    the stroke runs across the nozzle's pattern, so the estimate differed between a letter and its own stroke
+    (the L: 0.569 against 0.619) and so did the volumes N s^3 and the extents they compared.
     """
     from topocut.reward import RewardConfig, distance_matrix, handedness
 
     cfg = (reward_cfg or RewardConfig()).validate()
-    D = distance_matrix(list(fragments), list(goals), cfg)
+    D = distance_matrix(list(fragments), list(goals), cfg, spacing=spacing)
     H = np.zeros_like(D)
     if cfg.handedness_weight > 0:
         for f, g in zip(*np.nonzero(np.isfinite(D))):
@@ -126,20 +133,20 @@ def word_score(per_letter) -> float:
     return float(np.exp(np.log(r).mean())) if len(r) and (r > 0).all() else 0.0
 
 
-def letter_rewards(x, stroke, goals, reward_cfg=None) -> dict:
+def letter_rewards(x, stroke, goals, reward_cfg=None, *, spacing: float) -> dict:
     """Each letter scored against its own stroke (writing, not cutting: no stock, no waste).
 
     Strokes (particles by stroke id) and letters are paired one-to-one by the Hungarian algorithm on R(d)
-    (topocut.reward.match); per_letter[i] = R(d) of the stroke paired with letter i, 0 if none is (a missing
-    letter); total = word_score(per_letter).  Strokes left unpaired (more strokes than letters) are listed in
-    ``extra`` and not charged.
+    (topocut.reward.match; d: letter_distances, at the particle ``spacing`` both were made at); per_letter[i] =
+    R(d) of the stroke paired with letter i, 0 if none is (a missing letter); total = word_score(per_letter).
+    Strokes left unpaired (more strokes than letters) are listed in ``extra`` and not charged.
     """
     from topocut.reward import RewardConfig, match, piecewise_reward
 
     cfg = (reward_cfg or RewardConfig()).validate()
     frags, ids = stroke_fragments(x, stroke)
     G = len(goals)
-    D, H = letter_distances(frags, goals, cfg) if frags else (np.zeros((0, G)), np.zeros((0, G)))
+    D, H = letter_distances(frags, goals, cfg, spacing=spacing) if frags else (np.zeros((0, G)), np.zeros((0, G)))
     pairs = match(D, cfg)
     d, hand, per = np.full(G, np.inf), np.zeros(G), np.zeros(G)
     for f, g in pairs:
@@ -158,6 +165,6 @@ def write_scripted(pen, strokes, goals, reward_cfg=None, on_letter=None) -> dict
             on_letter(i)
     pen.settle()
     x, stroke = pen.particles()
-    out = letter_rewards(x[0], stroke, goals, reward_cfg)
+    out = letter_rewards(x[0], stroke, goals, reward_cfg, spacing=pen.spacing)
     out.update(particles=int(pen.n), substeps=int(pen.env.step_count), seconds=time.perf_counter() - t0)
     return out
