@@ -20,6 +20,7 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 from topocut.sim.tools import PenConfig, SpoonConfig  # noqa: F401 - re-exported: the tools' settings live with the simulator
+from topocut.utils.checks import check_positive
 
 CUTTING_TASKS = ("slice", "stick", "dice", "pyramid")
 TASKS = CUTTING_TASKS + ("cream_writing", "scooping")  # the registry's names (topocut.tasks.get_task)
@@ -56,9 +57,7 @@ class TaskConfig:
 
     def check_positive(self, *keys: str) -> None:
         """Refuse a parameter <= 0 (the pieces' sizes, the letters' height), naming its key."""
-        for k in keys:
-            if getattr(self, k) <= 0:
-                raise ValueError(f"task.{k}={getattr(self, k)} must be > 0")
+        check_positive("task", self, keys)
 
 
 @dataclass

@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from topocut.sim.tools import PenConfig
 from topocut.tasks.base import register_task
 from topocut.tasks.config import TaskConfig
+from topocut.utils.checks import check_positive
 
 
 @dataclass
@@ -43,10 +44,8 @@ class CreamWritingConfig(TaskConfig):
         if self.letter_gap < 0:
             raise ValueError(f"task.letter_gap={self.letter_gap} must be >= 0")
         p = self.pen
-        for k in ("height", "nozzle_radius", "extrude_speed", "speed", "travel_speed", "step", "yield_stress", "mu",
-                  "lam"):
-            if getattr(p, k) <= 0:
-                raise ValueError(f"task.pen.{k}={getattr(p, k)} must be > 0")
+        check_positive("task.pen", p, ("height", "nozzle_radius", "extrude_speed", "speed", "travel_speed", "step",
+                                        "yield_stress", "mu", "lam"))
         if p.max_particles < 100:
             raise ValueError(f"task.pen.max_particles={p.max_particles} must be >= 100")
         return self

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from topocut.sim.tools import SpoonConfig
 from topocut.tasks.base import register_task
 from topocut.tasks.config import TaskConfig
+from topocut.utils.checks import check_positive
 
 
 @dataclass
@@ -30,10 +31,8 @@ class ScoopingConfig(TaskConfig):
     def validate(self) -> ScoopingConfig:
         super().validate()
         s = self.spoon
-        for k in ("radius", "thickness", "depth", "advance", "speed", "cup_radius", "cup_height", "cup_wall",
-                  "yield_stress"):
-            if getattr(s, k) <= 0:
-                raise ValueError(f"task.spoon.{k}={getattr(s, k)} must be > 0")
+        check_positive("task.spoon", s, ("radius", "thickness", "depth", "advance", "speed", "cup_radius", "cup_height",
+                                         "cup_wall", "yield_stress"))
         if not -1.0 < s.opening < 1.0:
             raise ValueError(f"task.spoon.opening={s.opening} must lie in (-1, 1)")
         if s.depth >= 2 * s.radius:
