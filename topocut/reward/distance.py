@@ -13,7 +13,7 @@ from collections import OrderedDict
 import numpy as np
 
 from topocut.reward.config import RewardConfig
-from topocut.reward.size import particle_spacing, size_descriptor, size_descriptors, size_distance
+from topocut.reward.size import PROFILE_QUANTILES, particle_spacing, size_descriptor, size_descriptors, size_distance
 from topocut.reward.spectral import _points, descriptor, descriptor_distance, resample, resample_groups
 
 
@@ -213,7 +213,7 @@ def _size_matrix(sizes: np.ndarray, goal_sizes: np.ndarray, cfg: RewardConfig) -
     full = size_distance(sizes[:, None], goal_sizes[None], cfg.size_weight, cfg.fill_weight, cfg.profile_weight,
                          cfg.size_tolerance)
     part = size_distance(sizes[:, None], goal_sizes[None], cfg.size_weight, cfg.fill_weight, 0.0, cfg.size_tolerance)
-    return np.where(np.isnan(sizes[:, 4:]).any(1)[:, None], part, full)
+    return np.where(np.isnan(sizes[:, 4:4 + PROFILE_QUANTILES]).any(1)[:, None], part, full)  # the profile's NaN
 
 
 def _goal_descriptors(keys: list, clouds: list, sigma, cfg: RewardConfig) -> list:
