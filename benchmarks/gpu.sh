@@ -183,6 +183,12 @@ PY
       python3 experiments/reference_check.py pyramid --n-grid $grid --device cuda --json "$OUT/pyramid$grid.json" 2>&1 \
         | grep -v -i warn | tee -a "$OUT/reference.txt"
     done ;;
+  reference-writing)  # #54: the scripted writer against a mirrored and a missing letter at n_grid 48 (~80 s)
+    python3 experiments/reference_writing.py --n-grid 48 --device cuda 2>&1 | grep -v -i warn \
+      | tee -a "$OUT/reference_writing.txt" ;;
+  reference-scooping)  # #54: the scripted scoops against the scoop 2 cm short at n_grid 48 (~170 s)
+    python3 experiments/reference_scooping.py --n-grid 48 --device cuda --variant reference --variant "2 cm short" 2>&1 \
+      | grep -v -i warn | tee -a "$OUT/reference_scooping.txt" ;;
   multi-gpu)  # #53: PART=eval (the oracle's evaluation, EVAL_JOBS processes) or PART=demos (a stage=mppi multirun on the
     # joblib launcher, 12 cells) on GPU 0 alone and on every GPU of the node, nvidia-smi sampling each GPU's
     # utilisation every second beside them (EVAL_ARGS: overrides after the 64^3 defaults, e.g. the paper's 128^3 and 3 cm:
