@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
+from topocut.eval import stats
 from topocut.policies import registry
 from topocut.utils.checks import check_choice
 from topocut.utils.import_path import is_import_path
@@ -54,10 +55,11 @@ class EvalConfig:
     # the checkpoints trained with seeds seed, seed+1, ..., seed+k-1 (`-m stage=bc seed=0,1,2`) beside that one
     # (same training config and inputs), each evaluated on every episode and pooled into one row per cell
     train_seeds: int = 1
-    # report statistics (topocut.eval.stats): percentile-bootstrap intervals over episode specs
-    confidence: float = 0.95
-    bootstrap_resamples: int = 10000
-    bootstrap_seed: int = 0
+    # report statistics (topocut.eval.stats): percentile-bootstrap intervals over episode specs, by default with the
+    # settings the report's functions take when called without them
+    confidence: float = stats.CONFIDENCE
+    bootstrap_resamples: int = stats.RESAMPLES
+    bootstrap_seed: int = stats.SEED
     # Taichi CPU threads when the eval stage starts Taichi: 1 = reproducible CPU runs (docs/evaluation.md), 0 = all cores
     cpu_threads: int = 0
     # processes evaluating at once (joblib's loky workers, each its own simulator and policies; tasks of one

@@ -123,7 +123,7 @@ def truncate_steps(steps, max_cuts: int) -> list:
 class Task(Protocol):
     """What a task provides (module docstrings: Task, Randomisations, Success)."""
 
-    name: str
+    name: str  # register_task: its config's name default unless the class states one
     # its parameters: a TaskConfig subclass holding only what the task reads (topocut.tasks.task_config builds it;
     # Hydra's task group is backed by it).  Optional: a class without one gets TaskConfig, a KnifeTask
     # KnifeTaskConfig, either with the class's ``defaults`` dict over it
@@ -149,7 +149,14 @@ REGISTRY: dict[str, object] = {}  # task name -> the task object (register_task)
 
 def register_task(cls):
     """Class decorator: the task ``cls`` (a Task) is known by ``cls.name`` to ``topocut.tasks.get_task``, and so to
-    every stage.  A second class under a taken name is refused (the same class re-imported replaces itself)."""
+    every stage.  A class that states no name takes its config's (``SliceConfig.name`` = "slice"), so that the
+    name Hydra's task group composes and the registry's are one.  A second class under a taken name is refused
+    (the same class re-imported replaces itself)."""
+    if not getattr(cls, "name", ""):
+        cls.name = getattr(getattr(cls, "config", None), "name", "")
+    if not cls.name:
+        raise ValueError(f"task class {cls.__module__}.{cls.__qualname__} has no name: set its config's name "
+                         "default or the class's name")
     old = REGISTRY.get(cls.name)
     if old is not None and (type(old).__module__, type(old).__qualname__) != (cls.__module__, cls.__qualname__):
         raise ValueError(f"task name {cls.name!r} is taken by {type(old).__module__}.{type(old).__qualname__}")
@@ -160,7 +167,7 @@ def register_task(cls):
 class KnifeTask(ABC):
     """Shared behaviour of the knife tasks (slice, stick, dice, pyramid); each defines ``pieces``."""
 
-    name = ""
+    name = ""  # register_task: the config's name unless the class states one
     config = KnifeTaskConfig  # a task with parameters of its own declares a subclass (SliceConfig, DiceConfig)
     tool = "knife"
     turns = False  # whose oracle lays pieces down between cut directions (Turn steps)

@@ -53,7 +53,6 @@ class CreamWritingConfig(TaskConfig):
 
 @register_task
 class CreamWritingTask:
-    name = "cream_writing"
     config = CreamWritingConfig
     tool = "pen"
     stages = ("simulate", "mppi")

@@ -20,9 +20,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from topocut.tasks.base import KnifeTask, first_slab, lay_flat, plane, register_task
+from topocut.tasks.base import lay_flat, register_task
 from topocut.tasks.config import KnifeTaskConfig
-from topocut.tasks.grid import best_grid
+from topocut.tasks.slab import SlabGrid, SlabTask
 
 
 @dataclass
@@ -36,26 +36,18 @@ class DiceConfig(KnifeTaskConfig):
 
 
 @register_task
-class DiceTask(KnifeTask):
-    name = "dice"
+class DiceTask(SlabTask):
     config = DiceConfig
-    turns = True
+    slab_key = "size"  # the slab is a die thick
     min_cuts = 3
     min_cuts_why = "a slab cut, a stick cut and a chop to free a die"
 
-    def pieces(self, cfg, pts, axes, pad, spacing, board_z):
+    def slab_grid(self, cfg, pts, slab, axes, pad, spacing, board_z):
         a1, a2, z = axes
-        cut0, slab = first_slab(pts, axes, cfg.size, board_z, pad, key="task.size")
         p, d = pts[slab], pad[slab]
         coords = np.stack([p @ a2, p @ z], -1)
         faces = [((coords[:, 0] - d).min(), (coords[:, 0] + d).max()), (board_z, (coords[:, 1] + d).max())]
-        lab, cuts, _ = best_grid(coords, faces, [cfg.size, cfg.size], cfg.max_cuts - 1, (cfg.size / spacing) ** 3,
-                                  min_fill=0.75)
-        labels = np.zeros(len(pts), np.int32)
-        labels[slab] = lab
         turn = lay_flat(pts, slab, axes, board_z, beside=True)  # stick cuts miss the rest
-        t, c0 = np.asarray(turn.target), np.asarray(turn.center)
-        sticks = [plane(a2, t + (c - c0 @ a2) * a2, board_z) for c in cuts[0]]  # a2 kept by the turn, shifted
-        chops = [plane(a1, t + (c - c0 @ z) * a1, board_z) for c in cuts[1]]
-        return [cut0, turn] + sticks + chops, labels
-
+        # sticks normal to a2 (kept by the turn); chops normal to a1, the slab's former height (z) once laid flat
+        return SlabGrid(coords, faces, [cfg.size, cfg.size], (cfg.size / spacing) ** 3, turn, [(a2, a2), (z, a1)],
+                        min_fill=0.75)

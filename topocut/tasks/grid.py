@@ -5,6 +5,8 @@ import itertools
 
 import numpy as np
 
+MIN_FILL = 0.5  # a cell is a goal piece from this share of a full cell's particles (best_grid)
+
 
 def band_layout(s, lo_face, hi_face, width, count, anchor):
     """Band edges (count+1,) for ``count`` bands of ``width`` along coordinate s, anchored at the +face
@@ -29,7 +31,7 @@ def band_index(s, edges):
     return k
 
 
-def best_grid(coords, faces, widths, budget, cell_count, min_fill=0.5, max_bands=6):
+def best_grid(coords, faces, widths, budget, cell_count, min_fill=MIN_FILL, max_bands=6):
     """Choose band counts and anchors along each axis of ``coords`` (N,A) to make as many full cells as the
     cut budget allows.  faces: [(lo, hi)] per axis; widths: band width per axis; cell_count: the particle
     count of a full cell.  A cell is a goal piece iff it holds >= min_fill * cell_count particles.

@@ -30,7 +30,6 @@ class PyramidConfig(KnifeTaskConfig):
 
 @register_task
 class PyramidTask(KnifeTask):
-    name = "pyramid"
     config = PyramidConfig
 
     def pieces(self, cfg, pts, axes, pad, spacing, board_z):

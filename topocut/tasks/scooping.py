@@ -53,7 +53,6 @@ class ScoopingConfig(TaskConfig):
 
 @register_task
 class ScoopingTask:
-    name = "scooping"
     config = ScoopingConfig
     tool = "spoon"
     stages = ("simulate",)

@@ -25,7 +25,6 @@ class SliceConfig(KnifeTaskConfig):
 
 @register_task
 class SliceTask(KnifeTask):
-    name = "slice"
     config = SliceConfig
 
     def pieces(self, cfg, pts, axes, pad, spacing, board_z):

@@ -19,9 +19,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from topocut.tasks.base import KnifeTask, first_slab, lay_flat, move_aside, plane, register_task
+from topocut.tasks.base import lay_flat, move_aside, register_task
 from topocut.tasks.config import KnifeTaskConfig
-from topocut.tasks.grid import best_grid
+from topocut.tasks.slab import SlabGrid, SlabTask
 
 
 @dataclass
@@ -34,40 +34,25 @@ class StickConfig(KnifeTaskConfig):
 
 
 @register_task
-class StickTask(KnifeTask):
-    name = "stick"
+class StickTask(SlabTask):
     config = StickConfig
-    turns = True
     min_cuts = 2
     min_cuts_why = "a slab cut, then a cut across the slab"
 
-    def pieces(self, cfg, pts, axes, pad, spacing, board_z):
+    def slab_grid(self, cfg, pts, slab, axes, pad, spacing, board_z):
         a1, a2, z = axes
-        cut0, slab = first_slab(pts, axes, cfg.thickness, board_z, pad)
         p, d = pts[slab], pad[slab]
         s2, h = p @ a2, p @ z
         tall = np.ptp(h) >= 0.95 * np.ptp(s2)  # a square slab (the cube) keeps its sticks upright
-        budget = cfg.max_cuts - 1
-        steps = [cut0]
-        if tall:  # upright sticks: bands across a2
+        if tall:  # upright sticks: bands across a2, the standing slab moved off the object's +a1/+a2 corner
             length = np.ptp(h) + spacing
             faces = [((s2 - d).min(), (s2 + d).max())]
             coords = s2[:, None]
-        else:  # lay the slab flat, bands along its former height
+            turn, cut_axes = move_aside(pts, slab, axes), [(a2, a2)]
+        else:  # lay the slab flat beyond the object's +a1 end, bands along its former height: cuts normal to a1
             length = np.ptp(s2) + spacing
             faces = [(board_z, (h + d).max())]
             coords = h[:, None]
+            turn, cut_axes = lay_flat(pts, slab, axes, board_z), [(z, a1)]
         full = cfg.thickness * cfg.width * length / spacing ** 3
-        lab, cuts, _ = best_grid(coords, faces, [cfg.width], budget, full)
-        labels = np.zeros(len(pts), np.int32)
-        labels[slab] = lab
-        if tall:  # move the standing slab off the object's +a1/+a2 corner: cuts across it miss the rest
-            turn = move_aside(pts, slab, axes)
-            t, c0 = np.asarray(turn.target), np.asarray(turn.center)
-            steps += [turn] + [plane(a2, t + (c - c0 @ a2) * a2, board_z) for c in cuts[0]]
-        else:  # lay it flat beyond the object's +a1 end: cuts normal to a1 there miss the rest
-            turn = lay_flat(pts, slab, axes, board_z)
-            t, c0 = np.asarray(turn.target), np.asarray(turn.center)
-            steps += [turn] + [plane(a1, t + (c - c0 @ z) * a1, board_z) for c in cuts[0]]
-        return steps, labels
-
+        return SlabGrid(coords, faces, [cfg.width], full, turn, cut_axes)

@@ -53,7 +53,16 @@ def _xlogx_minus_x(r: torch.Tensor) -> torch.Tensor:
 
 class Graph(abc.ABC):
     dim: int  # number of states seen by the network (including a mask state)
-    absorb: bool
+    num_data: int  # number of data states (the mask labels' classes)
+    absorb: bool  # whether a mask state follows the data states
+    min_data: int  # the fewest data states the graph is defined on
+
+    def __init__(self, dim: int):
+        """``dim`` data states, and after them the mask state of an absorbing graph."""
+        if dim < self.min_data:
+            raise ValueError(f"{type(self).__name__} graph needs dim >= {self.min_data}, got {dim}")
+        self.num_data = int(dim)
+        self.dim = self.num_data + int(self.absorb)
 
     # -- rate matrix --------------------------------------------------------
     @abc.abstractmethod
@@ -130,11 +139,7 @@ class Uniform(Graph):
     """Every state jumps to every other at rate 1/d.  exp(sigma Q) = e^-s I + (1 - e^-s) 11^T/d."""
 
     absorb = False
-
-    def __init__(self, dim: int):
-        if dim < 2:
-            raise ValueError(f"Uniform graph needs dim >= 2, got {dim}")
-        self.dim = int(dim)
+    min_data = 2  # a lone state has nowhere to jump
 
     def rate_matrix(self) -> torch.Tensor:
         d = self.dim
@@ -201,13 +206,12 @@ class Absorbing(Graph):
     """``dim`` data states plus a mask state (index dim): each data state is masked at rate 1."""
 
     absorb = True
+    min_data = 1
 
-    def __init__(self, dim: int):
-        if dim < 1:
-            raise ValueError(f"Absorbing graph needs dim >= 1, got {dim}")
-        self.num_data = int(dim)
-        self.dim = int(dim) + 1
-        self.mask = int(dim)
+    @property
+    def mask(self) -> int:
+        """The mask state's index: the one after the data states."""
+        return self.num_data
 
     def rate_matrix(self) -> torch.Tensor:
         Q = -torch.eye(self.dim)
