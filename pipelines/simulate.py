@@ -82,11 +82,14 @@ def run_knife(ctx: RunContext, sim, object, task, topology, frames_per_cut: int 
                 frames.append(dict(x=snap.x[0], labels=labels, damaged=snap.damage[0] & ~damaged_before, knife=step.action,
                                    knife_edge=snap.knife_edge[0], png=None, hold=0.12,
                                    title=f"cut {i}: {1e3 * snap.substep * env.dt:.0f} ms"))
-            if task.push:
-                env.push()
-            st = env.state()
+            st = env.state()  # discovery where the blade left the pieces (docs/topology.md#discovery-and-the-push)
             topo = discover(st.x[0], st.damage[0], st.sweeps[0], previous_labels=labels, cfg=topology,
                             device=ctx.device)
+            if task.push:  # the push moves them; discovery again without the sweep keeps the cut's labels
+                env.push()
+                st = env.state()
+                topo = discover(st.x[0], st.damage[0], [], previous_labels=topo.labels, next_id=topo.next_id,
+                                cfg=topology, device=ctx.device)
             labels = topo.labels
             arrays.update({f"x_{i}": st.x[0], f"damage_{i}": st.damage[0], f"labels_{i}": labels})
             frames += _cut_frames(st, labels, step.action, f"cut {i}", f"cut {i}{' + push' if task.push else ''}",

@@ -188,3 +188,59 @@ def test_progress_names_the_episode_when_the_caller_reset_the_scene():
     run_episodes(env, [Episode(None, None, 1, SimpleNamespace(push=False), goal=goal)], _Planes(), _box_scoring(),
                  max_cuts=2, progress=lambda n, info: infos.append(info))
     assert infos and infos[0].startswith("cube cut 1:") and not any("None" in i for i in infos)
+
+
+class _PushedBoxes(_Boxes):
+    """_Boxes whose cut leaves the two sides touching (it records a sweep) and whose push slides every particle
+    beyond the last cut 0.1 along x, as the simulator's push slides one side away from the blade."""
+
+    def cut(self, actions):
+        self.at = [None if a is None else a.x for a in actions]
+        self.sweeps = [[] if a is None else [f"sweep at {a.x}"] for a in actions]
+
+    def push(self, scenes=None):
+        for b, x0 in enumerate(self.at):
+            if x0 is not None and (scenes is None or scenes[b]):
+                self.x[b][self.x[b][:, 0] > x0, 0] += 0.1
+
+    def state(self):
+        from types import SimpleNamespace
+
+        return SimpleNamespace(x=[x.copy() for x in self.x], damage=[np.zeros(len(x), bool) for x in self.x],
+                               sweeps=getattr(self, "sweeps", [[]] * 3))
+
+
+def test_discovery_runs_where_the_blade_left_the_pieces_then_after_the_push():
+    """docs/topology.md#discovery-and-the-push: after each cut the engine discovers the pieces with the cut's
+    sweep on the state the blade left (nothing moved yet), then pushes, then discovers again with no sweep and
+    the first discovery's labels as the previous ones; the score sees the pushed positions."""
+    from types import SimpleNamespace
+
+    sc = _box_scoring()
+    calls = []
+    split_by_sweep = sc.discover_fn
+
+    def discover(x, damage, sweeps, previous):
+        calls.append((float(np.diff(np.sort(x[:, 0])).max()), list(sweeps or []),
+                      None if previous is None else np.asarray(previous).copy()))
+        if sweeps:  # where the blade left them only the sweep separates the two sides
+            cut_at = float(sweeps[0].split()[-1])
+            return (x[:, 0] > cut_at).astype(np.int32)
+        return split_by_sweep(x, damage, sweeps, previous)
+
+    sc.discover_fn = discover
+    scored = []
+    score = sc.score_fn
+    sc.score_fn = lambda xs, labels, goals, tasks: scored.append([x.copy() for x in xs]) or score(xs, labels, goals,
+                                                                                                  tasks)
+    _Planes.calls, _Planes.fail = [], False
+    env = _PushedBoxes()
+    logs = run_episodes(env, [Episode("1", None, 1, SimpleNamespace(push=True))], _Planes(), sc, max_cuts=5)
+    assert logs[0].status == "ok" and logs[0].num_pieces == [2]
+    reset, before_push, after_push = calls  # the uncut scene, then the two discoveries of the one cut
+    assert len(before_push[1]) == 1 and before_push[1][0].startswith("sweep at 0.2")
+    assert before_push[0] < 0.08  # the sides still touch
+    assert after_push[1] == [] and after_push[0] > 0.09  # pushed apart, no sweep
+    x_cut = np.linspace(0, 1, 20)  # where the blade left them: the first discovery's labels are the previous ones
+    np.testing.assert_array_equal(after_push[2], (x_cut > float(before_push[1][0].split()[-1])).astype(np.int32))
+    assert np.diff(np.sort(scored[-1][0][:, 0])).max() > 0.09  # the score sees the pushed positions

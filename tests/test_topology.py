@@ -291,3 +291,32 @@ def test_an_unlabelled_particle_between_two_pieces_does_not_join_them():
         assert np.array_equal(res.labels[: len(a)], np.zeros(len(a))), stray_label  # ids kept, pieces apart
         assert np.array_equal(res.labels[len(a): -1], np.ones(len(b))), stray_label
         assert res.num_clusters == 2
+
+
+@pytest.mark.parametrize("moved, stray", [(0.025, 0.001), (0.018, 0.0005)])
+def test_a_kerf_particle_keeps_its_side_of_the_blade(moved, stray):
+    """The simulator's split cuts every bond across the blade's plane, so a particle left in the carved kerf
+    belongs to its own side's piece even where the other side's surface is nearer (docs/topology.md, step 9):
+    here the + side has moved ``moved`` off the plane but a layer of its particles stayed ``stray`` past it,
+    a few mm from the - side's surface and ~2 cm from its own.  The rule before sent them to the - side."""
+    x0 = box()
+    plane = 0.503
+    minus = x0[:, 0] < plane
+    prev = np.where(x0[:, 0] < 0.443, 1, 0).astype(np.int32)  # an earlier slab: this cut splits cluster 0
+    x = x0.copy()
+    x[~minus, 0] += moved
+    layer = np.flatnonzero(~minus & (x0[:, 0] < plane + S))[::3]  # every third particle of the + face
+    x[layer, 0] = plane + stray
+    dmg = np.abs(x0[:, 0] - plane) < 0.012
+    res = discover(x, dmg, vertical_sweep(plane), previous_labels=prev, cfg=CFG)
+    # the batched discovery (several scenes in one grid) applies the same rule, here beside an uncut scene
+    from topocut.topology.batch import discover_batch
+
+    both = discover_batch([box(), x], [np.zeros(len(x0), bool), dmg], [None, vertical_sweep(plane)], [None, prev],
+                          cfg=CFG)
+    np.testing.assert_array_equal(both[1].labels, res.labels)
+    plus = np.setdiff1d(np.flatnonzero(~minus), layer)
+    assert res.num_clusters == 3
+    assert len(np.unique(res.labels[plus])) == 1 and len(np.unique(res.labels[minus & (prev == 0)])) == 1
+    assert res.labels[plus][0] != res.labels[minus & (prev == 0)][0]
+    assert (res.labels[layer] == res.labels[plus][0]).all()

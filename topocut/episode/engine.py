@@ -2,8 +2,8 @@
 
 An episode resets a scene (object, pose, sampling seed), builds its task's goal, then repeats up to
 ``max_cuts`` times: observe (``observe_fn``), ask the policy for a cut, execute it (``executed_action``: one
-rule for every caller), push if the task pushes, re-discover the pieces with the previous labels (cluster ids
-carried over), score them against the goal (spectral reward, the task's success), and perform the goal's
+rule for every caller), re-discover the pieces with the previous labels (cluster ids carried over) where the
+blade left them, push if the task pushes (the labels ride on the particles), score them against the goal (spectral reward, the task's success), and perform the goal's
 scripted turn after the k-th cut where the task has one (``Goal.steps``: stick, dice).  It ends after
 ``max_cuts`` cuts, when the policy returns None, on success (``stop_on_success``), or when its scene diverges
 (status ``failed``) or its policy / scoring raises (status ``error``); the steps before stay recorded.
@@ -50,7 +50,7 @@ class EpisodeBatch:
     ``start(episodes)`` loads them (scene b holds episode b; ``alone``: one episode in every scene), builds the
     goals, labels and scores the uncut scenes; ``observations(observe_fn, sim_state)`` gives each live episode
     its policy observation; ``step(actions)`` executes one cut per scene (None: an ended episode's scene idles),
-    the push where the episode's task pushes, discovery, the batched score, and the goals' turns.  ``logs[b]``
+    discovery, the push where the episode's task pushes, the batched score, and the goals' turns.  ``logs[b]``
     holds what episode b did; ``live[b]`` whether it goes on.
     """
 
@@ -134,7 +134,9 @@ class EpisodeBatch:
         done, info = self._cut(acts, moving, record)
         if not done:
             return out
-        scored = self._discover(moving)
+        # discovery where the blade left the pieces (its sweep is where the kerf is), then the push moves them
+        # and the labels ride on the particles (docs/topology.md#discovery-before-the-push)
+        scored = self._push(acts, self._discover(moving))
         for (b, x1, lab1), res in zip(scored, self._score(scored)):
             self._log_cut(b, acts[b], x1, lab1, res, info, record, damage_before)
             out[b] = res
@@ -154,26 +156,54 @@ class EpisodeBatch:
         return record, [scene_of(st0, b)[1].copy() for b in range(self.n)]
 
     def _cut(self, acts: list, moving: list, record: dict) -> tuple[bool, object]:
-        """(whether the cut ran, CuttingEnv.cut's info): the cut and the pushes; a divergence raised (one episode
-        alone, or a batch not freezing its diverged scenes) fails the moving episodes."""
+        """(whether the cut ran, CuttingEnv.cut's info); a divergence raised (one episode alone, or a batch not
+        freezing its diverged scenes) fails the moving episodes."""
         env, B, n = self.env, self.B, self.n
         try:
-            if self.alone:
-                info = env.cut([acts[0]] * B if B > 1 else acts[0], **record)
-                if getattr(self.tasks[0], "push", False):
-                    env.push()
-            else:
-                info = env.cut(acts + [None] * (B - n), **record)
-                pushed = np.array([acts[b] is not None and bool(getattr(self.tasks[b], "push", False))
-                                   for b in range(n)] + [False] * (B - n))
-                if pushed.any():
-                    env.push(scenes=pushed)
+            info = env.cut([acts[0]] * B if B > 1 else acts[0], **record) if self.alone else \
+                env.cut(acts + [None] * (B - n), **record)
         except self.Diverged as e:
             for b in moving:
                 self.end(b, "failed", f"cut {self.k + 1}: {type(e).__name__}: {e}")
             self.k += 1
             return False, None
         return True, info
+
+    def _push(self, acts: list, scored: list) -> list[tuple]:
+        """The pushes of the scenes whose task pushes, after their cut's discovery: ``scored`` with each pushed
+        scene's positions and labels after the push (discovery again, as after a turn: the cut's labels as the
+        previous ones and no sweep, so what the push moved apart is found apart and the kerf's particles keep
+        the side the cut's discovery gave them); a divergence fails the pushed episodes."""
+        env, B, n = self.env, self.B, self.n
+        pushes = [acts[b] is not None and bool(getattr(self.tasks[b], "push", False)) for b in range(n)]
+        if not any(pushes) or not scored:
+            return scored
+        try:
+            if self.alone:
+                env.push()
+            else:
+                env.push(scenes=np.array(pushes + [False] * (B - n)))
+        except self.Diverged as e:
+            for b, _, _ in scored:
+                self.end(b, "failed", f"push after cut {self.k + 1}: {type(e).__name__}: {e}")
+            return []
+        dead = np.asarray(getattr(env, "dead", np.zeros(B, bool)))
+        st, out = env.state(), []
+        for b, x1, lab1 in scored:
+            if not pushes[b]:
+                out.append((b, x1, lab1))
+                continue
+            if dead[b]:
+                self.end(b, "failed", f"push after cut {self.k + 1}: SimulationDiverged: scene {b} diverged")
+                continue
+            x2, d2 = scene_of(st, b)
+            try:
+                lab2 = self.sc.discover_fn(np.asarray(x2), d2, [], lab1)
+            except Exception as e:  # noqa: BLE001 - recorded in the episode's log
+                self.end(b, "error", f"labelling after the push of cut {self.k + 1}: {type(e).__name__}: {e}")
+                continue
+            out.append((b, np.asarray(x2), lab2))
+        return out
 
     def _discover(self, moving: list) -> list[tuple]:
         """(b, x after the cut, its labels) of each moving scene that neither diverged nor failed discovery."""

@@ -107,8 +107,6 @@ def make_sim_rollout(env, state_dict: dict, goal, reward_cfg=None, topo_cfg=None
                 for h in range(H):
                     acts = _as_actions(chunk[:, h])
                     env.cut(acts if B > 1 else acts[0])
-                    if push:
-                        env.push()
                     st = env.state()
                     todo = []  # the scenes to discover, all in one call where the scorer batches them
                     for b in range(n):
@@ -116,8 +114,15 @@ def make_sim_rollout(env, state_dict: dict, goal, reward_cfg=None, topo_cfg=None
                         m = cut_mask(xs[b], acts[b], board_z)
                         if 0 < m.sum() < len(m):
                             todo.append(b)
+                    # discovery where the blade left the pieces, then the push and discovery again without the
+                    # sweep (as the episode engine: docs/topology.md#discovery-and-the-push)
                     found = discover_scenes(scorer, [st.x[b] for b in todo], [st.damage[b] for b in todo],
                                             [st.sweeps[b] for b in todo], [labs[b] for b in todo])
+                    if push:
+                        env.push()
+                        st = env.state()
+                        found = discover_scenes(scorer, [st.x[b] for b in todo], [st.damage[b] for b in todo],
+                                                [[] for _ in todo], found)
                     for b, lab in zip(todo, found):
                         labs[b] = lab
                     for b in range(n):

@@ -94,10 +94,12 @@ class TeleopSession:
         self.message = f"cut {len(self.steps)}: reward {self.steps[-1]['reward']:.3f}"
 
     def _record_cut(self, action: KnifeAction, labels_t, x_t, history, amend: bool) -> None:
-        """Discover the topology after the last cut and write (or, after a push, rewrite) its record."""
+        """Discover the topology after the last cut and write (or, after a push, rewrite: the cut's labels as the
+        previous ones, no sweep) its record."""
         st = self.env.state()
         x1 = np.asarray(st.x[0])
-        labels1 = self.scorer.labels(x1, st.damage[0], st.sweeps[0], labels_t)
+        labels1 = self.scorer.labels(x1, st.damage[0], [], self.labels) if amend else \
+            self.scorer.labels(x1, st.damage[0], st.sweeps[0], labels_t)
         reward, success = self.scorer.reward(x1, labels1)
         step = make_record(x_t, labels_t, x1, labels1, action, history, reward, success, self.board_z)
         if amend:
@@ -116,7 +118,8 @@ class TeleopSession:
         try:
             self.env.push()
             if self._cut_is_open():
-                # the push completes the last cut: redo its discovery on the pushed state (as run_episode does)
+                # the push completes the last cut: its labels ride the push and discovery runs again without the
+                # sweep (as the episode engine does), then its record is rewritten
                 last = self.steps[-1]
                 self._record_cut(KnifeAction.from_vector(last["action"]), last["f_t"], last["x_t"],
                                  list(last["history"]), amend=True)

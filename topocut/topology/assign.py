@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from topocut.topology.carve import scene_of
+from topocut.topology.carve import box_sdf, scene_of, sweep_frames
 from topocut.topology.sdf import Grid, hash_grid
 
 
@@ -57,46 +57,85 @@ def _origin_argmax(hist: wp.array(dtype=wp.int32), num_old: int, origin: wp.arra
     origin[k] = best
 
 
+@wp.func
+def _blade_side(xp: wp.vec3, sp: int, frames: wp.array2d(dtype=wp.vec3), sweep_scene: wp.array(dtype=wp.int32)):
+    # (sweep, side) of a particle inside a carved sweep box of its own scene: the side of the blade's plane it
+    # lies on, +1 or -1, the rule the simulator's split cuts bonds by; (-1, 0) outside every box
+    for s in range(frames.shape[0]):
+        if scene_of(sweep_scene, s) == sp:
+            if box_sdf(xp, frames[s, 0], frames[s, 1], frames[s, 2], frames[s, 3], frames[s, 4]) <= 0.0:
+                if wp.dot(xp - frames[s, 0], frames[s, 3]) >= 0.0:
+                    return wp.vec2i(s, 1)
+                return wp.vec2i(s, -1)
+    return wp.vec2i(-1, 0)
+
+
+@wp.kernel
+def _node_counts(raw: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32)):
+    p = wp.tid()
+    if raw[p] >= 0:
+        wp.atomic_add(count, raw[p], 1)
+
+
 @wp.kernel
 def _nearest_surface_piece(x: wp.array(dtype=wp.vec3), raw: wp.array(dtype=wp.int32), hg: wp.uint64,
                            verts: wp.array(dtype=wp.vec3), vpiece: wp.array(dtype=wp.int32), tau: float,
                            scene: wp.array(dtype=wp.int32), scene_tau: wp.array(dtype=float),
                            use_origin: int, owner: wp.array(dtype=wp.int32), origin: wp.array(dtype=wp.int32),
-                           out: wp.array(dtype=wp.int32)):
-    # tau: the query radius; scene_tau (None: tau for all) the threshold of each scene, at most tau
+                           frames: wp.array2d(dtype=wp.vec3), sweep_scene: wp.array(dtype=wp.int32),
+                           held: wp.array(dtype=wp.int32), min_held: int, out: wp.array(dtype=wp.int32)):
+    # tau: the query radius; scene_tau (None: tau for all) the threshold of each scene, at most tau.
+    # Preference, nearest first within each: a piece of the particle's own earlier cluster on its own side of
+    # the blade (a particle inside a carved sweep), one of its own earlier cluster, a piece on its own side
+    # holding >= min_held particles by their grid nodes (not a sliver of surface), the nearest piece.
     p = wp.tid()
     r = raw[p]
     out[p] = r
     if r >= 0:
         return
     xp = x[p]
+    sp = scene_of(scene, p)
     o = int(-1)
     if use_origin == 1:
         o = owner[p]
     near = tau
     if scene_tau.shape[0] > 0:
-        near = scene_tau[scene_of(scene, p)]
-    best = int(-1)
-    best_d = near
-    same = int(-1)
-    same_d = near
+        near = scene_tau[sp]
+    side = _blade_side(xp, sp, frames, sweep_scene)
+    best = wp.vec2(-1.0, near)  # (piece, distance) per rank: any, own cluster, own side, own cluster and side
+    same = wp.vec2(-1.0, near)
+    sided = wp.vec2(-1.0, near)
+    both = wp.vec2(-1.0, near)
     query = wp.hash_grid_query(hg, xp, tau)
     q = int(0)
     while wp.hash_grid_query_next(query, q):
         k = vpiece[q]
         if k >= 0:
             d = wp.length(verts[q] - xp)
-            if d < best_d:
-                best_d = d
-                best = k
+            on_side = int(0)
+            if side[1] != 0:
+                if wp.dot(verts[q] - frames[side[0], 0], frames[side[0], 3]) * float(side[1]) >= 0.0:
+                    on_side = int(1)
+            own = int(0)
             if use_origin == 1:
-                if origin[k] == o and d < same_d:  # a particle on the wall between two earlier pieces
-                    same_d = d  # goes to a piece of its own earlier cluster
-                    same = k
-    if same >= 0:
-        out[p] = same
-    else:
-        out[p] = best
+                if origin[k] == o:  # a particle on the wall between two earlier pieces: its own earlier cluster
+                    own = int(1)
+            if d < best[1]:
+                best = wp.vec2(float(k), d)
+            if own == 1 and d < same[1]:
+                same = wp.vec2(float(k), d)
+            if on_side == 1 and held[k] >= min_held and d < sided[1]:
+                sided = wp.vec2(float(k), d)
+            if own == 1 and on_side == 1 and d < both[1]:
+                both = wp.vec2(float(k), d)
+    pick = best
+    if sided[0] >= 0.0:
+        pick = sided
+    if same[0] >= 0.0:
+        pick = same
+    if both[0] >= 0.0:
+        pick = both
+    out[p] = int(pick[0])
 
 
 @wp.kernel
@@ -163,9 +202,15 @@ def node_pieces(x, grid: Grid, piece_labels, device: str = "cpu"):
 
 
 def surface_fallback(x, raw, verts, vpiece, num_pieces: int, tau: float, extent, owner=None, num_old: int = 0,
-                     device: str = "cpu", scene=None, scene_tau=None):
+                     device: str = "cpu", scene=None, scene_tau=None, sweeps=(), min_half_thickness: float = 0.0,
+                     sweep_scene=None, min_held: int = 1):
     """Particles with raw < 0 take the piece of the nearest vertex within tau (own earlier cluster first).
 
+    ``sweeps`` (the carved KnifeSweeps, thickened to ``min_half_thickness``; ``sweep_scene`` each one's scene,
+    None: all scene 0): a particle inside one prefers a piece on its own side of the blade's plane, as the
+    simulator's split separates the two sides: first one of its own earlier cluster there, else (after its own
+    cluster on either side) one holding >= ``min_held`` particles by their grid nodes, so that a sliver of
+    surface in the kerf does not become a piece (docs/topology.md#the-kerf).
     scene (warp int32 (N,)) and scene_tau ((B,) floats): each particle's scene and each scene's tau instead
     (discover_batch; ``tau`` is then their maximum).  A particle whose owner is below -1 has no earlier
     cluster to prefer (a scene without splits in a batch where others have them)."""
@@ -183,10 +228,15 @@ def surface_fallback(x, raw, verts, vpiece, num_pieces: int, tau: float, extent,
         wp.launch(_origin_argmax, dim=num_pieces, inputs=[hist, num_old, origin], device=device)
     hg = hash_grid(verts, tau, extent, device)
     out = wp.empty_like(raw)
+    frames = sweep_frames(list(sweeps), min_half_thickness, device) if len(sweeps) else \
+        wp.zeros((0, 5), dtype=wp.vec3, device=device)
+    sw_scene = None if sweep_scene is None or not len(sweeps) else \
+        wp.array(np.asarray(sweep_scene, np.int32), dtype=wp.int32, device=device)
+    held = wp.zeros(num_pieces, dtype=wp.int32, device=device)  # K, particles each piece holds by grid node
+    wp.launch(_node_counts, dim=x.shape[0], inputs=[raw, held], device=device)
     wp.launch(_nearest_surface_piece, dim=x.shape[0], device=device,
-              inputs=[x, raw, hg.id, verts, vpiece, float(tau), scene if taus is not None else None, taus,
-                      int(use_origin),
-                      owner if use_origin else raw, origin, out])
+              inputs=[x, raw, hg.id, verts, vpiece, float(tau), scene, taus, int(use_origin),
+                      owner if use_origin else raw, origin, frames, sw_scene, held, int(min_held), out])
     wp.synchronize_device(device)  # the hash grid is freed when this returns
     return out
 

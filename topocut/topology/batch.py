@@ -249,8 +249,10 @@ def _discover_tiled(scenes: list, cfg: TopologyConfig, device, lap) -> tuple[np.
 
     # --- particles -> pieces (the gap exceeds every tau: a particle finds no other scene's surface) ----
     raw = A.node_pieces(xd, grid, pieces.labels, device)
+    carved, carved_scene = _carving[3], _carving[1].sweep_scene
     raw = A.surface_fallback(xd, raw, verts_s, vpiece, k, max(taus), (np.asarray(grid.shape) - 1) * h, owner_d,
-                             num_old, device, scene=scene_d, scene_tau=taus)
+                             num_old, device, scene=scene_d, scene_tau=taus, sweeps=carved,
+                             min_half_thickness=min_half, sweep_scene=carved_scene, min_held=cfg.min_piece_particles)
     counts, sum_x, overlap = A.piece_stats(xd, raw, k, prev_d, num_old, device)
     small = (counts > 0) & (counts < cfg.min_piece_particles)
     big = np.zeros(n_sc, bool)
@@ -295,7 +297,7 @@ def _carve(sdf, grid, xd, scenes: list, sl: list, shift: np.ndarray, scene_d, ti
            min_half: float, h: float, cfg: TopologyConfig, device) -> tuple:
     """Carve each scene's knife sweeps through its damaged material, clip the board, fill tiny voids (``sdf`` in
     place; carve.Tiles keeps every sweep to its own scene).  Returns what the kernels use, for the caller to keep
-    until they have run (the damage, the tiles, the carvers' hash grid)."""
+    until they have run (the damage, the tiles, the carvers' hash grid), and the carved sweeps (on the tiles)."""
     from topocut.topology import carve as C
 
     licence, carved, sweep_scene = [], [], []
@@ -313,7 +315,7 @@ def _carve(sdf, grid, xd, scenes: list, sl: list, shift: np.ndarray, scene_d, ti
     tiles = C.Tiles(scene_d, np.asarray(sweep_scene, np.int32), tile_nodes, shift[:, 2])
     _, carvers_grid = C.carve_and_clip(sdf, grid, xd, dmg_d, licence, carved, carve_radius, min_half, cfg.board_z,
                                        device, tiles)
-    return dmg_d, tiles, carvers_grid
+    return dmg_d, tiles, carvers_grid, carved
 
 
 def _track(scenes: list, tile: np.ndarray, counts, sum_x, overlap, offset: np.ndarray, shift: np.ndarray) -> tuple:

@@ -279,7 +279,8 @@ def discover(positions, damage, knife_sweep, previous_labels=None, cfg: Topology
     tau = cfg.tau if cfg.tau is not None else 2.0 * r + gap_half
     raw = A.node_pieces(xd, grid, pieces.labels, device)
     raw = A.surface_fallback(xd, raw, verts_s, vpiece, k, tau, (np.asarray(grid.shape) - 1) * h,
-                             prev_d if split else None, num_old, device)
+                             prev_d if split else None, num_old, device, sweeps=snapped if carving else [],
+                             min_half_thickness=min_half, min_held=cfg.min_piece_particles)
     counts, sum_x, overlap = A.piece_stats(xd, raw, k, prev_d, num_old, device)
     small = (counts > 0) & (counts < cfg.min_piece_particles)
     if small.any() and (counts >= cfg.min_piece_particles).any():
