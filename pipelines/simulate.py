@@ -77,6 +77,7 @@ def run_knife(ctx: RunContext, sim, object, task, topology, frames_per_cut: int 
                 sim.knife_speed * env.dt)
             every = max(1, int(travel) // frames_per_cut) if frames_per_cut else 0
             damaged_before = st.damage[0]
+            x_start = np.array(st.x[0])  # where the blade starts: a kerf particle keeps its side there
             info = env.cut(step.action, record_every=every)
             for snap in info.snapshots or []:  # the previous pieces' colours, the particles this cut damaged dark
                 frames.append(dict(x=snap.x[0], labels=labels, damaged=snap.damage[0] & ~damaged_before, knife=step.action,
@@ -84,7 +85,7 @@ def run_knife(ctx: RunContext, sim, object, task, topology, frames_per_cut: int 
                                    title=f"cut {i}: {1e3 * snap.substep * env.dt:.0f} ms"))
             st = env.state()  # discovery where the blade left the pieces (docs/topology.md#discovery-and-the-push)
             topo = discover(st.x[0], st.damage[0], st.sweeps[0], previous_labels=labels, cfg=topology,
-                            device=ctx.device)
+                            device=ctx.device, start_positions=x_start)
             if task.push:  # the push moves them; discovery again without the sweep keeps the cut's labels
                 env.push()
                 st = env.state()

@@ -220,9 +220,9 @@ def test_discovery_runs_where_the_blade_left_the_pieces_then_after_the_push():
     calls = []
     split_by_sweep = sc.discover_fn
 
-    def discover(x, damage, sweeps, previous):
+    def discover(x, damage, sweeps, previous, start_positions=None):
         calls.append((float(np.diff(np.sort(x[:, 0])).max()), list(sweeps or []),
-                      None if previous is None else np.asarray(previous).copy()))
+                      None if previous is None else np.asarray(previous).copy(), start_positions))
         if sweeps:  # where the blade left them only the sweep separates the two sides
             cut_at = float(sweeps[0].split()[-1])
             return (x[:, 0] > cut_at).astype(np.int32)
@@ -241,6 +241,9 @@ def test_discovery_runs_where_the_blade_left_the_pieces_then_after_the_push():
     assert len(before_push[1]) == 1 and before_push[1][0].startswith("sweep at 0.2")
     assert before_push[0] < 0.08  # the sides still touch
     assert after_push[1] == [] and after_push[0] > 0.09  # pushed apart, no sweep
+    # where the blade started (a kerf particle keeps its side there): given to the cut's discovery only
+    np.testing.assert_array_equal(before_push[3], np.stack([np.linspace(0, 1, 20), np.zeros(20), np.zeros(20)], -1))
+    assert after_push[3] is None
     x_cut = np.linspace(0, 1, 20)  # where the blade left them: the first discovery's labels are the previous ones
     np.testing.assert_array_equal(after_push[2], (x_cut > float(before_push[1][0].split()[-1])).astype(np.int32))
     assert np.diff(np.sort(scored[-1][0][:, 0])).max() > 0.09  # the score sees the pushed positions

@@ -320,3 +320,33 @@ def test_a_kerf_particle_keeps_its_side_of_the_blade(moved, stray):
     assert len(np.unique(res.labels[plus])) == 1 and len(np.unique(res.labels[minus & (prev == 0)])) == 1
     assert res.labels[plus][0] != res.labels[minus & (prev == 0)][0]
     assert (res.labels[layer] == res.labels[plus][0]).all()
+
+
+def test_a_particle_the_blade_dragged_across_its_plane_keeps_the_side_it_started_on():
+    """The simulator splits by where the particles were when the blade started; the oscillating blade can drag a
+    few across its plane (slice / burger at 128^3: 931 particles of the + side ended 3-4 mm on the - side).
+    Given the positions before the cut, discovery keeps them on their starting side; without, the side of where
+    they ended, as the simulator does not."""
+    x0 = box()
+    plane = 0.503
+    minus = x0[:, 0] < plane
+    prev = np.where(x0[:, 0] < 0.443, 1, 0).astype(np.int32)
+    layer = np.flatnonzero(~minus & (x0[:, 0] < plane + S))[::3]  # every third particle of the + face...
+    start = x0.copy()
+    start[layer, 0] = plane + 0.0005  # ...just past the plane when the blade started
+    x = x0.copy()
+    x[~minus, 0] += 0.02  # the + side moved off the plane
+    x[layer, 0] = plane - 0.002  # and the blade dragged the layer 2 mm onto the - side
+    dmg = np.abs(x0[:, 0] - plane) < 0.012
+    plus = np.setdiff1d(np.flatnonzero(~minus), layer)
+    kept = discover(x, dmg, vertical_sweep(plane), previous_labels=prev, cfg=CFG, start_positions=start)
+    assert (kept.labels[layer] == kept.labels[plus][0]).all()
+    from topocut.topology.batch import discover_batch
+
+    both = discover_batch([box(), x], [np.zeros(len(x0), bool), dmg], [None, vertical_sweep(plane)], [None, prev],
+                          cfg=CFG, start_positions=[None, start])
+    np.testing.assert_array_equal(both[1].labels, kept.labels)
+    ended = discover(x, dmg, vertical_sweep(plane), previous_labels=prev, cfg=CFG)
+    assert (ended.labels[layer] == ended.labels[minus & (prev == 0)][0]).all()
+    with pytest.raises(ValueError, match="start_positions must be"):
+        discover(x, dmg, vertical_sweep(plane), previous_labels=prev, cfg=CFG, start_positions=start[:-1])

@@ -25,7 +25,7 @@ import numpy as np
 
 from topocut.episode.records import HISTORY_LEN, Episode, EpisodeLog, Score, make_record, new_history
 from topocut.episode.scene import env_board_z, env_spacing, scene_of, simulation_diverged_error
-from topocut.episode.scoring import Scoring, piece_agreement
+from topocut.episode.scoring import Scoring, piece_agreement, takes_start_positions
 from topocut.episode.seeds import step_seed
 from topocut.sim.action import executed_action
 from topocut.tasks.base import turns_after
@@ -65,6 +65,7 @@ class EpisodeBatch:
         self.B = int(getattr(env, "batch_size", 1) or 1)
         self.board_z = env_board_z(env)
         self.Diverged = simulation_diverged_error()
+        self.starts = takes_start_positions(scoring.discover_fn)  # a replacement discovery may not take them
 
     # -- episode bookkeeping ---------------------------------------------------------------------------
     def _keep(self, b: int, what: str, knife=None, motion=()) -> None:
@@ -217,8 +218,9 @@ class EpisodeBatch:
                                       f"or J = det F out of bounds); the other scenes went on")
                 continue
             x1, d1 = scene_of(st, b)
+            start = {"start_positions": self.xs[b]} if self.starts else {}  # where the blade started
             try:
-                lab1 = self.sc.discover_fn(np.asarray(x1), d1, st.sweeps[b], self.labels[b])
+                lab1 = self.sc.discover_fn(np.asarray(x1), d1, st.sweeps[b], self.labels[b], **start)
             except Exception as e:  # noqa: BLE001 - recorded in the episode's log
                 self.end(b, "error", f"scoring cut {k + 1}: {type(e).__name__}: {e}")
                 continue

@@ -10,6 +10,7 @@ are the builder's.
 """
 from __future__ import annotations
 
+import inspect
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -23,7 +24,7 @@ from topocut.episode.scene import env_board_z, topology_device
 class Scoring:
     """How a state is labelled and scored; each part replaceable (test doubles, other backends)."""
     goal_fn: Callable  # (task_cfg, object, pose, spacing, seed) -> Goal: seed, the scene's particle sampling
-    discover_fn: Callable  # (x (N,3), damage (N,), sweeps, previous_labels) -> labels (N,)
+    discover_fn: Callable  # (x (N,3), damage (N,), sweeps, previous_labels[, start_positions=]) -> labels (N,)
     score_fn: Callable  # (xs, labels, goals, task_cfgs) -> [Score]: all scenes of a step in one call
 
 
@@ -36,12 +37,14 @@ def fragments(x, labels, min_points: int) -> list[np.ndarray]:
     return [f for c, f in zip(ids, pieces) if c >= 0 and len(f) >= min_points]
 
 
-def discover_labels(x, damage, sweeps, previous, topo_cfg=None, device: str = "cpu") -> np.ndarray:  # N,
-    """Topology discovery (topocut.topology.discover on ``device``) with the previous labels' cluster ids."""
+def discover_labels(x, damage, sweeps, previous, topo_cfg=None, device: str = "cpu",
+                    start_positions=None) -> np.ndarray:  # N,
+    """Topology discovery (topocut.topology.discover on ``device``) with the previous labels' cluster ids;
+    ``start_positions``: the particles where the cut's blade started (a kerf particle keeps its side there)."""
     from topocut.topology import discover
 
     res = discover(np.asarray(x), np.asarray(damage, bool), sweeps, previous_labels=previous, cfg=topo_cfg,
-                   device=device)
+                   device=device, start_positions=start_positions)
     return np.asarray(res.labels, np.int32)
 
 
@@ -67,8 +70,8 @@ def make_scoring(reward_cfg=None, topo_cfg=None, device: str = "cpu", board_z: f
         return get_task(task_cfg.name).make_goal(task_cfg, obj, pose, spacing, board_z=board_z, seed=seed)
 
     if discover_fn is None:
-        def discover(x, damage, sweeps, previous):
-            return discover_labels(x, damage, sweeps, previous, topo_cfg, device)
+        def discover(x, damage, sweeps, previous, start_positions=None):
+            return discover_labels(x, damage, sweeps, previous, topo_cfg, device, start_positions)
     else:
         def discover(x, damage, sweeps, previous):
             return discover_fn(x, np.asarray(damage, bool), sweeps, previous, topo_cfg)
@@ -116,15 +119,15 @@ class Scorer:
         self.success_threshold, self.min_fragment_points, self.device = success_threshold, min_fragment_points, device
         self.success_fn = success_fn
 
-    def labels(self, x, damage, sweeps, previous=None) -> np.ndarray:  # N,
-        return discover_labels(x, damage, sweeps, previous, self.topo_cfg, self.device)
+    def labels(self, x, damage, sweeps, previous=None, start_positions=None) -> np.ndarray:  # N,
+        return discover_labels(x, damage, sweeps, previous, self.topo_cfg, self.device, start_positions)
 
-    def labels_batch(self, xs, damages, sweeps, previous) -> list[np.ndarray]:  # B x (N_b,)
+    def labels_batch(self, xs, damages, sweeps, previous, start_positions=None) -> list[np.ndarray]:  # B x (N_b,)
         """``labels`` of several scenes in one discovery (topology.batch.discover_batch: one grid, one pass)."""
         from topocut.topology.batch import discover_batch
 
         res = discover_batch([np.asarray(x) for x in xs], [np.asarray(d, bool) for d in damages], list(sweeps),
-                             list(previous), cfg=self.topo_cfg, device=self.device)
+                             list(previous), cfg=self.topo_cfg, device=self.device, start_positions=start_positions)
         return [np.asarray(r.labels, np.int32) for r in res]
 
     def fragments(self, x, labels) -> list[np.ndarray]:
@@ -147,6 +150,14 @@ class Scorer:
         sets = [self.fragments(x, lab) for x, lab in zip(xs, labels)]
         off = list(getattr(self.goal, "offcuts", None) or [])
         return np.array([r.total for r in spectral_rewards(sets, list(self.goal.fragments), self.reward_cfg, off)])
+
+
+def takes_start_positions(fn) -> bool:
+    """Whether a discovery callable takes ``start_positions=`` (the built-in ones do; a replacement may not)."""
+    try:
+        return "start_positions" in inspect.signature(fn).parameters
+    except (TypeError, ValueError):
+        return False
 
 
 def piece_agreement(labels, piece, min_points: int = 4) -> tuple[int, float]:

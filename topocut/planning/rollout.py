@@ -15,6 +15,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from topocut.episode import Scorer, simulation_diverged_error, topology_device
+from topocut.episode.scoring import takes_start_positions
 from topocut.sim.action import KnifeAction, cut_mask, executed_action
 from topocut.sim.primitives import TurnRefused
 from topocut.tasks.base import turns_after
@@ -28,15 +29,21 @@ def _as_actions(vectors: np.ndarray) -> list[KnifeAction]:
     return [executed_action(KnifeAction.from_vector(v)) for v in vectors]
 
 
-def discover_scenes(scorer, xs: list, damages: list, sweeps: list, previous: list) -> list[np.ndarray]:
+def discover_scenes(scorer, xs: list, damages: list, sweeps: list, previous: list,
+                    starts: list | None = None) -> list[np.ndarray]:
     """Labels of several scenes: one batched discovery where the scorer offers it (``labels_batch``) and its
-    topology config allows it (``batch_scenes``, default on), else one ``labels`` call per scene."""
+    topology config allows it (``batch_scenes``, default on), else one ``labels`` call per scene.  ``starts``:
+    each scene's particles where the cut's blade started, passed where the scorer takes them."""
     if not xs:
         return []
     cfg = getattr(scorer, "topo_cfg", None)
-    if getattr(scorer, "labels_batch", None) is not None and getattr(cfg, "batch_scenes", True):
-        return list(scorer.labels_batch(xs, damages, sweeps, previous))
-    return [scorer.labels(x, d, s, p) for x, d, s, p in zip(xs, damages, sweeps, previous)]
+    batch = getattr(scorer, "labels_batch", None)
+    if batch is not None and getattr(cfg, "batch_scenes", True):
+        kw = {"start_positions": starts} if starts is not None and takes_start_positions(batch) else {}
+        return list(batch(xs, damages, sweeps, previous, **kw))
+    kws = [{"start_positions": s} for s in starts] if starts is not None and takes_start_positions(scorer.labels) \
+        else [{}] * len(xs)
+    return [scorer.labels(x, d, s, p, **kw) for x, d, s, p, kw in zip(xs, damages, sweeps, previous, kws)]
 
 
 class TurnFailed(RuntimeError):
@@ -117,7 +124,8 @@ def make_sim_rollout(env, state_dict: dict, goal, reward_cfg=None, topo_cfg=None
                     # discovery where the blade left the pieces, then the push and discovery again without the
                     # sweep (as the episode engine: docs/topology.md#discovery-and-the-push)
                     found = discover_scenes(scorer, [st.x[b] for b in todo], [st.damage[b] for b in todo],
-                                            [st.sweeps[b] for b in todo], [labs[b] for b in todo])
+                                            [st.sweeps[b] for b in todo], [labs[b] for b in todo],
+                                            [xs[b] for b in todo])
                     if push:
                         env.push()
                         st = env.state()

@@ -14,6 +14,7 @@ import numpy as np
 
 from topocut.data.store import write_json_atomic
 from topocut.episode import Scorer, env_board_z, make_record, new_history
+from topocut.episode.scoring import takes_start_positions
 from topocut.planning.teleop_log import LOG_VERSION, check_entries, entry_problem, load_log
 from topocut.sim.action import KnifeAction, executed_action
 
@@ -98,8 +99,9 @@ class TeleopSession:
         previous ones, no sweep) its record."""
         st = self.env.state()
         x1 = np.asarray(st.x[0])
+        start = {"start_positions": x_t} if takes_start_positions(self.scorer.labels) else {}
         labels1 = self.scorer.labels(x1, st.damage[0], [], self.labels) if amend else \
-            self.scorer.labels(x1, st.damage[0], st.sweeps[0], labels_t)
+            self.scorer.labels(x1, st.damage[0], st.sweeps[0], labels_t, **start)
         reward, success = self.scorer.reward(x1, labels1)
         step = make_record(x_t, labels_t, x1, labels1, action, history, reward, success, self.board_z)
         if amend:

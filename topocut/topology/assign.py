@@ -83,7 +83,8 @@ def _nearest_surface_piece(x: wp.array(dtype=wp.vec3), raw: wp.array(dtype=wp.in
                            scene: wp.array(dtype=wp.int32), scene_tau: wp.array(dtype=float),
                            use_origin: int, owner: wp.array(dtype=wp.int32), origin: wp.array(dtype=wp.int32),
                            frames: wp.array2d(dtype=wp.vec3), sweep_scene: wp.array(dtype=wp.int32),
-                           held: wp.array(dtype=wp.int32), min_held: int, out: wp.array(dtype=wp.int32)):
+                           start: wp.array(dtype=wp.vec3), held: wp.array(dtype=wp.int32), min_held: int,
+                           out: wp.array(dtype=wp.int32)):
     # tau: the query radius; scene_tau (None: tau for all) the threshold of each scene, at most tau.
     # Preference, nearest first within each: a piece of the particle's own earlier cluster on its own side of
     # the blade (a particle inside a carved sweep), one of its own earlier cluster, a piece on its own side
@@ -102,6 +103,11 @@ def _nearest_surface_piece(x: wp.array(dtype=wp.vec3), raw: wp.array(dtype=wp.in
     if scene_tau.shape[0] > 0:
         near = scene_tau[sp]
     side = _blade_side(xp, sp, frames, sweep_scene)
+    if side[1] != 0 and start.shape[0] > 0:  # the side it was on when the blade started: the simulator's split's
+        if wp.dot(start[p] - frames[side[0], 0], frames[side[0], 3]) >= 0.0:
+            side = wp.vec2i(side[0], 1)
+        else:
+            side = wp.vec2i(side[0], -1)
     best = wp.vec2(-1.0, near)  # (piece, distance) per rank: any, own cluster, own side, own cluster and side
     same = wp.vec2(-1.0, near)
     sided = wp.vec2(-1.0, near)
@@ -203,14 +209,16 @@ def node_pieces(x, grid: Grid, piece_labels, device: str = "cpu"):
 
 def surface_fallback(x, raw, verts, vpiece, num_pieces: int, tau: float, extent, owner=None, num_old: int = 0,
                      device: str = "cpu", scene=None, scene_tau=None, sweeps=(), min_half_thickness: float = 0.0,
-                     sweep_scene=None, min_held: int = 1):
+                     sweep_scene=None, min_held: int = 1, start=None):
     """Particles with raw < 0 take the piece of the nearest vertex within tau (own earlier cluster first).
 
     ``sweeps`` (the carved KnifeSweeps, thickened to ``min_half_thickness``; ``sweep_scene`` each one's scene,
     None: all scene 0): a particle inside one prefers a piece on its own side of the blade's plane, as the
     simulator's split separates the two sides: first one of its own earlier cluster there, else (after its own
     cluster on either side) one holding >= ``min_held`` particles by their grid nodes, so that a sliver of
-    surface in the kerf does not become a piece (docs/topology.md#the-kerf).
+    surface in the kerf does not become a piece (docs/topology.md#the-kerf).  ``start`` (warp vec3 (N,), in the
+    frame of ``x``): where each particle was when the blade started; its side there is the side the simulator's
+    split gives it, so a particle the blade dragged across its plane keeps it.  None: the side of ``x``.
     scene (warp int32 (N,)) and scene_tau ((B,) floats): each particle's scene and each scene's tau instead
     (discover_batch; ``tau`` is then their maximum).  A particle whose owner is below -1 has no earlier
     cluster to prefer (a scene without splits in a batch where others have them)."""
@@ -236,7 +244,7 @@ def surface_fallback(x, raw, verts, vpiece, num_pieces: int, tau: float, extent,
     wp.launch(_node_counts, dim=x.shape[0], inputs=[raw, held], device=device)
     wp.launch(_nearest_surface_piece, dim=x.shape[0], device=device,
               inputs=[x, raw, hg.id, verts, vpiece, float(tau), scene, taus, int(use_origin),
-                      owner if use_origin else raw, origin, frames, sw_scene, held, int(min_held), out])
+                      owner if use_origin else raw, origin, frames, sw_scene, start, held, int(min_held), out])
     wp.synchronize_device(device)  # the hash grid is freed when this returns
     return out
 

@@ -41,6 +41,7 @@ from topocut.topology.discover import (
     TopologyResult,
     _previous,
     _wall_owners,
+    as_start_positions,
     as_sweeps,
     particles,
     scene_grid,
@@ -84,6 +85,7 @@ class _Scene:
     next_id: int | None
     lo: np.ndarray  # 3,
     hi: np.ndarray  # 3,
+    start: np.ndarray | None = None  # n,3 where the particles were when the cut's blade started (None: unknown)
 
     @property
     def num_old(self) -> int:
@@ -177,9 +179,10 @@ def batch_scale(positions: list, cfg: TopologyConfig | None = None, device: str 
 
 def discover_batch(positions: list, damages: list, sweeps: list, previous_labels: list,
                    cfg: TopologyConfig | None = None, device: str = "cpu",
-                   next_ids: list | None = None) -> list[TopologyResult]:
+                   next_ids: list | None = None, start_positions: list | None = None) -> list[TopologyResult]:
     """discover() for B scenes in one pass: lists (B,) of positions (N_b,3), damage (N_b,) bool or None, knife
-    sweeps (anything discover takes), previous labels (N_b,) or None, next ids or None.  See module docstring."""
+    sweeps (anything discover takes), previous labels (N_b,) or None, next ids or None, the positions before
+    the cut (N_b,3) or None (discover's ``start_positions``).  See module docstring."""
     from topocut.topology import sdf as S
 
     cfg = (cfg or TopologyConfig()).validate()
@@ -195,6 +198,11 @@ def discover_batch(positions: list, damages: list, sweeps: list, previous_labels
     # overlap columns: each scene's ids index them directly up to its share of MAX_DIRECT_IDS
     every = [_scene(positions[b], damages[b], sweeps[b], previous_labels[b], next_ids[b], cfg,
                     MAX_DIRECT_IDS // max(nb, 1)) for b in range(nb)]
+    if start_positions is not None:
+        if len(start_positions) != nb:
+            raise ValueError(f"discover_batch: {nb} positions but {len(start_positions)} start positions")
+        for s, st in zip(every, start_positions):
+            s.start = None if st is None else as_start_positions(st, len(s.x))
     results: list = [None] * nb
     for b, s in enumerate(every):
         if not len(s.x):  # as discover(): no particles, no pieces
@@ -250,9 +258,15 @@ def _discover_tiled(scenes: list, cfg: TopologyConfig, device, lap) -> tuple[np.
     # --- particles -> pieces (the gap exceeds every tau: a particle finds no other scene's surface) ----
     raw = A.node_pieces(xd, grid, pieces.labels, device)
     carved, carved_scene = _carving[3], _carving[1].sweep_scene
+    start = None  # where the blade started, on the tiles (a scene without them: its particles where they are now)
+    if carved and any(s.start is not None for s in scenes):
+        start_w = wp.array(np.concatenate([np.asarray(s.x if s.start is None else s.start, np.float32)
+                                           for s in scenes]), dtype=wp.vec3, device=device)
+        start = _shifted(start_w, scene_d, shift, device)
     raw = A.surface_fallback(xd, raw, verts_s, vpiece, k, max(taus), (np.asarray(grid.shape) - 1) * h, owner_d,
                              num_old, device, scene=scene_d, scene_tau=taus, sweeps=carved,
-                             min_half_thickness=min_half, sweep_scene=carved_scene, min_held=cfg.min_piece_particles)
+                             min_half_thickness=min_half, sweep_scene=carved_scene, min_held=cfg.min_piece_particles,
+                             start=start)
     counts, sum_x, overlap = A.piece_stats(xd, raw, k, prev_d, num_old, device)
     small = (counts > 0) & (counts < cfg.min_piece_particles)
     big = np.zeros(n_sc, bool)

@@ -101,6 +101,14 @@ def as_sweeps(knife_sweep) -> list[KnifeSweep]:
                      f"got {type(knife_sweep).__name__}")
 
 
+def as_start_positions(start_positions, n: int) -> np.ndarray:
+    """``start_positions`` as an (n,3) array, or a ValueError naming what does not match."""
+    s = np.asarray(start_positions, np.float64)
+    if s.shape != (n, 3):
+        raise ValueError(f"start_positions must be ({n}, 3), the particles before the cut; got {s.shape}")
+    return s
+
+
 def snap_to_board(s: KnifeSweep, board_z: float | None, tol: float) -> KnifeSweep:
     """A sweep that stopped at (or within ``tol`` of) the board is extended ``tol`` through it.
 
@@ -219,8 +227,11 @@ def surface_and_pieces(sdf, grid, cfg: TopologyConfig, device: str, lap):
 
 
 def discover(positions, damage, knife_sweep, previous_labels=None, cfg: TopologyConfig | None = None,
-             device: str = "cpu", next_id: int | None = None) -> TopologyResult:
-    """Cluster id per particle after a cut.  positions (N,3), damage (N,) bool; see module docstring."""
+             device: str = "cpu", next_id: int | None = None, start_positions=None) -> TopologyResult:
+    """Cluster id per particle after a cut.  positions (N,3), damage (N,) bool; see module docstring.
+
+    ``start_positions`` (N,3) or None: where the particles were when the cut's blade started (the state before
+    the cut); a particle left in the kerf keeps the side of the blade it had there (docs/topology.md, step 9)."""
     import warp as wp
 
     from topocut.topology import assign as A
@@ -240,6 +251,7 @@ def discover(positions, damage, knife_sweep, previous_labels=None, cfg: Topology
     if n == 0:
         return TopologyResult(np.zeros(0, np.int32), 0, {"total": 0.0}, int(max(next_id or 0, used)))
     sweeps = as_sweeps(knife_sweep)
+    starts = None if start_positions is None else as_start_positions(start_positions, n)
     num_old = (used if old_ids is None else len(old_ids)) if prev is not None else 0
 
     # --- grid + SDF (inputs go up once) -----------------------------------------------------------
@@ -278,9 +290,12 @@ def discover(positions, damage, knife_sweep, previous_labels=None, cfg: Topology
     # --- particles -> pieces ----------------------------------------------------------------------
     tau = cfg.tau if cfg.tau is not None else 2.0 * r + gap_half
     raw = A.node_pieces(xd, grid, pieces.labels, device)
+    start = None
+    if carving and starts is not None:
+        start = wp.array(np.ascontiguousarray(starts, np.float32), dtype=wp.vec3, device=device)
     raw = A.surface_fallback(xd, raw, verts_s, vpiece, k, tau, (np.asarray(grid.shape) - 1) * h,
                              prev_d if split else None, num_old, device, sweeps=snapped if carving else [],
-                             min_half_thickness=min_half, min_held=cfg.min_piece_particles)
+                             min_half_thickness=min_half, min_held=cfg.min_piece_particles, start=start)
     counts, sum_x, overlap = A.piece_stats(xd, raw, k, prev_d, num_old, device)
     small = (counts > 0) & (counts < cfg.min_piece_particles)
     if small.any() and (counts >= cfg.min_piece_particles).any():
