@@ -27,6 +27,23 @@ def run(ctx: RunContext, sim, object, task, topology, frames_per_cut: int = 10) 
     return {"pen": run_writing, "spoon": run_scooping}[tool](ctx, sim, object, task, topology)
 
 
+def _discover_cut(env, labels, x_start, push: bool, topology, device) -> tuple:
+    """(state, TopologyResult) after a cut: discovery where the blade left the pieces, each kerf particle on the
+    side it started on (``x_start``), then, if the task pushes, the push and discovery again without the sweep,
+    the cut's labels the previous ones (docs/topology.md#discovery-and-the-push)."""
+    from topocut.topology import discover
+
+    st = env.state()
+    topo = discover(st.x[0], st.damage[0], st.sweeps[0], previous_labels=labels, cfg=topology, device=device,
+                    start_positions=x_start)
+    if push:
+        env.push()
+        st = env.state()
+        topo = discover(st.x[0], st.damage[0], [], previous_labels=topo.labels, next_id=topo.next_id, cfg=topology,
+                        device=device)
+    return st, topo
+
+
 def run_knife(ctx: RunContext, sim, object, task, topology, frames_per_cut: int = 10) -> dict:
     """The goal's ideal steps (at most task.max_cuts cuts, the turns between them), push after cuts iff task.push;
     frames/cut0.png, per cut cutK_damage.png and cutK.png, turnK.png, and cut.gif (``_render``)."""
@@ -83,14 +100,7 @@ def run_knife(ctx: RunContext, sim, object, task, topology, frames_per_cut: int 
                 frames.append(dict(x=snap.x[0], labels=labels, damaged=snap.damage[0] & ~damaged_before, knife=step.action,
                                    knife_edge=snap.knife_edge[0], png=None, hold=0.12,
                                    title=f"cut {i}: {1e3 * snap.substep * env.dt:.0f} ms"))
-            st = env.state()  # discovery where the blade left the pieces (docs/topology.md#discovery-and-the-push)
-            topo = discover(st.x[0], st.damage[0], st.sweeps[0], previous_labels=labels, cfg=topology,
-                            device=ctx.device, start_positions=x_start)
-            if task.push:  # the push moves them; discovery again without the sweep keeps the cut's labels
-                env.push()
-                st = env.state()
-                topo = discover(st.x[0], st.damage[0], [], previous_labels=topo.labels, next_id=topo.next_id,
-                                cfg=topology, device=ctx.device)
+            st, topo = _discover_cut(env, labels, x_start, task.push, topology, ctx.device)
             labels = topo.labels
             arrays.update({f"x_{i}": st.x[0], f"damage_{i}": st.damage[0], f"labels_{i}": labels})
             frames += _cut_frames(st, labels, step.action, f"cut {i}", f"cut {i}{' + push' if task.push else ''}",

@@ -194,8 +194,10 @@ def test_episode_runner_turns_between_the_cuts_and_keeps_the_ids():
     steps, summary = run_episode(env, _goal(), GoalPlanesPolicy(_goal()), max_cuts=3, push=True, scorer=scorer)
     assert env.calls == ["cut", "push", "turn", "cut", "push", "cut", "push"]
     assert summary["turns"] == [1] and summary["num_cuts"] == 3 and summary["status"] == "ok"
-    # discovery: start, cut 1 (its sweep), after the turn (no sweep, previous labels), cuts 2 and 3
-    assert scorer.seen == [(None, None), (["sweep"], 0), ([], 1), (["sweep"], 2), (["sweep"], 3)]
+    # discovery: start; each cut with its sweep where the blade left the pieces, then after its push (no sweep, the
+    # cut's labels as the previous ones); after the turn (no sweep, previous labels)
+    assert scorer.seen == [(None, None), (["sweep"], 0), ([], 1), ([], 2), (["sweep"], 3), ([], 4), (["sweep"], 5),
+                           ([], 6)]
     # the record after the turn starts from the turned state
     assert (steps[0]["x_t1"] == 0).all() and (steps[1]["x_t"] == 1).all()
     # a budget that ends at the turn's cut skips it

@@ -216,8 +216,8 @@ def surface_fallback(x, raw, verts, vpiece, num_pieces: int, tau: float, extent,
     None: all scene 0): a particle inside one prefers a piece on its own side of the blade's plane, as the
     simulator's split separates the two sides: first one of its own earlier cluster there, else (after its own
     cluster on either side) one holding >= ``min_held`` particles by their grid nodes, so that a sliver of
-    surface in the kerf does not become a piece (docs/topology.md#the-kerf).  ``start`` (warp vec3 (N,), in the
-    frame of ``x``): where each particle was when the blade started; its side there is the side the simulator's
+    surface in the kerf does not become a piece (docs/topology.md#the-kerf).  ``start`` ((N,3) array or warp vec3
+    (N,), in the frame of ``x``): where each particle was when the blade started; its side there is the side the simulator's
     split gives it, so a particle the blade dragged across its plane keeps it.  None: the side of ``x``.
     scene (warp int32 (N,)) and scene_tau ((B,) floats): each particle's scene and each scene's tau instead
     (discover_batch; ``tau`` is then their maximum).  A particle whose owner is below -1 has no earlier
@@ -240,6 +240,8 @@ def surface_fallback(x, raw, verts, vpiece, num_pieces: int, tau: float, extent,
         wp.zeros((0, 5), dtype=wp.vec3, device=device)
     sw_scene = None if sweep_scene is None or not len(sweeps) else \
         wp.array(np.asarray(sweep_scene, np.int32), dtype=wp.int32, device=device)
+    if start is not None and not isinstance(start, wp.array):  # (N,3) positions on the host
+        start = wp.array(np.ascontiguousarray(start, np.float32), dtype=wp.vec3, device=device)
     held = wp.zeros(num_pieces, dtype=wp.int32, device=device)  # K, particles each piece holds by grid node
     wp.launch(_node_counts, dim=x.shape[0], inputs=[raw, held], device=device)
     wp.launch(_nearest_surface_piece, dim=x.shape[0], device=device,

@@ -258,15 +258,15 @@ def _discover_tiled(scenes: list, cfg: TopologyConfig, device, lap) -> tuple[np.
     # --- particles -> pieces (the gap exceeds every tau: a particle finds no other scene's surface) ----
     raw = A.node_pieces(xd, grid, pieces.labels, device)
     carved, carved_scene = _carving[3], _carving[1].sweep_scene
-    start = None  # where the blade started, on the tiles (a scene without them: its particles where they are now)
+    started = None  # where the blade started, on the tiles (a scene without them: its particles where they are now)
     if carved and any(s.start is not None for s in scenes):
-        start_w = wp.array(np.concatenate([np.asarray(s.x if s.start is None else s.start, np.float32)
-                                           for s in scenes]), dtype=wp.vec3, device=device)
-        start = _shifted(start_w, scene_d, shift, device)
+        started = _shifted(wp.array(np.concatenate([np.asarray(s.x if s.start is None else s.start, np.float32)
+                                                    for s in scenes]), dtype=wp.vec3, device=device),
+                           scene_d, shift, device)
     raw = A.surface_fallback(xd, raw, verts_s, vpiece, k, max(taus), (np.asarray(grid.shape) - 1) * h, owner_d,
                              num_old, device, scene=scene_d, scene_tau=taus, sweeps=carved,
                              min_half_thickness=min_half, sweep_scene=carved_scene, min_held=cfg.min_piece_particles,
-                             start=start)
+                             start=started)
     counts, sum_x, overlap = A.piece_stats(xd, raw, k, prev_d, num_old, device)
     small = (counts > 0) & (counts < cfg.min_piece_particles)
     big = np.zeros(n_sc, bool)

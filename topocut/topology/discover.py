@@ -261,10 +261,8 @@ def discover(positions, damage, knife_sweep, previous_labels=None, cfg: Topology
     hi = np.array([x[:, i].max() for i in range(3)], np.float64)
     xd = wp.array(np.ascontiguousarray(x, np.float32), dtype=wp.vec3, device=device)  # N
     prev_d = wp.array(prev_idx, dtype=wp.int32, device=device) if prev is not None else None  # N
-    if cfg.particle_radius is not None:
-        r = float(cfg.particle_radius)
-    else:
-        r = cfg.radius_factor * max(S.particle_spacing(xd, lo, hi, device), 1e-6)
+    r = float(cfg.particle_radius) if cfg.particle_radius is not None else \
+        cfg.radius_factor * max(S.particle_spacing(xd, lo, hi, device), 1e-6)
     grid = scene_grid(lo, hi, r, cfg)
     h = grid.h
     walls = None
@@ -290,12 +288,10 @@ def discover(positions, damage, knife_sweep, previous_labels=None, cfg: Topology
     # --- particles -> pieces ----------------------------------------------------------------------
     tau = cfg.tau if cfg.tau is not None else 2.0 * r + gap_half
     raw = A.node_pieces(xd, grid, pieces.labels, device)
-    start = None
-    if carving and starts is not None:
-        start = wp.array(np.ascontiguousarray(starts, np.float32), dtype=wp.vec3, device=device)
     raw = A.surface_fallback(xd, raw, verts_s, vpiece, k, tau, (np.asarray(grid.shape) - 1) * h,
                              prev_d if split else None, num_old, device, sweeps=snapped if carving else [],
-                             min_half_thickness=min_half, min_held=cfg.min_piece_particles, start=start)
+                             min_half_thickness=min_half, min_held=cfg.min_piece_particles,
+                             start=starts if carving else None)
     counts, sum_x, overlap = A.piece_stats(xd, raw, k, prev_d, num_old, device)
     small = (counts > 0) & (counts < cfg.min_piece_particles)
     if small.any() and (counts >= cfg.min_piece_particles).any():
