@@ -188,44 +188,39 @@ class EpisodeBatch:
             for b, _, _ in scored:
                 self.end(b, "failed", f"push after cut {self.k + 1}: {type(e).__name__}: {e}")
             return []
-        dead = np.asarray(getattr(env, "dead", np.zeros(B, bool)))
-        st, out = env.state(), []
+        dead, st, out = self._dead(), env.state(), []
         for b, x1, lab1 in scored:
-            if not pushes[b]:
-                out.append((b, x1, lab1))
-                continue
-            if dead[b]:
-                self.end(b, "failed", f"push after cut {self.k + 1}: SimulationDiverged: scene {b} diverged")
-                continue
-            x2, d2 = scene_of(st, b)
-            try:
-                lab2 = self.sc.discover_fn(np.asarray(x2), d2, [], lab1)
-            except Exception as e:  # noqa: BLE001 - recorded in the episode's log
-                self.end(b, "error", f"labelling after the push of cut {self.k + 1}: {type(e).__name__}: {e}")
-                continue
-            out.append((b, np.asarray(x2), lab2))
+            found = self._labelled(st, b, dead, [], lab1, f"push after cut {self.k + 1}") if pushes[b] else (x1, lab1)
+            if found is not None:
+                out.append((b, *found))
         return out
 
     def _discover(self, moving: list) -> list[tuple]:
         """(b, x after the cut, its labels) of each moving scene that neither diverged nor failed discovery."""
-        env, k = self.env, self.k
-        dead = np.asarray(getattr(env, "dead", np.zeros(self.B, bool)))
-        st = env.state()
-        scored = []
+        dead, st, scored = self._dead(), self.env.state(), []
         for b in moving:
-            if dead[b]:
-                self.end(b, "failed", f"cut {k + 1}: SimulationDiverged: scene {b} diverged (a NaN/Inf position "
-                                      f"or J = det F out of bounds); the other scenes went on")
-                continue
-            x1, d1 = scene_of(st, b)
             start = {"start_positions": self.xs[b]} if self.starts else {}  # where the blade started
-            try:
-                lab1 = self.sc.discover_fn(np.asarray(x1), d1, st.sweeps[b], self.labels[b], **start)
-            except Exception as e:  # noqa: BLE001 - recorded in the episode's log
-                self.end(b, "error", f"scoring cut {k + 1}: {type(e).__name__}: {e}")
-                continue
-            scored.append((b, np.asarray(x1), lab1))
+            found = self._labelled(st, b, dead, st.sweeps[b], self.labels[b], f"cut {self.k + 1}", **start)
+            if found is not None:
+                scored.append((b, *found))
         return scored
+
+    def _dead(self) -> np.ndarray:
+        return np.asarray(getattr(self.env, "dead", np.zeros(self.B, bool)))  # B, scenes that diverged
+
+    def _labelled(self, st, b: int, dead, sweeps, previous, when: str, **start) -> tuple | None:
+        """(x, labels) of scene b in ``st``, discovered with ``sweeps`` and ``previous``; None where its scene
+        diverged (the episode fails) or discovery raised (it errs), ``when`` naming the moment."""
+        if dead[b]:
+            self.end(b, "failed", f"{when}: SimulationDiverged: scene {b} diverged (a NaN/Inf position or J = det F "
+                                  f"out of bounds); the other scenes went on")
+            return None
+        x, d = scene_of(st, b)
+        try:
+            return np.asarray(x), self.sc.discover_fn(np.asarray(x), d, sweeps, previous, **start)
+        except Exception as e:  # noqa: BLE001 - recorded in the episode's log
+            self.end(b, "error", f"scoring {when}: {type(e).__name__}: {e}")
+            return None
 
     def _score(self, scored: list) -> list[Score]:
         """The scores of ``scored`` in one call; a failing call fails their episodes (no scores)."""
