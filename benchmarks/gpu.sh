@@ -155,6 +155,10 @@ PY
       tar -czf "$OUT/oracle$grid.tgz" -C "$d" episodes
     done
     mps_stop ;;
+  audit)  # #47: experiments/oracle_audit.py on the GPU, AUDIT_ARGS (e.g. "--task dice --object potato --n-grid 128
+    # --size 0.03 --compare-cpu --reward backend=torch"): every fragment's role, d and IoU after each cut
+    timeout ${LIMIT:-560} python3 experiments/oracle_audit.py --device cuda ${AUDIT_ARGS:-} 2>&1 | grep -v -i warn \
+      | tee -a "$OUT/audit.txt" ;;
   split-bench)  # #49: a cut's split on the host against the Taichi kernels (benchmarks/split_device.py), 128^3 cake
     python3 benchmarks/split_device.py --device cuda --n-grid ${GRID:-128} --batch ${BATCH:-16} 2>&1 \
       | grep -v -i warn | tee -a "$OUT/split_bench.txt" ;;

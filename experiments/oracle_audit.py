@@ -85,7 +85,7 @@ def simulated(args):
     overrides = {k: yaml.safe_load(v) for k, v in (a.split("=", 1) for a in args.sim)}
     sim = SimConfig(n_grid=args.n_grid, arch=args.device, **overrides)
     env = CuttingEnv(sim, batch_size=1)
-    reward_cfg = RewardConfig()
+    reward_cfg = RewardConfig(**{k: yaml.safe_load(v) for k, v in (a.split("=", 1) for a in args.reward)}).on(args.device)
     dev = args.topology_device or ("cuda" if args.device == "cuda" else "cpu")
     scoring = make_scoring(reward_cfg, device=dev, board_z=sim.board_z)
     rows = []
@@ -206,6 +206,9 @@ def main():
     ap.add_argument("--compare-cpu", action="store_true", help="also discover each state on the CPU")
     ap.add_argument("--sim", nargs="*", default=[], metavar="KEY=VALUE",
                     help="simulator settings (SimConfig keys), e.g. --sim kerf_half_width=0.006")
+    ap.add_argument("--reward", nargs="*", default=[], metavar="KEY=VALUE",
+                    help="reward settings (RewardConfig keys), e.g. --reward backend=torch eig_solver=subspace "
+                         "(stage=eval's reward=torch on the GPU)")
     ap.add_argument("--summary", default="", help="summarise the oracle episodes of this evaluation artifact")
     args = ap.parse_args()
     if args.summary:
