@@ -64,9 +64,20 @@ def audit_cut(k, x, labels, piece, goal, reward_cfg):
     for i, c in enumerate(ids):
         g = next((g for f, g in res.matching if f == i), None)
         d = f"{res.distances[i, g]:.3f}" if g is not None else "  -  "
+        # unmatched: how far the nearest goal piece is (the reward's d; inf where the fragment is too small)
+        near = "" if g is not None or not np.isfinite(res.distances[i]).any() else \
+            f"  nearest goal {int(np.argmin(res.distances[i]))} d {float(np.min(res.distances[i])):.3f}"
         print(f"    cluster {c:3d}: {len(frags[i]):6d} particles  {role[i]:12s} d {d}  w {res.weights[i]:.3f}  "
-              f"value {res.values[i]:+.3f}  IoU {ious[i]:.3f}")
+              f"value {res.values[i]:+.3f}  IoU {ious[i]:.3f}  extents {extents(frags[i])}{near}")
     return res, min(ious)
+
+
+def extents(x: np.ndarray) -> str:
+    """A fragment's principal extents (largest first) in mm: what the size term of d compares."""
+    if len(x) < 4:
+        return "-"
+    proj = (x - x.mean(0)) @ np.linalg.svd(x - x.mean(0), full_matrices=False)[2].T  # k,3 in principal axes
+    return "x".join(f"{1000 * e:.0f}" for e in np.ptp(proj, axis=0))
 
 
 def simulated(args):
@@ -102,6 +113,8 @@ def simulated(args):
         print(f"{args.task}/{args.object} episode {e} (seed {seed}, scale {pose.scale:.2f}, yaw {pose.yaw:+.2f}): "
               f"{len(goal.fragments)} goal pieces, {len(goal.offcuts)} planned offcuts, steps "
               f"{' '.join(s.kind for s in goal.steps)}")
+        print("  goal pieces: " + ", ".join(f"{g} {len(f)} particles {extents(np.asarray(f))}"
+                                            for g, f in enumerate(goal.fragments)))
         k = 0
         while engine.live[0]:
             obs = engine.observation(0)
@@ -125,6 +138,9 @@ def simulated(args):
                 print(f"  {engine.logs[0].status}: {engine.logs[0].error}")
                 break
             audit_cut(k, engine.xs[0], engine.labels[0], env.piece[0, :len(engine.xs[0])], goal, reward_cfg)
+            if args.save:  # the state after the cut, to compare runs (e.g. CPU against GPU) particle by particle
+                np.savez_compressed(f"{args.save}_{args.task}_{args.object}_{e}_cut{k}.npz", x=engine.xs[0],
+                                    labels=engine.labels[0], piece=env.piece[0, :len(engine.xs[0])])
         log = engine.finish()[0]
         print(f"  final R {log.rewards[-1] if log.rewards else float('nan'):.3f}, success "
               f"{bool(log.successes and log.successes[-1])}, turns after cuts {log.turns}, "
@@ -209,6 +225,7 @@ def main():
     ap.add_argument("--reward", nargs="*", default=[], metavar="KEY=VALUE",
                     help="reward settings (RewardConfig keys), e.g. --reward backend=torch eig_solver=subspace "
                          "(stage=eval's reward=torch on the GPU)")
+    ap.add_argument("--save", default="", help="write each cut's state to <SAVE>_<task>_<object>_<e>_cut<k>.npz")
     ap.add_argument("--summary", default="", help="summarise the oracle episodes of this evaluation artifact")
     args = ap.parse_args()
     if args.summary:
