@@ -34,6 +34,10 @@ class RewardConfig:
     # (topocut.reward.planar), times this, is added to its distance; a mirrored R is at ~0.05 (docs/reward.md#handedness)
     handedness_weight: float = 5.0
     min_points: int = 32  # fragments with fewer points get distance inf (reward 0)
+    # a piece is described without the strays the blade dragged out of it (threads of particles one link from its
+    # core and farther, topocut.reward.strays), unless that leaves out more than this share of it; 0: every
+    # particle (docs/reward.md#strays)
+    stray_share: float = 0.05
     # piecewise-linear reward R(d) (paper appendix): R_max - gamma d for d <= tau, then slope delta > gamma; clipped at 0
     r_max: float = 1.0
     gamma: float = 1.0
@@ -84,7 +88,7 @@ class RewardConfig:
         if self.min_points < self.num_eig + 2:
             raise ValueError(f"reward.min_points={self.min_points} must be >= reward.num_eig + 2 = {self.num_eig + 2}")
         for k in ("size_weight", "fill_weight", "profile_weight", "size_tolerance", "handedness_weight", "mismatch_cost",
-                  "waste_cost", "offcut_slack"):
+                  "waste_cost", "offcut_slack", "stray_share"):
             if getattr(self, k) < 0:
                 raise ValueError(f"reward.{k}={getattr(self, k)} must be >= 0")
         if self.sigma is not None and self.sigma <= 0:
