@@ -9,6 +9,7 @@ worst IoU of a discovered fragment with its best simulator piece.  ``--render`` 
     python experiments/oracle_audit.py --task dice --object potato                       # CPU, 64^3, 5 cm pieces
     python experiments/oracle_audit.py --task stick --object cube --episodes 2 --render /tmp/seq.png
     python experiments/oracle_audit.py --device cuda --n-grid 128 --size 0.03 --task dice --object cake
+    python experiments/oracle_audit.py --task slice --object potato --episodes 4 --batch 4 --save /tmp/a  # as eval
 
 Summary (``--summary DIR``): an evaluation artifact's oracle episodes (``stage=eval "eval.policies=[oracle]"``): mean
 raw R per task x split and per object, the least, success, and the simulator's pieces against discovery's
@@ -22,6 +23,7 @@ evaluation object at four poses: R, N_C / G and the pieces, one line each (tests
     python experiments/oracle_audit.py --ideal --n-grid 128 --size 0.03
 """
 import argparse
+import json
 import time
 
 import numpy as np
@@ -70,6 +72,71 @@ def audit_cut(k, x, labels, piece, goal, reward_cfg):
         print(f"    cluster {c:3d}: {len(frags[i]):6d} particles  {role[i]:12s} d {d}  w {res.weights[i]:.3f}  "
               f"value {res.values[i]:+.3f}  IoU {ious[i]:.3f}  extents {extents(frags[i])}{near}")
     return res, min(ious)
+
+
+def simulated_batch(args):
+    """``--batch B``: the episodes in batches of B scenes, as stage=eval runs them (sim.batch_size), one line per cut
+    and scene: discovery's pieces against the simulator's and R.  Where they disagree (IoU < 0.95) and ``--save`` is
+    given, the cut's inputs are saved (positions, damage, sweep, previous labels, start positions, the simulator's
+    pieces) so that discovery can be re-run on them anywhere (topocut.topology.discover)."""
+    from topocut.episode import Episode, EpisodeBatch, eval_episode_seed, make_scoring, piece_agreement
+    from topocut.eval.config import EvalConfig
+    from topocut.eval.protocol import episode_pose
+    from topocut.planning.oracle import OraclePolicy
+    from topocut.reward import RewardConfig
+    from topocut.sim.config import SimConfig
+    from topocut.sim.env import CuttingEnv
+    from topocut.sim.mpm import init_taichi
+    from topocut.tasks import piece_sizes, task_config
+
+    init_taichi(args.device)
+    sim = SimConfig(n_grid=args.n_grid, arch=args.device,
+                    **{k: yaml.safe_load(v) for k, v in (a.split("=", 1) for a in args.sim)})
+    env = CuttingEnv(sim, batch_size=args.batch)
+    reward_cfg = RewardConfig(**{k: yaml.safe_load(v) for k, v in (a.split("=", 1) for a in args.reward)}).on(args.device)
+    scoring = make_scoring(reward_cfg, device=args.topology_device or args.device, board_z=sim.board_z)
+    task = task_config(args.task, **piece_sizes(args.task, args.size), max_cuts=args.max_cuts,
+                       push=args.task in ("stick", "dice"))
+    ids = list(range(args.first, args.first + args.episodes))
+    for c0 in range(0, len(ids), args.batch):
+        chunk = ids[c0:c0 + args.batch]
+        eps = []
+        for e in chunk:
+            seed = eval_episode_seed(args.seed, args.task, args.object, e)
+            eps.append(Episode(args.object, episode_pose(EvalConfig(seed=args.seed), seed), seed, task))
+        engine = EpisodeBatch(env, scoring, max_cuts=args.max_cuts)
+        engine.start(eps, alone=False)
+        pols = [OraclePolicy(g, board_z=sim.board_z) for g in engine.goals]
+        k = 0
+        while any(engine.live):
+            acts = [None] * len(chunk)
+            for b in range(len(chunk)):
+                if engine.live[b]:
+                    obs = engine.observation(b)
+                    obs["particles"] = engine.xs[b]
+                    acts[b] = pols[b].act(obs)
+            if not any(a is not None for a in acts):
+                break
+            before = [np.asarray(lab).copy() for lab in engine.labels]
+            starts = [np.asarray(x).copy() for x in engine.xs]
+            engine.step(acts)
+            k += 1
+            st = env.state()
+            for b, e in enumerate(chunk):
+                if acts[b] is None or not engine.logs[b].rewards:
+                    continue
+                n_sim, iou = piece_agreement(engine.labels[b], env.piece[b, :len(engine.labels[b])])
+                print(f"{args.task}/{args.object} episode {e} (scene {b}) cut {k}: R {engine.logs[b].rewards[-1]:.3f}, "
+                      f"pieces discovered {engine.logs[b].num_pieces[-1]}, simulator {n_sim}, min IoU {iou:.3f}")
+                if args.save and iou < 0.95:
+                    x, dmg = st.scene(b) if hasattr(st, "scene") else (st.x[b], st.damage[b])
+                    np.savez_compressed(f"{args.save}_{args.task}_{args.object}_{e}_cut{k}_batch.npz",
+                                        x=np.asarray(x), damage=np.asarray(dmg), labels=engine.labels[b],
+                                        previous=before[b], start=starts[b], piece=env.piece[b, :len(x)],
+                                        sweeps=json.dumps([w.asdict() for w in st.sweeps[b]]))
+        for b, log in enumerate(engine.finish()):
+            print(f"{args.task}/{args.object} episode {chunk[b]}: final R "
+                  f"{log.rewards[-1] if log.rewards else float('nan'):.3f}")
 
 
 def extents(x: np.ndarray) -> str:
@@ -226,6 +293,8 @@ def main():
                     help="reward settings (RewardConfig keys), e.g. --reward backend=torch eig_solver=subspace "
                          "(stage=eval's reward=torch on the GPU)")
     ap.add_argument("--save", default="", help="write each cut's state to <SAVE>_<task>_<object>_<e>_cut<k>.npz")
+    ap.add_argument("--batch", type=int, default=0,
+                    help="run the episodes in batches of this many scenes, as stage=eval does (sim.batch_size)")
     ap.add_argument("--summary", default="", help="summarise the oracle episodes of this evaluation artifact")
     args = ap.parse_args()
     if args.summary:
@@ -235,7 +304,7 @@ def main():
         ideal_sweep(args)
     else:
         args.task, args.object = args.task or "dice", args.object or "potato"
-        simulated(args)
+        simulated_batch(args) if args.batch else simulated(args)
 
 
 if __name__ == "__main__":
