@@ -350,3 +350,31 @@ def test_a_particle_the_blade_dragged_across_its_plane_keeps_the_side_it_started
     assert (ended.labels[layer] == ended.labels[minus & (prev == 0)][0]).all()
     with pytest.raises(ValueError, match="start_positions must be"):
         discover(x, dmg, vertical_sweep(plane), previous_labels=prev, cfg=CFG, start_positions=start[:-1])
+
+
+@pytest.mark.parametrize("batched", [False, True])
+def test_a_cut_never_joins_pieces_even_where_the_walls_fail(monkeypatch, batched):
+    """Two earlier pieces touching (the particles back on the lattice, no gap, no sweep): the SDF's walls keep them
+    apart.  With the walls taken away (as a failed wall did on the H200: a last cut's discovery joined two earlier
+    pieces that the CPU, from the same inputs, kept apart), the check on the result (``keep_earlier_splits``) still
+    returns the two pieces with their ids; without the check as well they merge, so the check is what holds."""
+    from topocut.topology import assign as A
+    from topocut.topology.batch import discover_batch
+    from topocut.topology import sdf as S
+
+    x = box()
+    prev = (x[:, 0] >= 0.503).astype(int)  # N, two earlier pieces, touching at x = 0.503
+
+    def run():
+        if batched:
+            return discover_batch([x, x + [0.0, 0.0, 0.0]], [None, None], [None, None], [prev, prev], cfg=CFG)[1]
+        return discover(x, None, None, previous_labels=prev, cfg=CFG)
+
+    assert np.array_equal(run().labels, prev)  # the walls
+    walls = S.particle_sdf
+    monkeypatch.setattr(S, "particle_sdf", lambda x, r, grid, band, device="cpu", owner_labels=None:
+                        walls(x, r, grid, band, device))  # no owners: no walls
+    held = run()
+    assert np.array_equal(held.labels, prev) and held.num_clusters == 2  # the check
+    monkeypatch.setattr(A, "keep_earlier_splits", lambda raw, overlap, *a, **k: (raw, len(overlap), np.zeros(0, int)))
+    assert run().num_clusters == 1  # neither: they join

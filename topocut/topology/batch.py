@@ -268,6 +268,12 @@ def _discover_tiled(scenes: list, cfg: TopologyConfig, device, lap) -> tuple[np.
                              min_half_thickness=min_half, sweep_scene=carved_scene, min_held=cfg.min_piece_particles,
                              start=started)
     counts, sum_x, overlap = A.piece_stats(xd, raw, k, prev_d, num_old, device)
+    if any(s.split for s in scenes):  # a cut never joins pieces (the walls' promise, checked), scene by scene
+        raw, k, added = A.keep_earlier_splits(raw, overlap, prev_d, cfg.min_piece_particles, device,
+                                              allowed=np.array([scenes[t].split for t in tile], bool))
+        if len(added):
+            tile = np.concatenate([tile, tile[added]])
+            counts, sum_x, overlap = A.piece_stats(xd, raw, k, prev_d, num_old, device)
     small = (counts > 0) & (counts < cfg.min_piece_particles)
     big = np.zeros(n_sc, bool)
     big[tile[counts >= cfg.min_piece_particles]] = True

@@ -293,6 +293,10 @@ def discover(positions, damage, knife_sweep, previous_labels=None, cfg: Topology
                              min_half_thickness=min_half, min_held=cfg.min_piece_particles,
                              start=starts if carving else None)
     counts, sum_x, overlap = A.piece_stats(xd, raw, k, prev_d, num_old, device)
+    if split:  # a cut never joins pieces (the walls' promise, checked)
+        raw, k, added = A.keep_earlier_splits(raw, overlap, prev_d, cfg.min_piece_particles, device)
+        if len(added):
+            counts, sum_x, overlap = A.piece_stats(xd, raw, k, prev_d, num_old, device)
     small = (counts > 0) & (counts < cfg.min_piece_particles)
     if small.any() and (counts >= cfg.min_piece_particles).any():
         raw = A.absorb_chips(xd, raw, small, device)
