@@ -24,6 +24,7 @@ evaluation object at four poses: R, N_C / G and the pieces, one line each (tests
 """
 import argparse
 import json
+import os
 import time
 
 import numpy as np
@@ -297,6 +298,8 @@ def main():
                     help="run the episodes in batches of this many scenes, as stage=eval does (sim.batch_size)")
     ap.add_argument("--summary", default="", help="summarise the oracle episodes of this evaluation artifact")
     args = ap.parse_args()
+    if args.save and os.path.dirname(args.save):
+        os.makedirs(os.path.dirname(args.save), exist_ok=True)
     if args.summary:
         summary(args.summary)
     elif args.ideal:
