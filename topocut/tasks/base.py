@@ -276,8 +276,12 @@ def first_slab(pts, axes, thickness, board_z, pad, key="task.thickness"):
 
 
 def lay_flat(pts, slab, axes, board_z, gap: float = 0.02, beside: bool = False) -> Turn:
-    """Turn the freed slab 90 deg about a2 so that its thickness is vertical (a1 -> -z, z -> a1): its outer
-    face ends on the board, its cut face up, its former height along +a1, laid ``gap`` beyond the object.
+    """Turn the freed slab 90 deg about a2 so that its thickness is vertical (a1 -> +z, z -> -a1): its cut face
+    (planar) on the board, its outer face up, its former height along a1, laid ``gap`` beyond the object.
+
+    Cut face down, as a cook lays a slab: an end slab's outer face is a dome (a potato's, a burger's), and laid on
+    it the slab rocks and settles tilted, so vertical cuts through it make sheared sticks and dice (dice / potato /
+    3 at 128^3: a die of the goal's 451 particles, 55 x 30 mm from above with wedge-shaped ends, R 0; docs/tasks.md).
 
     ``beside``: also move it past the object's +a2 side (laid diagonally off the corner), so that cuts normal to
     a2 through the laid slab (dice's stick cuts) miss the rest of the object; cuts normal to a1 miss it anyway."""
@@ -291,8 +295,8 @@ def lay_flat(pts, slab, axes, board_z, gap: float = 0.02, beside: bool = False) 
     if beside:
         target = target + ((pts @ a2).max() + gap - (p @ a2).min()) * a2
     target = target - (target @ z) * z + (board_z + thick / 2) * z
-    return Turn("slab", tuple(a2.tolist()), float(np.pi / 2), tuple(c.tolist()), tuple(target.tolist()),
-                note="lay the slab flat: a1 -> -z, z -> +a1, about a2 through its centroid"
+    return Turn("slab", tuple(a2.tolist()), float(-np.pi / 2), tuple(c.tolist()), tuple(target.tolist()),
+                note="lay the slab flat, cut face down: a1 -> +z, z -> -a1, about a2 through its centroid"
                 + (", beside the object's +a2 side" if beside else ""))
 
 

@@ -1,7 +1,7 @@
 """Dice: cubes of side ``size``, cut as a cook does: slab, lay it flat, sticks, chop across.
 
-**Task.** Cut a slab of thickness ``task.size`` off the +a1 end; lay it flat (``Turn``: 90 deg about a2, its
-outer face on the board, cut face up, off the object's +a1/+a2 corner so that no cut reaches the rest; its
+**Task.** Cut a slab of thickness ``task.size`` off the +a1 end; lay it flat (``Turn``: -90 deg about a2, its
+cut face on the board, outer face up, off the object's +a1/+a2 corner so that no cut reaches the rest; its
 thickness, ``size``, is now vertical); cut it into sticks with
 planes normal to a2 every ``size``; turn the knife 90 deg and chop the sticks with planes normal to a1
 (the slab's former height) every ``size``.  Each die is size x size x size: its three principal extents
@@ -49,5 +49,5 @@ class DiceTask(SlabTask):
         faces = [((coords[:, 0] - d).min(), (coords[:, 0] + d).max()), (board_z, (coords[:, 1] + d).max())]
         turn = lay_flat(pts, slab, axes, board_z, beside=True)  # stick cuts miss the rest
         # sticks normal to a2 (kept by the turn); chops normal to a1, the slab's former height (z) once laid flat
-        return SlabGrid(coords, faces, [cfg.size, cfg.size], (cfg.size / spacing) ** 3, turn, [(a2, a2), (z, a1)],
+        return SlabGrid(coords, faces, [cfg.size, cfg.size], (cfg.size / spacing) ** 3, turn, [a2, z],
                         min_fill=0.75)

@@ -24,7 +24,8 @@ class SlabGrid:
     widths: list  # band width per grid axis
     full: float  # a full cell's particle count
     turn: Turn  # the slab set down (laid flat or moved aside): its grid cuts miss the rest of the object
-    # per grid axis: (the axis its coordinate is measured along in the initial pose, the cut normal after the turn)
+    # per grid axis: the axis its coordinate is measured along in the initial pose (its cuts' normal is that axis
+    # carried by the turn)
     cut_axes: list
     min_fill: float = MIN_FILL  # a cell is a goal piece from this share of a full cell's particles
 
@@ -45,9 +46,11 @@ class SlabTask(KnifeTask):
         lab, cuts, _ = best_grid(grid.coords, grid.faces, grid.widths, cfg.max_cuts - 1, grid.full, grid.min_fill)
         labels = np.zeros(len(pts), np.int32)
         labels[slab] = lab
-        t, c0 = np.asarray(grid.turn.target), np.asarray(grid.turn.center)
+        t, c0, R = np.asarray(grid.turn.target), np.asarray(grid.turn.center), grid.turn.rotation()
         steps = [cut0, grid.turn]
-        for (along, normal), positions in zip(grid.cut_axes, cuts):
-            # a cut at c along ``along`` before the turn is the plane normal to ``normal`` through the turned slab
-            steps += [plane(normal, t + (c - c0 @ along) * normal, board_z) for c in positions]
+        for along, positions in zip(grid.cut_axes, cuts):
+            # a cut at c along ``along`` before the turn is the plane normal to R along through the turned point:
+            # the turn carries the offset c - c0.along with it (a1 -> +z, z -> -a1 when laid flat)
+            n = R @ along
+            steps += [plane(n, t + (c - c0 @ along) * n, board_z) for c in positions]
         return steps, labels

@@ -4,7 +4,7 @@
 A stick is thickness x width x L with L the slab's longer in-plane side, so it has one long axis:
 if the slab is at least as tall as it is wide (cube, tall objects) the sticks stand upright (cuts normal to
 a2 across the standing slab); if it is wider than tall (steak, cake, donut edge slabs) the slab is first
-laid flat (``Turn``: 90 deg about a2, cut face up) and cut normal to its former height, so the sticks lie
+laid flat (``Turn``: -90 deg about a2, cut face down) and cut normal to its former height, so the sticks lie
 along a2.  Either way the slab is first set where no stick cut reaches the rest of the object: a standing slab off
 the object's +a1/+a2 corner (a ``Turn`` by 0 deg), a laid one beyond its +a1 end.  Goal pieces: the pieces the steps make that lie mostly in a full stick's band (a band holding >= half
 a full stick's particles; topocut.tasks.ideal), initial pose.
@@ -48,11 +48,11 @@ class StickTask(SlabTask):
             length = np.ptp(h) + spacing
             faces = [((s2 - d).min(), (s2 + d).max())]
             coords = s2[:, None]
-            turn, cut_axes = move_aside(pts, slab, axes), [(a2, a2)]
+            turn, cut_axes = move_aside(pts, slab, axes), [a2]
         else:  # lay the slab flat beyond the object's +a1 end, bands along its former height: cuts normal to a1
             length = np.ptp(s2) + spacing
             faces = [(board_z, (h + d).max())]
             coords = h[:, None]
-            turn, cut_axes = lay_flat(pts, slab, axes, board_z), [(z, a1)]
+            turn, cut_axes = lay_flat(pts, slab, axes, board_z), [z]
         full = cfg.thickness * cfg.width * length / spacing ** 3
         return SlabGrid(coords, faces, [cfg.width], full, turn, cut_axes)
