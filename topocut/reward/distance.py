@@ -159,9 +159,10 @@ def _score_sets(fragment_sets, goal_fragments, cfg: RewardConfig | None = None, 
                 ugoals.append((k, g))
             row.append(keys[k])
         gidx.append(row)
-    ugoals = [(k, _cached(("body", k, *skey, cfg.stray_share), lambda g=g: _body(g, spacing, cfg)))
-              for k, g in ugoals]  # ideal goal pieces have no strays: the same points, kept symmetric with fragments
-    gsizes = np.array([_cached(("size", k, *skey), lambda g=g: size_descriptor(g, spacing))  # U,5+Q
+    # goal pieces by their bodies as the fragments (ideal pieces have no strays: the same points)
+    ugoals = [(k, _cached(("body", k, *skey, cfg.stray_share), lambda g=g: body(
+        g, particle_spacing(g) if spacing is None else float(spacing), cfg.stray_share))) for k, g in ugoals]
+    gsizes = np.array([_cached(("size", k, *skey, cfg.stray_share), lambda g=g: size_descriptor(g, spacing))  # U,5+Q
                        for k, g in ugoals])
     gres = [_cached(("resample", k, ckey), lambda g=g: resample(g, cfg)) for k, g in ugoals]
     set_goals = gidx if per_set else gidx * len(raw)  # each set's goal indices into ugoals
@@ -200,26 +201,19 @@ def _score_sets(fragment_sets, goal_fragments, cfg: RewardConfig | None = None, 
     return Ds, vols, gvols
 
 
-def _body(points: np.ndarray, spacing: float | None, cfg: RewardConfig) -> np.ndarray:
-    """The piece's body (topocut.reward.strays): its strays left out, at most cfg.stray_share of it."""
-    if not cfg.stray_share > 0 or len(points) < 4:
-        return points
-    return body(points, particle_spacing(points) if spacing is None else float(spacing), cfg.stray_share)
-
-
 def _fragment_size(points: np.ndarray, goal_sizes: np.ndarray, cfg: RewardConfig,
                    spacing: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(size_descriptor, the points described) of a fragment (N,3) against its set's goal pieces (G,5+Q).  Its
     thickness profile is left NaN, and its strays in, when its extent and fill terms alone already put R at 0 for
     every goal piece (the profile term only adds; a few strays cannot bring an uncut stock near a goal piece);
-    otherwise it is described by its body (``_body``).  spacing: the known particle spacing (None: estimated)."""
+    otherwise it is described by its body (topocut.reward.strays.body).  spacing: the known particle spacing (None: estimated)."""
     s = particle_spacing(points) if spacing is None else float(spacing)
     base = size_descriptor(points, s, profile=False)
     if len(goal_sizes):
         bound = size_distance(base, goal_sizes, cfg.size_weight, cfg.fill_weight, 0.0, cfg.size_tolerance)  # G,
         if not (piecewise_reward(np.atleast_1d(bound), cfg) > 0).any():
             return base, points
-    kept = body(points, s, cfg.stray_share) if cfg.stray_share > 0 and s > 0 else points
+    kept = body(points, s, cfg.stray_share)  # the points themselves where stray_share is 0
     return size_descriptor(kept, s), kept
 
 
