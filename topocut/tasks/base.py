@@ -190,11 +190,12 @@ class KnifeTask(ABC):
         axes = object_axes(p64, pose.yaw)
         pad = -object_sdf(object, p64, pose, board_z)  # each particle's depth below the surface
         steps, cells = self.pieces(cfg, p64, axes, pad, spacing, board_z)
-        # what the plan's steps make (a cut that separates nothing is left out)
+        # what the plan's steps make (a cut that separates nothing, or only trims a sliver, is left out)
         sim_cfg = ideal.sim_config_for(spacing, board_z)
         if cfg.push:  # parallel cuts in the order whose pushes slide aside only what no later cut crosses
             steps = ideal.push_safe(p64, steps, sim_cfg)
-        steps, run = ideal.effective_steps(p64, steps, sim_cfg)
+        full_cell = int(np.bincount(cells)[1:].max()) if cells.max() > 0 else 0  # a full goal cell's particles
+        steps, run = ideal.effective_steps(p64, steps, sim_cfg, min_cut_off=int(ideal.MIN_CUT_SHARE * full_cell))
         goal_ids, offcut_ids, _ = ideal.roles(run.piece, cells)
         if not goal_ids:
             from topocut.config import ConfigError  # a ValueError: the user's to fix (exit 2 from a stage)

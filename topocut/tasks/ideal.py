@@ -24,6 +24,11 @@ import numpy as np
 
 ANCHOR_POINTS = 256  # particles per cut the oracle tracks (those nearest the plane on the piece it splits)
 MIN_GOAL_SHARE = 0.2  # a piece of a goal cell with less of the cell than this is an offcut (a corner sliver)
+# a cut all of whose cut-off parts hold less than this share of a full goal cell only trims a sliver about one
+# particle layer thick (a die is 7.7 layers at 128^3 with 3 cm, 6.4 at 64^3 with 5 cm): a cook would not make it,
+# the simulator smears it and discovery takes one under topology.min_piece_particles for a chip of its neighbour
+# (dice / steak at 128^3: chops trimming 17-36 particles off 500-particle sticks, R 0; docs/tasks.md)
+MIN_CUT_SHARE = 0.15
 
 
 @dataclass
@@ -48,6 +53,7 @@ class IdealRun:
     anchors: list = field(default_factory=list)  # one Anchor per Cut
     pieces_after_cut: list = field(default_factory=list)  # the number of pieces after each Cut
     splits: list = field(default_factory=list)  # per Cut: whether it separated anything
+    cut_off: list = field(default_factory=list)  # per Cut: the largest part it cut off a piece (0: none), particles
 
 
 def sim_config_for(spacing: float, board_z: float):
@@ -76,24 +82,38 @@ def execute(points: np.ndarray, steps, sim_cfg) -> IdealRun:
         after = P.split(x, piece, sweep, sim_cfg.spacing, pairs)
         run.anchors.append(_anchor(x0, x, piece, after, step.action))
         run.splits.append(int(after.max()) > int(piece.max()))
+        run.cut_off.append(_largest_cut_off(piece, after))
         piece = after
         run.pieces_after_cut.append(int(piece.max()) + 1)
     run.x, run.piece = x, piece
     return run
 
 
-def effective_steps(points: np.ndarray, steps, sim_cfg) -> tuple[list, IdealRun]:
+def _largest_cut_off(before: np.ndarray, after: np.ndarray) -> int:
+    """The largest part a cut took off a piece: of each piece it split, every part but the largest (particles)."""
+    pairs, n = np.unique(np.stack([before, after]), axis=1, return_counts=True)  # (parent, part) and its size
+    best = 0
+    for p in np.unique(pairs[0]):
+        parts = np.sort(n[pairs[0] == p])
+        if len(parts) > 1:
+            best = max(best, int(parts[-2]))
+    return best
+
+
+def effective_steps(points: np.ndarray, steps, sim_cfg, min_cut_off: int = 0) -> tuple[list, IdealRun]:
     """``steps`` without the cuts that separate nothing on the ideal material (a band edge planned past the
-    material's end: a cook would not make it, and in the simulator it only presses on a piece), and the
-    ideal run of what is left."""
+    material's end: a cook would not make it, and in the simulator it only presses on a piece) and without those
+    that only trim a sliver (every part they cut off holds fewer than ``min_cut_off`` particles), and the ideal
+    run of what is left.  Leaving a trim out leaves its sliver on its neighbour, which the goal then holds."""
     run = execute(points, steps, sim_cfg)
-    if all(run.splits):
+    useful = [s and c >= min_cut_off for s, c in zip(run.splits, run.cut_off)]
+    if all(useful):
         return list(steps), run
     out, k = [], 0
     for step in steps:
         if getattr(step, "kind", "cut") != "turn":
             k += 1
-            if not run.splits[k - 1]:
+            if not useful[k - 1]:
                 continue
         out.append(step)
     while out and getattr(out[-1], "kind", "cut") == "turn":
