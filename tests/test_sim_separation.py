@@ -159,3 +159,32 @@ def test_goal_steps_executed_give_the_goal_pieces(object, task):
         if object == "cube":  # the cube's slabs and sticks stand apart; the cake's slices may lean on each other
             assert comp[np.argmax(count)] not in taken, (object, task, i)  # every goal piece its own component
             taken.add(comp[np.argmax(count)])
+
+
+def test_pieces_on_opposite_sides_of_the_blade_never_share_a_velocity_field():
+    """Four 3 cm blocks by a blade (the plane x = 0.5, 60 cm long along y): two pairs facing each other across it,
+    the pairs 20 cm apart along the blade (beyond any shared grid node at 128^3).  Greedy colouring by shared
+    nodes alone puts a +x block and a -x block of different pairs in one field, whose side of the blade is then
+    mixed (0).  With the sweep, the blocks' sides (read here from their own x) get disjoint fields and every
+    field by the blade has one side."""
+    from topocut.sim import pieces as P
+    from topocut.sim.action import KnifeSweep
+
+    s = 0.5 / 128
+    g = np.arange(0.0, 0.03, s)
+    block = np.stack(np.meshgrid(g, g, g + 0.05, indexing="ij"), -1).reshape(-1, 3)  # 3 cm cube, z from 5 cm
+    corners = [(0.5 + 0.002, 0.40), (0.5 - 0.032, 0.40), (0.5 - 0.032, 0.60), (0.5 + 0.002, 0.60)]
+    x = np.concatenate([block + [cx, cy, 0.0] for cx, cy in corners])
+    piece = np.repeat(np.arange(4), len(block)).astype(np.int32)
+    side = np.sign(x[:, 0] - 0.5)  # +1 / -1: which side of the plane each particle is on
+    sweep = KnifeSweep(origin=(0.5, 0.5, 0.05), u=(0.0, 1.0, 0.0), w=(0.0, 0.0, -1.0), n=(1.0, 0.0, 0.0),
+                       half_length=0.302, depth=0.0, half_thickness=0.006)
+    reach = 0.006 + 2 * (1 / 128)
+    old, _ = P.colour(x, piece, 128, 8)
+    assert 0 in P.field_sides(x, old, 8, sweep, reach)[np.unique(old)]  # the shared field was mixed
+    field, conflicts = P.colour(x, piece, 128, 8, sweep, reach)
+    assert conflicts == 0
+    for f in np.unique(field):
+        assert len(np.unique(side[field == f])) == 1  # one side of the blade per field
+    sides = P.field_sides(x, field, 8, sweep, reach)
+    assert all(sides[f] == side[field == f][0] for f in np.unique(field))

@@ -196,7 +196,7 @@ class CuttingEnv(Scenes, Primitives):
         def one(b):  # numpy / scipy release the GIL in the large array work: scenes run in threads
             before, sw = self.piece[b, :counts[b]], sweeps[b]
             after = split[b, :counts[b]] if on_device else P.split(x[b], before, sw, cfg.spacing, bonds[b])
-            field, conflicts = P.colour(x[b], after, cfg.n_grid, cfg.fields)
+            field, conflicts = P.colour(x[b], after, cfg.n_grid, cfg.fields, sw, reach)
             return after, field, conflicts, P.cut_off_side(x[b], before, after, sw), \
                 P.field_sides(x[b], field, cfg.fields, sw, reach)
 
