@@ -17,7 +17,7 @@ R_Y90 = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])  # about 
 @pytest.fixture(scope="module")
 def cut_cube():
     init_taichi("cpu", cpu_threads=1)
-    cfg = SimConfig(n_grid=32, settle_time=0.0)
+    cfg = SimConfig(n_grid=32, settle_time=0.0, turn_settle_time=0.0)
     env = CuttingEnv(cfg, batch_size=1)
     env.reset("cube", ObjectPose(x=0.45, y=0.5, yaw=0.0, scale=1.0))
     env.cut(KnifeAction(x=0.49, y=0.5))
@@ -36,7 +36,7 @@ def test_turn_is_the_rigid_motion_and_keeps_the_rest(cut_cube):
     target = (0.75, 0.5, 0.2)
     turn = Turn("slab", (0.0, 1.0, 0.0), np.pi / 2, tuple(c + [0.01, 0.0, 0.0]), target)  # centre: nearest piece
     np.testing.assert_allclose(turn.rotation(), R_Y90, atol=1e-12)
-    mask = env.turn(turn)[0]  # settle_time 0: the state right after the move
+    mask = env.turn(turn)[0]  # turn_settle_time 0: the state right after the move
     np.testing.assert_array_equal(mask, slab)
     after = env.get_state(0)
     q = (x[slab] - c) @ R_Y90.T + target

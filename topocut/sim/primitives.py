@@ -43,7 +43,7 @@ class Primitives:
         ``center``.  The selected particles move as one rigid body about their *current* centroid:
         x <- R (x - c) + target, lowered or raised so their lowest particle rests half a cell above the board;
         v <- 0, F <- R F R^T, C <- R C R^T (a rotated elastic state).  The turned scenes then settle
-        sim.settle_time seconds.  Piece labels stay; velocity fields are coloured anew for the new neighbours;
+        sim.turn_settle_time seconds.  Piece labels stay; velocity fields are coloured anew for the new neighbours;
         the scene's sweeps are cleared (the knife has not cut since).  A turn the box cannot hold raises
         TurnRefused; with a list of turns that scene is left as it was and named in ``turn_refused`` instead,
         the others go on.  Returns the (B,N) mask of the particles turned."""
@@ -100,11 +100,11 @@ class Primitives:
         s.sort_by_cell(n, self.resort > 0)
         self.push_side[turned] = 0
         if not per_scene:
-            self.simulate(cfg.substeps(cfg.settle_time))
+            self.simulate(cfg.substeps(cfg.turn_settle_time))
         elif turned.any():
             self._set_frozen(np.where(turned, 2 ** 30, self.step_count))  # the others sit it out
             try:
-                self.simulate(cfg.substeps(cfg.settle_time))
+                self.simulate(cfg.substeps(cfg.turn_settle_time))
             finally:
                 self._set_frozen()
         return mask
