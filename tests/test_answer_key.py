@@ -226,7 +226,7 @@ def test_dice_plans_at_128_push_nothing_a_later_cut_crosses(obj, pose):
 def test_a_cut_that_only_trims_a_sliver_is_left_out():
     """A cut whose every cut-off part holds fewer than ``min_cut_off`` particles trims a sliver: effective_steps
     leaves it out (the sliver stays on its neighbour).  Counted here: the cube's +x end layer by the particles'
-    own x (the lattice's outermost layer), and the cut 1.5 spacings in takes exactly those off."""
+    own x (the lattice's outermost layer), and a cut 0.6 spacings in takes about those off."""
     from topocut.sim.action import KnifeAction
     from topocut.tasks.base import Cut
 
@@ -247,14 +247,15 @@ def test_a_cut_that_only_trims_a_sliver_is_left_out():
 def test_dice_plans_on_the_thin_steak_make_no_sliver():
     """The steak at scale 0.83 (dice / steak / 4 of the H200 check at 128^3): its plan trimmed 23-36 particles off
     500-particle sticks, which discovery took for chips of the dice (R 0).  Every planned piece now holds at least
-    MIN_CUT_SHARE of a goal piece, and the reference still earns full marks."""
-    pose = ObjectPose(0.511, 0.470, 0.005, 0.83)
+    a tenth of a goal piece, and the reference still earns full marks."""
+    pose = ObjectPose(0.5111988252476367, 0.470458955574731, 0.00501545540995861, 0.8305050858114927)
+    seed = 1426378071  # that episode's own particles
     spacing = 0.5 / 128
     goal = get_task("dice").make_goal(task_config("dice", size=0.03, max_cuts=5, push=True), "steak", pose, spacing,
-                                      board_z=0.05, seed=SEED)
-    least = min(len(f) for f in goal.fragments)
-    assert all(len(o) >= ideal.MIN_CUT_SHARE * least for o in goal.offcuts), [len(o) for o in goal.offcuts]
-    pts, _ = sample_object("steak", pose, spacing, seed=SEED, board_z=0.05)
+                                      board_z=0.05, seed=seed)
+    least = min(len(f) for f in goal.fragments)  # ~370 particles a die here; the slivers were 18-36, the rims ~130
+    assert all(len(o) >= 0.1 * least for o in goal.offcuts), [len(o) for o in goal.offcuts]
+    pts, _ = sample_object("steak", pose, spacing, seed=seed, board_z=0.05)
     run = ideal.execute(pts.astype(np.float64), goal.steps, ideal.sim_config_for(spacing, 0.05))
     frags = [run.x[run.piece == p] for p in np.unique(run.piece)]
     assert spectral_reward(frags, goal.fragments, RewardConfig(), offcuts=goal.offcuts).total >= 0.99
