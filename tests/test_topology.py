@@ -359,8 +359,8 @@ def test_a_cut_never_joins_pieces_even_where_the_walls_fail(monkeypatch, batched
     pieces that the CPU, from the same inputs, kept apart), the check on the result (``keep_earlier_splits``) still
     returns the two pieces with their ids; without the check as well they merge, so the check is what holds."""
     from topocut.topology import assign as A
-    from topocut.topology.batch import discover_batch
     from topocut.topology import sdf as S
+    from topocut.topology.batch import discover_batch
 
     x = box()
     prev = (x[:, 0] >= 0.503).astype(int)  # N, two earlier pieces, touching at x = 0.503
