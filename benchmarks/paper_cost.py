@@ -112,6 +112,8 @@ def demo_rates(parts: list[dict]) -> dict:
     all_h = [x["heuristic_time_s"] for p in parts for x in p["records"] if "heuristic_time_s" in x]
     t, h = {}, {}
     for task, rs in steady.items():
+        if not rs:  # no episode of this task finished: the caller bounds it
+            continue
         t[task] = sum(x["time_s"] for x in rs) / len(rs)
         hs = [x["heuristic_time_s"] for x in rs if "heuristic_time_s" in x] or all_h
         h[task] = sum(hs) / len(hs) if hs else 0.0
@@ -279,15 +281,18 @@ class Bench:
         else:  # stopped: from the launch to the first part's start
             start = min([s["started"] for s in statuses] + [x["started"] for p in parts for x in p["records"]],
                         default=r["launch"]) - r["launch"]
-        if not n_meas:  # none finished within --minutes: an episode takes longer than the parts ran (a lower bound)
-            rates["t"] = dict.fromkeys(tasks, r["wall"] - start)
+        # a task none of whose episodes finished within --minutes: its episode takes at least as long as the parts ran
+        # (a lower bound, as is the whole row then)
+        unfinished = [task for task in tasks if task not in rates["t"]]
+        for task in unfinished:
+            rates["t"][task] = r["wall"] - start
         costs_f, work = demo_costs(parts_f, rates["t"], rates["h"], every, rates["overhead"])
         span_f = list_schedule(costs_f, jobs_f, rates["extra"])
         rows = [make_row(
             "demonstrations", f"{n_meas} episode(s) ({a.episodes} a cell from episode {first}) in {jobs_m} process(es)",
             work / self.n_full, "s an episode in a process", self.n_full, "episodes", jobs_f,
             start + span_f - work / jobs_f, not r["stopped"] and n_meas > 0, **rates, start_up_s=start,
-            parts=len(parts_f), schedule_s=span_f, lower_bound=not n_meas)]
+            parts=len(parts_f), schedule_s=span_f, lower_bound=bool(unfinished), unfinished=unfinished)]
         if len(parts_f) > 1:  # stage=all merges the parts' shards into one dataset
             ok = merge_s is not None and n_meas > 0
             rows.append(make_row("merge", f"merge of {n_meas} episodes" if ok else "not measured (no merge ran)",

@@ -57,6 +57,12 @@ def test_demo_rates_by_hand():
     alone = pc.demo_rates([{"task": "slice", "pid": None, "started": 0.0, "seconds": None,
                             "records": [{"started": 0.0, "time_s": 7.0}]}])
     assert alone == {"t": {"slice": 7.0}, "h": {"slice": 0.0}, "overhead": 0.0, "extra": 0.0}
+    # a part stopped at --minutes before its first episode ended has no rate (paper_cost bounds it from below)
+    open_part = {"task": "dice", "pid": 2, "started": 0.0, "seconds": None, "records": []}
+    some = pc.demo_rates([dict(later), open_part])
+    assert some["t"] == {"dice": 12.0} and "slice" not in some["t"]
+    none = pc.demo_rates([{"task": "slice", "pid": 3, "started": 0.0, "seconds": None, "records": []}])
+    assert none["t"] == {}
 
 
 def test_unit_costs_sum_each_units_batch_time_over_the_seeds(tmp_path):
