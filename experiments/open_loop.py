@@ -1,6 +1,7 @@
 """Open-loop imitation error of trained policies on their held-out demonstration episodes (topocut.eval.open_loop).
 
     python experiments/open_loop.py --root outputs --policy pddp_noperc dp3 3dda [--max-episodes 40] [--out DIR]
+                                    [--tilt auto|free|zero]
 
 Each checkpoint (every committed version of checkpoint/<policy>, one per training seed, or --checkpoints DIR ...)
 acts on the states of the validation episodes it did not train on (its metrics.json split); its cut is compared
@@ -20,6 +21,7 @@ from topocut.data.episodes import EpisodeDataset
 from topocut.data.store import ArtifactStore, write_json_atomic
 from topocut.eval.open_loop import markdown, open_loop, summarize
 from topocut.policies import registry
+from topocut.policies.config import PLANE_TILTS, SamplerConfig
 
 
 def _checkpoints(store: ArtifactStore, name: str) -> list[Path]:
@@ -40,6 +42,8 @@ def main(argv=None) -> int:
     ap.add_argument("--max-episodes", type=int, default=0, help="the first N validation episodes a checkpoint (0: all)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--board-z", type=float, default=0.05)
+    ap.add_argument("--tilt", choices=PLANE_TILTS, default="auto",
+                    help="PDDP's plane fit (policy.sampler.tilt): auto | free | zero (docs/policy.md)")
     ap.add_argument("--out", default="open_loop", help="directory for open_loop.md / open_loop.json")
     args = ap.parse_args(argv)
     try:
@@ -63,7 +67,8 @@ def main(argv=None) -> int:
                 val = json.loads((ckpt / "metrics.json").read_text())["split"]["val"]
                 val = val[: args.max_episodes] if args.max_episodes else val
                 steps = [ds[i] for e in val for i in range(*ds.episode_range(e))]
-                policy = registry.load_learned(name, ckpt / "model.ckpt", device=args.device, board_z=args.board_z)
+                policy = registry.load_learned(name, ckpt / "model.ckpt", device=args.device, board_z=args.board_z,
+                                               sampler=SamplerConfig(tilt=args.tilt))
                 task = bar.add_task(f"{name} {ckpt.name}", total=len(steps))
                 t0 = time.perf_counter()
                 recs = open_loop(policy, steps, board_z=args.board_z, progress=lambda t=task: bar.advance(t))

@@ -19,6 +19,10 @@ ENCODERS = ("none", "pretrained", "graphconv")
 LOSSES = ("dse", "sq")
 PREDICTORS = ("analytic", "euler")
 PLANE_METHODS = ("svm", "lsq")
+PLANE_TILTS = ("auto", "free", "zero")
+# a training set's cuts are vertical when none tilts more than this (rad): MPPI with tilt frozen and the oracle's
+# slice, stick and dice planes have tilt exactly 0
+VERTICAL_TILT = 1e-6
 
 
 @dataclass
@@ -105,11 +109,15 @@ class SamplerConfig:
     denoise: bool = True  # final Tweedie step from sigma(eps) to 0
     eps: float = 1e-5  # smallest sampling time
     plane: str = "svm"  # svm | lsq (action reconstruction)
+    # the plane's tilt: "zero" fits vertical planes only, "free" any plane; "auto" vertical when every cut the policy
+    # was trained on was vertical (its checkpoint records the largest |tilt|), else free (docs/policy.md)
+    tilt: str = "auto"
     retries: int = 3  # resample when a mask has one class only
 
     def validate(self) -> SamplerConfig:
         check_choice("sampler.predictor", self.predictor, PREDICTORS)
         check_choice("sampler.plane", self.plane, PLANE_METHODS)
+        check_choice("sampler.tilt", self.tilt, PLANE_TILTS)
         if self.steps < 1:
             raise ValueError(f"sampler.steps={self.steps} must be >= 1")
         return self

@@ -160,19 +160,22 @@ class PDDPPolicy:
             masks = lead.module.sample_masks(batch, steps=cfg.steps, predictor=cfg.predictor, use_ema=lead.use_ema,
                                              generator=[policies[b].generator for b in pending],
                                              denoise=cfg.denoise, eps=cfg.eps).cpu().numpy()  # B,N
+            vertical = lead.module.vertical_planes(cfg.tilt)
             for row, (b, (_, idx)) in enumerate(zip(pending, built)):
-                results[b] = _mask_action(observations[b]["points"], idx, masks[row], cfg.plane, lead.board_z)
+                results[b] = _mask_action(observations[b]["points"], idx, masks[row], cfg.plane, lead.board_z,
+                                          vertical)
             pending = [b for b in pending if results[b][1] is None]
             if not pending:
                 break
         return results
 
 
-def _mask_action(points, idx, mask, plane: str, board_z: float) -> tuple:
+def _mask_action(points, idx, mask, plane: str, board_z: float, vertical: bool = False) -> tuple:
     """(mask over all points, action | None) from the mask sampled on the rows ``idx`` of ``points``: the action
-    from the plane fitted to the sampled points; the other points take the label of their nearest sampled one."""
+    from the plane fitted to the sampled points (``vertical``: among vertical planes); the other points take the
+    label of their nearest sampled one."""
     sub = points[idx]
-    action = action_from_mask(sub, mask, plane, board_z=board_z)
+    action = action_from_mask(sub, mask, plane, board_z=board_z, vertical=vertical)
     if len(points) <= len(idx):  # every point was seen (some twice)
         full = np.zeros(len(points), np.uint8)
         full[idx] = mask

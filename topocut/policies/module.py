@@ -111,10 +111,33 @@ class PDDPModule(L.LightningModule):
         self.noise = build_noise(cfg.noise, cfg.noise_eps, cfg.sigma_min, cfg.sigma_max)
         self.loss_fn = get_loss(train.loss)
         self.val_means = EpochMeans(VAL_KEYS)  # epoch means over all DDP ranks
+        # the largest |tilt| of the cuts it trained on (set_demo_tilt; saved in the checkpoint): whether its deployed
+        # planes are fitted vertical (SamplerConfig.tilt="auto").  None: not known (a checkpoint from before it)
+        self.demo_max_tilt: float | None = None
 
     @classmethod
     def from_config(cls, cfg: PDDPConfig | None, train: PolicyTrainConfig) -> PDDPModule:
         return cls(cfg, train.encoder, train.encoder_ckpt, train)
+
+    def set_demo_tilt(self, steps) -> None:
+        """Record the largest |tilt| of the training steps' actions (dataset step dicts)."""
+        from topocut.policies.inputs import step_action
+
+        self.demo_max_tilt = max((abs(float(step_action(s).tilt)) for s in steps), default=None)
+
+    def vertical_planes(self, tilt: str = "auto") -> bool:
+        """Whether the planes of its masks are fitted vertical under SamplerConfig.tilt ``tilt``."""
+        from topocut.policies.config import VERTICAL_TILT
+
+        if tilt == "auto":
+            return self.demo_max_tilt is not None and self.demo_max_tilt <= VERTICAL_TILT
+        return tilt == "zero"
+
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        checkpoint["demo_max_tilt"] = self.demo_max_tilt
+
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        self.demo_max_tilt = checkpoint.get("demo_max_tilt")
 
     # -- training -------------------------------------------------------------
     def _context(self, model, batch):

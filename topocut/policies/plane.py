@@ -16,6 +16,16 @@ is recovered by a linear classifier:
          sheet's own normal, so the axes are tried smallest first and the first
          whose plane classifies the points (nearly) as well as the best one wins.
 
+``vertical=True`` fits the planes through the vertical (tilt 0: the normal has
+no z component), a line in the board's xy plane: the action space of
+demonstrations whose cuts are all vertical (slice, stick and dice under the
+oracle and MPPI, whose tilt is frozen).  A mask leaves the plane free wherever
+the two classes touch along a short boundary (a laid slab cut across, one die
+cut from a stick): on the demonstrator's own masks of the stick and dice plans
+the free max-margin plane turns 4-9 degrees from the demonstrator's cut on the
+second and later cuts, the vertical one 1-4 (docs/policy.md, "The plane from
+the mask"; experiments/plane_recovery.py).
+
 A mask with one class only (or too few points of one) has no plane: the
 functions return None, meaning "no cut".
 """
@@ -34,13 +44,15 @@ def _normalise(points):
     return c, s
 
 
-def _svm_plane(points, mask, C: float):
+def _svm_plane(points, mask, C: float, vertical: bool = False):
     from sklearn.svm import LinearSVC
 
     c, s = _normalise(points)
+    dims = 2 if vertical else 3  # vertical: a line in xy, the normal's z 0
     clf = LinearSVC(C=C, dual=False, max_iter=5000, tol=1e-6)  # squared hinge, primal solver: converges on separable data
-    clf.fit((points - c) / s, mask)
-    w, b = clf.coef_[0], float(clf.intercept_[0])  # w . (x - c)/s + b = 0, w points to class 1
+    clf.fit(((points - c) / s)[:, :dims], mask)
+    w, b = np.zeros(3), float(clf.intercept_[0])  # w . (x - c)/s + b = 0, w points to class 1
+    w[:dims] = clf.coef_[0]
     nrm = np.linalg.norm(w)
     if nrm == 0:
         return None
@@ -49,9 +61,11 @@ def _svm_plane(points, mask, C: float):
     return n, point
 
 
-def _lsq_plane(points, mask, keep: float, k: int = 3):
+def _lsq_plane(points, mask, keep: float, k: int = 3, vertical: bool = False):
     from scipy.spatial import cKDTree
 
+    if vertical:  # the boundary of the points' footprint on the board: the plane through it is vertical
+        points = points * np.array([1.0, 1.0, 0.0])
     a, b = points[mask == 0], points[mask == 1]
     k = min(k, len(a), len(b))
     da, ia = cKDTree(b).query(a, k)  # each class-0 point's k nearest class-1 points
@@ -69,6 +83,8 @@ def _lsq_plane(points, mask, keep: float, k: int = 3):
     axes = np.linalg.svd((m - point) * np.sqrt(w)[:, None], full_matrices=True)[2][::-1]  # smallest variance first
     side = mask.astype(bool)
     scores = []
+    if vertical:  # the flattened points' own normal (z) splits nothing
+        axes = [n for n in axes if abs(n[2]) < 0.5]
     for n in axes:
         if n @ (b.mean(0) - a.mean(0)) < 0:  # orient towards class 1
             n = -n
@@ -78,8 +94,10 @@ def _lsq_plane(points, mask, keep: float, k: int = 3):
     return best, point
 
 
-def fit_plane(points, mask, method: str = "svm", min_points: int = 3, C: float = 100.0, keep: float = 0.1):
-    """Plane (normal (3,), point (3,)) with class 1 on the +normal side, or None for a one-class mask."""
+def fit_plane(points, mask, method: str = "svm", min_points: int = 3, C: float = 100.0, keep: float = 0.1,
+              vertical: bool = False):
+    """Plane (normal (3,), point (3,)) with class 1 on the +normal side, or None for a one-class mask;
+    ``vertical``: among the vertical planes only (normal[2] = 0)."""
     if method not in PLANE_METHODS:
         raise ValueError(f"plane method={method!r} is not valid; choose one of {', '.join(PLANE_METHODS)}")
     pts = np.asarray(points, dtype=np.float64)
@@ -89,7 +107,7 @@ def fit_plane(points, mask, method: str = "svm", min_points: int = 3, C: float =
     n1 = int(m.sum())
     if min(n1, len(m) - n1) < min_points:
         return None
-    return _svm_plane(pts, m, C) if method == "svm" else _lsq_plane(pts, m, keep)
+    return _svm_plane(pts, m, C, vertical) if method == "svm" else _lsq_plane(pts, m, keep, vertical=vertical)
 
 
 def action_from_mask(points, mask, method: str = "svm", board_z: float = 0.05, max_tilt_deg: float = 75.0,

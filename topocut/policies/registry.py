@@ -272,6 +272,7 @@ def training_setup(name: str, policy, steps, train_indices, seed: int, encoder_c
 
         train_cfg = dataclasses.replace(policy.train, encoder=spec.encoder, encoder_ckpt=encoder_ckpt, seed=seed)
         module = PDDPModule(policy.net, spec.encoder, encoder_ckpt, train_cfg)
+        module.set_demo_tilt([steps[i] for i in train_indices])  # vertical demonstrations: vertical planes
 
         def pddp_dataset(indices):
             return PolicyDataset(steps, train_cfg.num_points, train_cfg.num_goal_points, seed=seed, indices=indices,

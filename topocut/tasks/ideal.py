@@ -63,16 +63,14 @@ def sim_config_for(spacing: float, board_z: float):
     return SimConfig(n_grid=max(8, int(round(0.5 / spacing))), particle_spacing=float(spacing), board_z=float(board_z))
 
 
-def execute(points: np.ndarray, steps, sim_cfg) -> IdealRun:
-    """Run ``steps`` (Cut / Turn) on ``points`` (N,3) without physics (module docstring)."""
+def replay(x: np.ndarray, steps, sim_cfg):
+    """``steps`` (Cut / Turn) on the ideal material ``x`` (N,3 float64, moved in place by the turns): yields, for
+    each Cut, (the positions when it starts (N,3), the pieces before it (N,), the Cut, the pieces after it (N,))."""
     from topocut.sim import pieces as P
     from topocut.sim.primitives import nearest_piece, turned_positions
 
-    x0 = np.asarray(points, np.float64)
-    x = x0.copy()
     piece = np.zeros(len(x), np.int32)
     pairs = P.bonds(x, sim_cfg.spacing)  # rigid moves keep every bond within a piece: one search serves all steps
-    run = IdealRun(x, piece)
     for step in steps:
         if getattr(step, "kind", "cut") == "turn":
             sel = piece == nearest_piece(x, piece, step.center)
@@ -80,12 +78,22 @@ def execute(points: np.ndarray, steps, sim_cfg) -> IdealRun:
             continue
         sweep, _, _ = P.blade_sweep(step.action, x, sim_cfg)
         after = P.split(x, piece, sweep, sim_cfg.spacing, pairs)
+        yield x, piece, step, after
+        piece = after
+
+
+def execute(points: np.ndarray, steps, sim_cfg) -> IdealRun:
+    """Run ``steps`` (Cut / Turn) on ``points`` (N,3) without physics (module docstring)."""
+    x0 = np.asarray(points, np.float64)
+    x = x0.copy()
+    run = IdealRun(x, np.zeros(len(x), np.int32))
+    for _, piece, step, after in replay(x, steps, sim_cfg):
         run.anchors.append(_anchor(x0, x, piece, after, step.action))
         run.splits.append(int(after.max()) > int(piece.max()))
         run.cut_off.append(_largest_cut_off(piece, after))
-        piece = after
-        run.pieces_after_cut.append(int(piece.max()) + 1)
-    run.x, run.piece = x, piece
+        run.pieces_after_cut.append(int(after.max()) + 1)
+        run.piece = after
+    run.x = x
     return run
 
 
