@@ -57,3 +57,20 @@ def test_turned_piece_settles_on_the_board_and_a_turn_out_of_the_box_is_refused(
     assert x[:, 2].min() >= env.cfg.board_z - 0.5 * env.cfg.dx
     with pytest.raises(ValueError, match="simulation box"):
         env.turn(Turn("slab", (0.0, 1.0, 0.0), np.pi / 2, (0.75, 0.5, 0.1), (0.99, 0.5, 0.2)))
+
+
+def test_a_turn_settles_for_turn_settle_time_not_settle_time(cut_cube):
+    """The turned scene runs sim.turn_settle_time of substeps after the move (a laid slab comes to rest before it is
+    cut); the push's sim.settle_time does not enter."""
+    env = cut_cube
+    x = env.state().x[0].astype(np.float64)
+    slab = env.piece[0] == np.bincount(env.piece[0][x[:, 0] > 0.6]).argmax()
+    c = x[slab].mean(0)
+    old = env.cfg.turn_settle_time, env.cfg.settle_time
+    try:
+        env.cfg.turn_settle_time, env.cfg.settle_time = 0.004, 0.05
+        n0 = env.step_count
+        env.turn(Turn("slab", (0.0, 0.0, 1.0), 0.0, tuple(c), tuple(c)))  # lay it down where it is
+        assert env.step_count - n0 == env.cfg.substeps(0.004) > 0
+    finally:
+        env.cfg.turn_settle_time, env.cfg.settle_time = old
