@@ -121,7 +121,14 @@ def _fit(fig, ax, limits, margin: float = 0.96) -> None:
 
     lo, hi = (np.asarray(v, np.float64) for v in limits)
     corners = np.array([[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1]) for c in (lo[2], hi[2])])  # 8,3
-    fig.canvas.draw()  # sets the projection
+    # a draw sets the projection; the artists do not enter it (the limits are fixed), so they are hidden for it:
+    # drawing tens of thousands of particles twice was half of a frame's time
+    shown = [a for a in (*ax.collections, *ax.lines, *ax.patches) if a.get_visible()]
+    for a in shown:
+        a.set_visible(False)
+    fig.canvas.draw()
+    for a in shown:
+        a.set_visible(True)
     px = ax.transData.transform(np.stack(proj3d.proj_transform(*corners.T, ax.get_proj())[:2], 1))  # 8,2
     box = ax.bbox
     centre = np.array([(box.x0 + box.x1) / 2, (box.y0 + box.y1) / 2])
