@@ -90,9 +90,18 @@ def sim_config(args, batch: int):
 
 
 def bench_demo(args) -> dict:
-    """The demonstration cut with each discovery mode of --discovery (both: per scene first, the reference)."""
+    """The demonstration cut with each discovery mode of --discovery (both: per scene first, the reference); with
+    --push and --push-last both, the rollouts' push after their last cut on (the reference) and off."""
     modes = {"both": (False, True), "batched": (True,), "per-scene": (False,)}[args.discovery]
-    out = {("batched" if m else "per-scene"): demo_cuts(args, m) for m in modes}
+    if args.push and args.push_last == "both":
+        m = modes[-1]
+        out = {last: demo_cuts(args, m, push_last=last) for last in (True, False)}
+        a, b = out[True], out[False]
+        print(f"rollouts without the push after their last cut against with it, same process: wall {a['wall']:.3f} "
+              f"-> {b['wall']:.3f} s a cut ({a['wall'] / b['wall']:.2f}x), simulation {a['sim']:.3f} -> "
+              f"{b['sim']:.3f} s ({a['sim'] / max(b['sim'], 1e-9):.2f}x)")
+        return out
+    out = {("batched" if m else "per-scene"): demo_cuts(args, m, push_last=args.push_last == "true") for m in modes}
     if len(out) == 2:
         a, b = out["per-scene"], out["batched"]
         print(f"batched discovery against per scene, same process: wall {a['wall']:.3f} -> {b['wall']:.3f} s a cut "
@@ -101,7 +110,7 @@ def bench_demo(args) -> dict:
     return out
 
 
-def demo_cuts(args, batch_scenes: bool) -> dict:
+def demo_cuts(args, batch_scenes: bool, push_last: bool = False) -> dict:
     from topocut.planning import MPPIConfig, MPPIPolicy, run_episode, sim_rollout_factory
     from topocut.reward.config import RewardConfig
     from topocut.sim.env import CuttingEnv
@@ -111,13 +120,14 @@ def demo_cuts(args, batch_scenes: bool) -> dict:
 
     env = CuttingEnv(sim_config(args, args.K), batch_size=args.K)
     instrument(env)
-    task = task_config(args.task, max_cuts=args.cuts, push=False).validate()  # no push: as docs/benchmarks.md timed
+    # no push unless --push: as docs/benchmarks.md timed; --push: the task's own (stick and dice push)
+    task = task_config(args.task, max_cuts=args.cuts, **({} if args.push else {"push": False})).validate()
     rcfg = RewardConfig(backend=args.reward_backend, device=args.device if args.reward_backend == "torch" else "cpu")
     topo = TopologyConfig(resolution=args.topo_resolution, batch_scenes=batch_scenes)
     pose = ObjectPose()
     goal = get_task(task.name).make_goal(task, args.object, pose, env.cfg.spacing, board_z=env.cfg.board_z)
     planner = MPPIConfig(num_samples=args.K, iterations=args.iters, horizon=1)
-    factory = sim_rollout_factory(env, rcfg, topo, board_z=env.cfg.board_z, push=task.push)
+    factory = sim_rollout_factory(env, rcfg, topo, board_z=env.cfg.board_z, push=task.push, push_last=push_last)
     rows = []
     for rep in range(2):  # the first episode compiles kernels and fills caches: the second is measured
         env.reset(args.object, pose, seed=0)
@@ -147,7 +157,8 @@ def demo_cuts(args, batch_scenes: bool) -> dict:
             prev_t, prev = t, snap
     print(f"demonstration cut ({args.device}, {args.n_grid}^3, {args.object}/{args.task}, K={args.K}, "
           f"{args.iters} iterations, reward {args.reward_backend}, discovery {args.topo_resolution}^3, "
-          f"{'batched over scenes' if batch_scenes else 'scene by scene'}):")
+          f"{'batched over scenes' if batch_scenes else 'scene by scene'}, "
+          f"{'push' + (', rollouts push after their last cut' if push_last else '') if task.push else 'no push'}):")
     print(f"{'cut':>4} {'wall s':>8} {'sim s':>8} {'(split)':>8} {'disc s':>8} {'reward s':>8} {'rest s':>8} "
           f"{'wall/sim':>9}")
     for i, r in enumerate(rows):
@@ -258,6 +269,9 @@ def main() -> None:
     p.add_argument("--topo-resolution", type=int, default=64)
     p.add_argument("--discovery", choices=("both", "batched", "per-scene"), default="both",
                    help="the rollouts' discovery: one call for all scenes of a cut, one per scene, or both")
+    p.add_argument("--push", action="store_true", help="demo: the task's own push (stick, dice) instead of none")
+    p.add_argument("--push-last", choices=("false", "true", "both"), default="false",
+                   help="demo with --push: planner.push_last; both: with it (the reference), then without")
     p.add_argument("--batch", type=int, default=16, help="evaluation scenes (episodes at once)")
     p.add_argument("--eval-episodes", type=int, default=32)
     p.add_argument("--ref-episodes", type=int, default=4, help="episodes of the one-at-a-time reference")

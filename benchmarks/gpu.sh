@@ -163,17 +163,19 @@ PY
     python3 benchmarks/split_device.py --device cuda --n-grid ${GRID:-128} --batch ${BATCH:-16} 2>&1 \
       | grep -v -i warn | tee -a "$OUT/split_bench.txt" ;;
   mppi-check)  # #47: MPPI at the demonstration settings (K=16, 2 iterations, horizon 1) beside the oracle, 64^3 with 5 cm
-    # pieces, EPC episodes a cell (default 2: 54 each); a reward the planner beats the answer key on is one it games
+    # pieces, EPC episodes a cell (default 2: 54 each); a reward the planner beats the answer key on is one it games.
+    # POLICIES (default oracle,mppi), NAME (the eval.name, default mppi64) and MPPI_ARGS (more overrides, e.g.
+    # planner.push_last=true) compare planner settings on the same episodes
     mps_start
     t0=$(date +%s)
     timeout ${LIMIT:-560} python3 -m topocut.run stage=eval scale=paper device=cuda reward=torch sim.n_grid=64 \
-      planner.iterations=2 planner.horizon=1 "eval.policies=[oracle,mppi]" eval.train_seeds=1 \
-      eval.jobs=${EVAL_JOBS:-12} eval.gifs=0 eval.videos=0 eval.episodes_per_cell=${EPC:-2} eval.name=mppi64 logger=none \
-      progress=false outputs_root=/tmp/o \
+      planner.iterations=2 planner.horizon=1 "eval.policies=[${POLICIES:-oracle,mppi}]" eval.train_seeds=1 \
+      eval.jobs=${EVAL_JOBS:-12} eval.gifs=0 eval.videos=0 eval.episodes_per_cell=${EPC:-2} eval.name=${NAME:-mppi64} \
+      logger=none progress=false outputs_root=/tmp/o ${MPPI_ARGS:-} \
       "eval.task_overrides={slice:{thickness:0.05},stick:{thickness:0.05,width:0.05},dice:{size:0.05}}" \
       2>&1 | grep -v -i warn | grep -v ticache | tail -40 | tee -a "$OUT/mppi_check.txt"
     echo "== wall $(( $(date +%s) - t0 )) s" | tee -a "$OUT/mppi_check.txt"
-    d=$(ls -d /tmp/o/eval/mppi64/v* | tail -1) && tar -czf "$OUT/mppi64.tgz" -C "$d" episodes
+    d=$(ls -d /tmp/o/eval/${NAME:-mppi64}/v* | tail -1) && tar -czf "$OUT/${NAME:-mppi64}.tgz" -C "$d" episodes
     mps_stop ;;
   paper-cost)  # #49: benchmarks/paper_cost.py under MPS, scratch outputs in /tmp/pc (kept while the machine is warm:
     # run STAGES over back-to-back calls), its table and JSON to $OUT; PC_ARGS more options (e.g. --episodes 1)

@@ -116,7 +116,8 @@ def run_knife(ctx: RunContext, sim, object, task, topology, reward, planner, dat
     ew = EpisodeWriter(zpath, points_per_step=data.points_per_step, board_z=sim.board_z)
     done = ew.committed_keys()
     env = cached_env(sim, max(1, sim.batch_size))  # a worker's later parts reuse its simulator
-    factory = sim_rollout_factory(env, reward, topology, board_z=sim.board_z, push=task.push)
+    factory = sim_rollout_factory(env, reward, topology, board_z=sim.board_z, push=task.push,
+                                  push_last=planner.push_last)
     log_path = writer.path / "episodes.jsonl"
     read_records(log_path, repair=True)  # a run killed while logging left a torn last line: drop it
     one = functools.partial(_demo_episode, env=env, expert=MPPIPolicy(planner, factory, seed=ctx.seed), ew=ew,

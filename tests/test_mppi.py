@@ -1,4 +1,6 @@
 """MPPI core against synthetic costs with known minima; heuristic and MPPI policies; the sim rollout."""
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -175,6 +177,26 @@ def test_sim_rollout_factory_pushes_per_goal_task(monkeypatch):
     assert seen[-1] is True
 
 
+def test_planner_push_last_reaches_the_rollouts_of_demonstrations_and_evaluation(monkeypatch):
+    """planner.push_last goes from the config to make_sim_rollout through both builders of MPPI's rollouts: the
+    demonstrations' stage (pipelines/mppi.py) and the evaluation's MPPI policy (topocut.policies.scripted)."""
+    import topocut.planning as planning
+    import topocut.planning.rollout as rollout
+    from topocut.planning import MPPIConfig
+    from topocut.policies import scripted
+
+    seen = []
+    monkeypatch.setattr(rollout, "make_sim_rollout", lambda *a, push_last, **k: seen.append(push_last))
+    obs = {"sim_state": None, "particle_labels": None}
+    for value in (True, False):
+        setup = scripted.ScriptedSetup(env=None, task_cfgs={"dice": type("T", (), {"push": True})()},
+                                       planner=MPPIConfig(push_last=value))
+        scripted.mppi(setup).rollout_factory(obs, type("G", (), {"task": "dice"})())
+    assert seen == [True, False]
+    src = (Path(planning.__file__).parents[2] / "pipelines" / "mppi.py").read_text()
+    assert "push_last=planner.push_last" in src  # the stage passes the planner's key (the stage itself: test_stages)
+
+
 # ---- the simulator rollout: needs topocut.sim, topocut.topology, topocut.reward, topocut.tasks -----------
 
 def _sim_modules():
@@ -230,6 +252,28 @@ def test_sim_rollout_batched_matches_sequential_and_restores_state():
     np.testing.assert_allclose(rollout2(seqs), costs2, rtol=2e-3, atol=1e-4)  # state restored before every chunk
     assert np.isfinite(costs1).all()
     assert costs1[0] < costs1[1]  # the goal's own plane beats a cut that misses the object (x = 0.95)
+
+
+def test_a_rollout_pushes_after_each_cut_but_the_horizons_last_unless_push_last(monkeypatch):
+    """A pushing task's rollout of horizon 2 pushes once (between its cuts) by default, twice with push_last, never
+    when the task does not push; the push after the last cut is the one planner.push_last names."""
+    CuttingEnv, SimConfig, ObjectPose, make_goal, task_config = _sim_modules()
+    from topocut.planning.rollout import make_sim_rollout
+
+    quick = dict(n_grid=32, arch="cpu", cut_substeps=40, dwell_time=0.0005, push_time=0.002, settle_time=0.002)
+    env = CuttingEnv(SimConfig(**quick), batch_size=2)
+    env.reset("cube", ObjectPose(), seed=0)
+    goal = make_goal(task_config("slice"), "cube", ObjectPose(), env.cfg.spacing)  # no turns between the cuts
+    state, pushes = env.get_state(0), []
+    push = env.push
+    monkeypatch.setattr(env, "push", lambda *a, **k: pushes.append(1) or push(*a, **k))
+    seqs = np.array([[[0.45, 0.5, 0.0, 0.0], [0.55, 0.5, 0.0, 0.0]]] * 2, np.float32)  # K=2 (one chunk), H=2
+    for kw, expected in (({"push": True}, 1), ({"push": True, "push_last": True}, 2),
+                         ({"push": False, "push_last": True}, 0)):
+        pushes.clear()
+        costs = make_sim_rollout(env, state, goal, board_z=env.cfg.board_z, **kw)(seqs)
+        assert len(pushes) == expected, kw
+        assert np.isfinite(costs).all()
 
 
 def test_rollout_discovers_topology_where_the_simulator_runs():

@@ -23,6 +23,10 @@ class MPPIConfig:
     shift_fill: str = "heuristic"  # horizon shift appends the heuristic's next plane, or repeats the last
     xy_bounds: list[float] = field(default_factory=lambda: [0.0, 1.0])  # board point clipped to this square
     tilt_max: float = 0.6  # |tilt| clipped (rad)
+    # a rollout of a pushing task pushes after every cut of its horizon but the last; true: after the last too.
+    # That push moves apart what the last cut made, which the reward then scores (docs/data.md, "The rollout's last
+    # push"); at 128^3 a push and its settling are two thirds of a cut's substeps
+    push_last: bool = False
 
     def validate(self) -> None:
         if self.num_samples < 1:

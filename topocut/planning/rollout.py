@@ -72,8 +72,11 @@ def execute_turns(env, turns: list, scorer: Scorer, labels: list, xs: list) -> i
 
 def make_sim_rollout(env, state_dict: dict, goal, reward_cfg=None, topo_cfg=None, board_z: float = 0.05,
                      labels=None, push: bool = False, scorer: Scorer | None = None, cuts_done: int = 0,
-                     saved=None):
+                     saved=None, push_last: bool = False):
     """A batched MPPI cost: sequences (K,H,4) -> -(spectral reward after executing them) (K,).
+
+    ``push``: the task pushes, so the rollout pushes after each cut of its horizon but the last (``push_last``:
+    after the last too; planner.push_last, docs/data.md "The rollout's last push").
 
     Every chunk of env.batch_size sequences starts from ``state_dict`` (one
     scene, env.get_state(0)); a chunk that diverges, or whose turn cannot be made, costs +inf (weight 0).
@@ -126,7 +129,7 @@ def make_sim_rollout(env, state_dict: dict, goal, reward_cfg=None, topo_cfg=None
                     found = discover_scenes(scorer, [st.x[b] for b in todo], [st.damage[b] for b in todo],
                                             [st.sweeps[b] for b in todo], [labs[b] for b in todo],
                                             [xs[b] for b in todo])
-                    if push:
+                    if push and (push_last or h + 1 < H):
                         env.push()
                         st = env.state()
                         found = discover_scenes(scorer, [st.x[b] for b in todo], [st.damage[b] for b in todo],
@@ -149,12 +152,13 @@ def make_sim_rollout(env, state_dict: dict, goal, reward_cfg=None, topo_cfg=None
 
 
 def sim_rollout_factory(env, reward_cfg=None, topo_cfg=None, board_z: float = 0.05,
-                        push: bool | Mapping[str, bool] = False):
+                        push: bool | Mapping[str, bool] = False, push_last: bool = False):
     """``factory(obs, goal) -> rollout`` for MPPIPolicy: plans from obs['sim_state'] / obs['particle_labels']
     (and obs['cuts_done'], the episode's cuts so far: where the goal's turns fall in the horizon).
 
     ``push``: whether a rollout pushes after its cuts; a mapping {task: push} follows the goal's task, so
-    that the rollouts of an evaluation over several tasks do what the executed episode does.
+    that the rollouts of an evaluation over several tasks push where the executed episode does; ``push_last``:
+    also after the horizon's last cut (make_sim_rollout).
     """
 
     def factory(obs: dict, goal):
@@ -170,6 +174,6 @@ def sim_rollout_factory(env, reward_cfg=None, topo_cfg=None, board_z: float = 0.
             do_push = bool(push)
         return make_sim_rollout(env, obs["sim_state"], goal, reward_cfg, topo_cfg, board_z,
                                 labels=obs["particle_labels"], push=do_push, cuts_done=int(obs.get("cuts_done", 0)),
-                                saved=obs.get("sim_saved"))
+                                saved=obs.get("sim_saved"), push_last=push_last)
 
     return factory
