@@ -192,7 +192,9 @@ def test_planner_push_last_reaches_the_rollouts_of_demonstrations_and_evaluation
         setup = scripted.ScriptedSetup(env=None, task_cfgs={"dice": type("T", (), {"push": True})()},
                                        planner=MPPIConfig(push_last=value))
         scripted.mppi(setup).rollout_factory(obs, type("G", (), {"task": "dice"})())
-    assert seen == [True, False]
+    no_planner = scripted.ScriptedSetup(task_cfgs={"dice": type("T", (), {"push": True})()})  # the planner's defaults
+    scripted.mppi(no_planner).rollout_factory(obs, type("G", (), {"task": "dice"})())
+    assert seen == [True, False, MPPIConfig().push_last]
     src = (Path(planning.__file__).parents[2] / "pipelines" / "mppi.py").read_text()
     assert "push_last=planner.push_last" in src  # the stage passes the planner's key (the stage itself: test_stages)
 

@@ -42,9 +42,10 @@ def heuristic(setup: ScriptedSetup):
 
 def mppi(setup: ScriptedSetup):
     """MPPI over knife planes, its rollouts in the evaluation's own simulator (the demonstrator)."""
-    from topocut.planning import MPPIPolicy, sim_rollout_factory
+    from topocut.planning import MPPIConfig, MPPIPolicy, sim_rollout_factory
 
+    planner = setup.planner if setup.planner is not None else MPPIConfig()
     push = {task: bool(t.push) for task, t in setup.task_cfgs.items()}  # rollouts push where the episode does
     factory = sim_rollout_factory(setup.env, setup.reward, setup.topology, board_z=setup.board_z, push=push,
-                                  push_last=setup.planner.push_last)
-    return MPPIPolicy(setup.planner, factory, seed=setup.seed)
+                                  push_last=planner.push_last)
+    return MPPIPolicy(planner, factory, seed=setup.seed)
