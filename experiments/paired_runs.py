@@ -4,7 +4,7 @@
 
 A and B are evaluation artifacts (`outputs/eval/<name>/vNNN`) or the tarballs of their `episodes/` folder that
 `benchmarks/gpu.sh mppi-check` brings back (`<NAME>.tgz`).  Episodes are paired by spec (task, object, seed: the
-same file name under `episodes/<policy>/`).  Per task and over all: the mean final raw R of each run, the paired
+same scene; read by the evaluation's own loader).  Per task and over all: the mean final raw R of each run, the paired
 difference B - A with its 95% percentile-bootstrap interval (topocut.eval.stats, 10,000 resamples), the successes,
 and the mean time the policy took to act in an episode; then every episode whose R moved by more than --moved.
 docs/data.md "The rollout's last push" was made with it.
@@ -12,7 +12,6 @@ docs/data.md "The rollout's last push" was made with it.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import tarfile
 import tempfile
@@ -21,20 +20,22 @@ from pathlib import Path
 import numpy as np
 
 from topocut.eval.stats import bootstrap_mean, paired_difference
+from topocut.eval.summary import load_episodes
 
 
 def episodes(source: str, policy: str, scratch: Path) -> dict[str, dict]:
-    """{spec file stem: episode JSON} of ``policy`` in an artifact folder or an episodes tarball."""
+    """{spec name (task_object_seed): episode} of run ``policy`` in an artifact folder or an episodes tarball, read
+    by the evaluation's own loader (topocut.eval.summary.load_episodes)."""
     path = Path(source)
     if path.is_file():
         out = scratch / path.name.replace(".", "_")
         with tarfile.open(path) as tar:
             tar.extractall(out, filter="data")
         path = out
-    folder = next((p for p in (path / "episodes" / policy, path / policy) if p.is_dir()), None)
-    if folder is None:
-        raise ValueError(f"{source}: no episodes/{policy}/ folder (an eval artifact or its episodes tarball)")
-    return {f.stem: json.loads(f.read_text()) for f in sorted(folder.glob("*.json"))}
+    mine = [e for e in load_episodes(path) if e["run"] == policy]
+    if not mine:
+        raise ValueError(f"{source}: no episodes/{policy}/*.json (an eval artifact or its episodes tarball)")
+    return {f"{e['spec']['task']}_{e['spec']['object']}_{int(e['spec']['seed']):03d}": e for e in mine}
 
 
 def table(a: dict, b: dict, names: tuple[str, str]) -> list[str]:

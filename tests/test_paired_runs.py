@@ -44,4 +44,4 @@ def test_pairs_by_episode_and_differences_by_hand(tmp_path, capsys):
 
 def test_a_missing_run_is_one_message_and_exit_2(tmp_path, capsys):
     assert paired_runs.main([str(tmp_path / "none"), str(tmp_path / "none")]) == 2
-    assert "no episodes/mppi/ folder" in capsys.readouterr().err
+    assert "no episodes/mppi/*.json" in capsys.readouterr().err
