@@ -140,4 +140,6 @@ def _ensure_taichi() -> None:
     from taichi.lang import impl
 
     if impl.get_runtime().prog is None:  # never re-init: that would free the simulator's fields
-        ti.init(arch=ti.cpu, offline_cache=True)
+        from topocut.sim.mpm import offline_cache_size
+
+        ti.init(arch=ti.cpu, offline_cache=True, **offline_cache_size())

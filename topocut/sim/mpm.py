@@ -38,6 +38,20 @@ from topocut.sim.scatter import Scatter
 _STATE = {"arch": None}
 
 
+KERNEL_CACHE_BYTES = 1 << 30  # Taichi's default, 100 MiB, is less than this project's kernels
+
+
+def offline_cache_size() -> dict:
+    """ti.init's cap on the kernel cache on disk, unless TI_OFFLINE_CACHE_MAX_SIZE_OF_FILES sets one.  Taichi's 100 MiB
+    default holds fewer kernels than the grids, batch sizes and materials of one test suite compile (~100 MiB on the
+    CPU backend); past the cap each process exit deletes the least recently used quarter, and the next process to use
+    those kernels compiles them again (3-40 s each)."""
+    import os
+
+    return {} if os.environ.get("TI_OFFLINE_CACHE_MAX_SIZE_OF_FILES") else {
+        "offline_cache_max_size_of_files": KERNEL_CACHE_BYTES}
+
+
 def init_taichi(arch: str = "cpu", seed: int = 0, debug: bool = False, cpu_threads: "int | None" = None) -> str:
     """Initialise Taichi once per process (idempotent); returns the arch in use.
 
@@ -56,7 +70,8 @@ def init_taichi(arch: str = "cpu", seed: int = 0, debug: bool = False, cpu_threa
             raise RuntimeError(f"Taichi already runs on {running}; cannot switch to {arch} in this process")
         _STATE["arch"] = running
         return running
-    kw = dict(default_fp=ti.f32, random_seed=seed, debug=debug, offline_cache=True, log_level=ti.WARN)
+    kw = dict(default_fp=ti.f32, random_seed=seed, debug=debug, offline_cache=True, log_level=ti.WARN,
+              **offline_cache_size())
     if cpu_threads:
         kw["cpu_max_num_threads"] = int(cpu_threads)
     ti.init(arch=ti.cuda if arch == "cuda" else ti.cpu, **kw)
