@@ -101,7 +101,17 @@ def bench_demo(args) -> dict:
               f"-> {b['wall']:.3f} s a cut ({a['wall'] / b['wall']:.2f}x), simulation {a['sim']:.3f} -> "
               f"{b['sim']:.3f} s ({a['sim'] / max(b['sim'], 1e-9):.2f}x)")
         return out
-    out = {("batched" if m else "per-scene"): demo_cuts(args, m, push_last=args.push_last == "true") for m in modes}
+    if args.size_solver == "both":
+        m = modes[-1]
+        out = {solver: demo_cuts(args, m, push_last=args.push_last == "true", size_solver=solver)
+               for solver in ("host", "device")}
+        a, b = out["host"], out["device"]
+        print(f"fragment sizes on the device against the host, same process: wall {a['wall']:.3f} -> {b['wall']:.3f} "
+              f"s a cut ({a['wall'] / b['wall']:.2f}x), reward {a['reward']:.3f} -> {b['reward']:.3f} s "
+              f"({a['reward'] / max(b['reward'], 1e-9):.2f}x)")
+        return out
+    out = {("batched" if m else "per-scene"): demo_cuts(args, m, push_last=args.push_last == "true",
+                                                        size_solver=args.size_solver) for m in modes}
     if len(out) == 2:
         a, b = out["per-scene"], out["batched"]
         print(f"batched discovery against per scene, same process: wall {a['wall']:.3f} -> {b['wall']:.3f} s a cut "
@@ -110,7 +120,7 @@ def bench_demo(args) -> dict:
     return out
 
 
-def demo_cuts(args, batch_scenes: bool, push_last: bool = False) -> dict:
+def demo_cuts(args, batch_scenes: bool, push_last: bool = False, size_solver: str = "auto") -> dict:
     from topocut.planning import MPPIConfig, MPPIPolicy, run_episode, sim_rollout_factory
     from topocut.reward.config import RewardConfig
     from topocut.sim.env import CuttingEnv
@@ -122,7 +132,8 @@ def demo_cuts(args, batch_scenes: bool, push_last: bool = False) -> dict:
     instrument(env)
     # no push unless --push: as docs/benchmarks.md timed; --push: the task's own (stick and dice push)
     task = task_config(args.task, max_cuts=args.cuts, **({} if args.push else {"push": False})).validate()
-    rcfg = RewardConfig(backend=args.reward_backend, device=args.device if args.reward_backend == "torch" else "cpu")
+    rcfg = RewardConfig(backend=args.reward_backend, device=args.device if args.reward_backend == "torch" else "cpu",
+                        size_solver=size_solver)
     topo = TopologyConfig(resolution=args.topo_resolution, batch_scenes=batch_scenes)
     pose = ObjectPose()
     goal = get_task(task.name).make_goal(task, args.object, pose, env.cfg.spacing, board_z=env.cfg.board_z)
@@ -141,8 +152,10 @@ def demo_cuts(args, batch_scenes: bool, push_last: bool = False) -> dict:
         t0 = time.perf_counter()
         if prof is not None:
             prof.enable()
-        run_episode(env, goal, MPPIPolicy(planner, factory, seed=0), rcfg, topo, task.max_cuts, task.push,
-                    progress=progress, seed=0, success_fn=lambda r: False)
+        _, summary = run_episode(env, goal, MPPIPolicy(planner, factory, seed=0), rcfg, topo, task.max_cuts,
+                                 task.push, progress=progress, seed=0, success_fn=lambda r: False)
+        if summary.get("error"):  # a failed episode times nothing: say why
+            print(f"the episode ended {summary['status']}: {summary['error']}")
         if prof is not None:
             prof.disable()
             prof.dump_stats(args.profile)
@@ -156,7 +169,8 @@ def demo_cuts(args, batch_scenes: bool, push_last: bool = False) -> dict:
             rows.append({"wall": t - prev_t, **d})
             prev_t, prev = t, snap
     print(f"demonstration cut ({args.device}, {args.n_grid}^3, {args.object}/{args.task}, K={args.K}, "
-          f"{args.iters} iterations, reward {args.reward_backend}, discovery {args.topo_resolution}^3, "
+          f"{args.iters} iterations, reward {args.reward_backend} (sizes: {size_solver}), discovery "
+          f"{args.topo_resolution}^3, "
           f"{'batched over scenes' if batch_scenes else 'scene by scene'}, "
           f"{'push' + (', rollouts push after their last cut' if push_last else '') if task.push else 'no push'}):")
     print(f"{'cut':>4} {'wall s':>8} {'sim s':>8} {'(split)':>8} {'disc s':>8} {'reward s':>8} {'rest s':>8} "
@@ -170,7 +184,8 @@ def demo_cuts(args, batch_scenes: bool, push_last: bool = False) -> dict:
     disc = float(np.mean([r["discovery"] for r in rows]))
     print(f"mean: {wall:.3f} s per cut, of which simulation {sim:.3f} s: wall/sim = {wall / sim:.2f}; "
           f"1,000 episodes x 5 cuts projected: {1000 * 5 * wall / 60:.1f} min")
-    return {"wall": wall, "sim": sim, "discovery": disc}
+    reward = float(np.mean([r["reward"] for r in rows]))
+    return {"wall": wall, "sim": sim, "discovery": disc, "reward": reward}
 
 
 def bench_eval(args) -> dict:
@@ -272,6 +287,8 @@ def main() -> None:
     p.add_argument("--push", action="store_true", help="demo: the task's own push (stick, dice) instead of none")
     p.add_argument("--push-last", choices=("false", "true", "both"), default="false",
                    help="demo with --push: planner.push_last; both: with it (the reference), then without")
+    p.add_argument("--size-solver", choices=("auto", "host", "device", "both"), default="auto",
+                   help="demo: reward.size_solver; both: the host (the reference), then the device")
     p.add_argument("--batch", type=int, default=16, help="evaluation scenes (episodes at once)")
     p.add_argument("--eval-episodes", type=int, default=32)
     p.add_argument("--ref-episodes", type=int, default=4, help="episodes of the one-at-a-time reference")

@@ -142,17 +142,18 @@ PY
     # discovered piece with the simulator's own piece; EVAL_ARGS: more overrides (e.g. topology.min_piece_particles=8)
     mps_start
     for grid in ${GRIDS:-128 64}; do
-      extra=""; [ "$grid" = 64 ] && extra="eval.task_overrides={slice:{thickness:0.05},stick:{thickness:0.05,width:0.05},dice:{size:0.05}} eval.name=oracle64"
-      [ "$grid" = 128 ] && extra="eval.name=oracle128"
+      name=${NAME:-oracle}$grid  # NAME: another run's name, beside the default one (e.g. a setting compared)
+      extra="eval.name=$name"
+      [ "$grid" = 64 ] && extra="$extra eval.task_overrides={slice:{thickness:0.05},stick:{thickness:0.05,width:0.05},dice:{size:0.05}}"
       t0=$(date +%s)
       timeout ${LIMIT:-560} python3 -m topocut.run stage=eval scale=paper device=cuda reward=torch sim.n_grid=$grid \
         sim.batch_size=4 "eval.policies=[oracle]" eval.train_seeds=1 eval.jobs=${EVAL_JOBS:-12} eval.gifs=0 eval.videos=0 \
         eval.episodes_per_cell=${EPC:-5} logger=none progress=false outputs_root=/tmp/o $extra ${EVAL_ARGS:-} 2>&1 \
         | grep -v -i warn | tail -5 | tee -a "$OUT/oracle_check.txt"
       echo "== ${grid}^3: wall $(( $(date +%s) - t0 )) s" | tee -a "$OUT/oracle_check.txt"
-      d=$(ls -d /tmp/o/eval/oracle$grid/v* | tail -1)
+      d=$(ls -d /tmp/o/eval/$name/v* | tail -1)
       python3 experiments/oracle_audit.py --summary "$d" 2>&1 | tee -a "$OUT/oracle_check.txt"
-      tar -czf "$OUT/oracle$grid.tgz" -C "$d" episodes
+      tar -czf "$OUT/$name.tgz" -C "$d" episodes
     done
     mps_stop ;;
   audit)  # #47: experiments/oracle_audit.py on the GPU, AUDIT_ARGS (e.g. "--task dice --object potato --n-grid 128

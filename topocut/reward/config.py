@@ -67,6 +67,11 @@ class RewardConfig:
     # H100's host, 10 ms on this 2-core CPU; threads do not help, scipy holds the GIL); "auto": subspace on
     # CUDA, host on the CPU.  Figures: docs/benchmarks.md#spectral-reward
     eig_solver: str = "auto"
+    # torch backend: where the fragments' size descriptors (spacing, extents, body, thickness profile) are measured.
+    # "host": one fragment at a time in host threads (numpy and KD-trees; the reference); "device": every fragment
+    # at once where the reward runs (topocut.reward.size_batch: the same numbers up to rounding); "auto": device on
+    # CUDA, host on the CPU.  The scipy backend always measures on the host.  Figures: docs/benchmarks.md
+    size_solver: str = "auto"
 
     def on(self, device: str) -> RewardConfig:
         """This config with the torch backend on ``device`` (the run's resolved device: the reward runs where the
@@ -82,6 +87,8 @@ class RewardConfig:
             raise ValueError(f"reward.backend={self.backend!r}; valid: scipy, torch")
         if self.eig_solver not in ("auto", "host", "device", "subspace"):
             raise ValueError(f"reward.eig_solver={self.eig_solver!r}; valid: auto, host, device, subspace")
+        if self.size_solver not in ("auto", "host", "device"):
+            raise ValueError(f"reward.size_solver={self.size_solver!r}; valid: auto, host, device")
         for k in ("num_point", "knn", "num_eig", "num_quantiles", "min_points"):
             if getattr(self, k) < 1:
                 raise ValueError(f"reward.{k}={getattr(self, k)} must be >= 1")

@@ -169,7 +169,7 @@ def _score_sets(fragment_sets, goal_fragments, cfg: RewardConfig | None = None, 
     # every scene's pieces in one thread pool, each profiled only where its extents and fill leave R > 0, each
     # described by its body (its strays left out) where that matters
     todo = [(f, gsizes[row]) for fs, row in zip(raw, set_goals) for f in fs]
-    flat_sizes = iter(size_descriptors(todo, fn=lambda t: _fragment_size(t[0], t[1], cfg, spacing)))
+    flat_sizes = iter(_fragment_sizes(todo, cfg, spacing))
     sized = [[next(flat_sizes) for _ in fs] for fs in raw]
     sizes = [[sz for sz, _ in fs] for fs in sized]
     raw = [[b for _, b in fs] for fs in sized]
@@ -199,6 +199,17 @@ def _score_sets(fragment_sets, goal_fragments, cfg: RewardConfig | None = None, 
                         for u in row]
             D[i] = np.asarray(spec) + ds[i]
     return Ds, vols, gvols
+
+
+def _fragment_sizes(items: list, cfg: RewardConfig, spacing: float | None = None) -> list:
+    """``_fragment_size`` of each (fragment, its set's goal sizes) in ``items``, where ``reward.size_solver`` says: every
+    fragment at once on the reward's device (topocut.reward.size_batch) or one at a time in host threads."""
+    if cfg.backend == "torch" and (cfg.size_solver == "device" or (cfg.size_solver == "auto"
+                                                                   and not str(cfg.device).startswith("cpu"))):
+        from topocut.reward.size_batch import fragment_sizes
+
+        return fragment_sizes(items, cfg, spacing)
+    return size_descriptors(items, fn=lambda t: _fragment_size(t[0], t[1], cfg, spacing))
 
 
 def _fragment_size(points: np.ndarray, goal_sizes: np.ndarray, cfg: RewardConfig,

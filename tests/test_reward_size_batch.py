@@ -1,0 +1,113 @@
+"""Every fragment's size descriptor at once (topocut.reward.size_batch, reward.size_solver=device) against the host's,
+one fragment at a time (topocut.reward.distance._fragment_size): the same spacing, extents, volume, thickness profile
+and kept particles, on the torch CPU backend.  The cell-list neighbour search against brute force."""
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial import cKDTree
+
+from topocut.reward import RewardConfig, distances_and_volumes
+from topocut.reward.distance import _fragment_size
+from topocut.reward.size import size_descriptor
+from topocut.reward.size_batch import fragment_sizes, near
+
+H = 0.004  # lattice spacing
+
+
+def lattice(nx, ny, nz, seed, turn=True):
+    """The simulator's jittered lattice (+-0.25 spacing an axis), nx x ny x nz particles, turned and moved at random."""
+    rng = np.random.default_rng(seed)
+    g = np.stack(np.meshgrid(np.arange(nx), np.arange(ny), np.arange(nz), indexing="ij"), -1).reshape(-1, 3) * H
+    g = g + rng.uniform(-0.25, 0.25, g.shape) * H
+    if turn:
+        q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+        g = g @ q.T + rng.normal(size=3) * 0.05
+    return g
+
+
+def pieces():
+    """A slab, a stick, a die, a block past SPACING_QUERIES particles, a die with a dragged thread, a wedge, a piece
+    under HOST_BELOW particles, a lone thread, and the goals they are measured against (a slab's, a die's, none)."""
+    die_thread = np.concatenate([lattice(8, 8, 8, 4, turn=False),
+                                 np.array([[0.032 + H * i, 0.014, 0.014] for i in range(6)])])
+    wedge = lattice(25, 20, 6, 5)
+    tilt = wedge @ np.array([0.3, 0.2, 1.0])
+    # a lone thread: its principal box is flat, so its cells are narrower than its neighbour distances (brute force)
+    thread = np.array([[H * i, 0.0, 0.0] for i in range(24)]) + np.random.default_rng(9).uniform(-H / 8, H / 8, (24, 3))
+    slab_goal = np.array([size_descriptor(lattice(20, 20, 4, 10))])
+    die_goal = np.array([size_descriptor(lattice(7, 7, 7, 11))] * 2)
+    return [(lattice(20, 20, 4, 0), slab_goal), (lattice(30, 5, 5, 1), slab_goal), (lattice(7, 7, 7, 2), die_goal),
+            (lattice(30, 25, 20, 3), die_goal), (die_thread, die_goal), (wedge[tilt < np.median(tilt)], slab_goal),
+            (lattice(2, 2, 3, 6), die_goal), (lattice(20, 20, 4, 7), np.zeros((0, 13))),
+            (lattice(30, 25, 20, 8), slab_goal), (thread, die_goal)]
+
+
+@pytest.mark.parametrize("spacing", [None, H])
+@pytest.mark.parametrize("budget", [1 << 25, 1 << 16])
+def test_the_device_sizes_are_the_hosts_fragment_by_fragment(spacing, budget):
+    """Spacing, extents, volume and profile within 1e-12 of the host's; the profile left out (NaN) where the host
+    leaves it out (the block against the die's goal: past R's zero by its extents); the same particles kept (the
+    die's thread loses all but its first link on both).  A small budget splits every pass into many blocks."""
+    items = pieces()
+    cfg = RewardConfig(backend="torch", size_solver="device")
+    dev = fragment_sizes(items, cfg, spacing, budget=budget)
+    host = [_fragment_size(p, g, cfg, spacing) for p, g in items]
+    assert np.isnan(host[3][0]).any() and not np.isnan(host[0][0]).any()  # both branches are exercised
+    assert len(host[4][1]) < len(items[4][0])  # the thread was trimmed on the host
+    for i, ((dd, dp), (hd, hp)) in enumerate(zip(dev, host)):
+        assert np.array_equal(np.isnan(dd), np.isnan(hd)), i
+        m = ~np.isnan(hd)
+        np.testing.assert_allclose(dd[m], hd[m], rtol=1e-12, atol=0, err_msg=f"piece {i}")
+        assert np.array_equal(dp, hp), (i, len(dp), len(hp))
+
+
+def test_near_counts_and_nearest_match_brute_force():
+    """Counts within r <= h and the k nearest (where the k-th lies within h) of every particle, by cell lists of side
+    h, equal a KD-tree's, for fragments far apart and fragments whose boxes overlap (each only sees its own)."""
+    rng = np.random.default_rng(3)
+    frags = [lattice(9, 7, 5, 20), lattice(6, 6, 6, 21, turn=False), lattice(6, 6, 6, 22, turn=False) + H * 0.5,
+             rng.uniform(0, 0.02, (300, 3))]
+    count = [len(f) for f in frags]
+    X = torch.from_numpy(np.concatenate(frags))
+    seg = torch.from_numpy(np.repeat(np.arange(len(frags)), count))
+    rows = torch.arange(len(X))
+    h = torch.full((len(frags),), 1.6 * H, dtype=torch.float64)
+    r = 1.6 * H
+    got_n = near(X, rows, seg, rows, seg, h, len(frags), lambda d, _: (d <= r).sum(-1, keepdim=True).to(d.dtype), 1)
+    got_k = near(X, rows, seg, rows, seg, h, len(frags), lambda d, _: d.topk(5, dim=-1, largest=False).values, 5,
+                 budget=1000)
+    lo = 0
+    for f in frags:
+        tree = cKDTree(f)
+        want_n = tree.query_ball_point(f, r, return_length=True)
+        want_k = tree.query(f, 5)[0]
+        np.testing.assert_array_equal(got_n[lo:lo + len(f), 0].numpy(), want_n)
+        sure = want_k[:, -1] <= 1.6 * H
+        assert sure.sum() > len(f) // 2
+        np.testing.assert_allclose(got_k[lo:lo + len(f)].numpy()[sure], want_k[sure], rtol=1e-12)
+        lo += len(f)
+
+
+def test_the_reward_distances_are_the_same_with_either_size_solver():
+    """distances_and_volumes over two fragment sets (an MPPI batch) with reward.size_solver host and device: the same
+    (F,G) distances and volumes, so R, roles and N_C follow."""
+    items = pieces()
+    goals = [items[0][0], items[2][0]]
+    sets = [[p for p, _ in items[:5]], [p for p, _ in items[5:]]]
+    host = RewardConfig(backend="torch", size_solver="host")
+    Dh, vh, gh = distances_and_volumes(sets, goals, host)
+    Dd, vd, gd = distances_and_volumes(sets, goals, dataclasses.replace(host, size_solver="device"))
+    for a, b in zip(Dh, Dd):
+        assert np.array_equal(np.isinf(a), np.isinf(b))
+        np.testing.assert_allclose(b[np.isfinite(b)], a[np.isfinite(a)], rtol=1e-9, atol=1e-12)
+    for a, b in zip(vh, vd):
+        np.testing.assert_allclose(b, a, rtol=1e-12)
+    np.testing.assert_array_equal(gh, gd)
+
+
+def test_size_solver_is_checked():
+    assert RewardConfig(size_solver="device").validate().size_solver == "device"
+    with pytest.raises(ValueError, match="reward.size_solver"):
+        RewardConfig(size_solver="gpu").validate()
