@@ -41,10 +41,11 @@ VARIANTS = {  # name: (wrong?, the scoop_keyframes keyword arguments of every sc
 }
 
 
-def scooping(n_grid: int = 48, device: str = "cpu", seed: int = 0, scoops=None, names=None) -> dict:
+def scooping(n_grid: int = 48, device: str = "cpu", seed: int = 0, scoops=None, names=None, keep: bool = False) -> dict:
     """The variants' scores: {"rows": [{"variant", "wrong", "reward", "per_chunk", ...}], and the settings}.
     scoops: the placements (list of (x, y) offsets from the block centre; None: the task's); names: the variants to
-    run (None: all of VARIANTS)."""
+    run (None: all of VARIANTS); keep: also each variant's whole episode (scoop_episode's result, its arrays
+    included) under "episodes", by variant."""
     from topocut.reward import RewardConfig
     from topocut.sim import SimConfig
     from topocut.tasks import task_config
@@ -60,20 +61,23 @@ def scooping(n_grid: int = 48, device: str = "cpu", seed: int = 0, scoops=None, 
     unknown = sorted(set(names or ()) - set(VARIANTS))
     if unknown:
         raise ValueError(f"variant {unknown[0]!r} is not one of {', '.join(VARIANTS)}")
-    rows = []
+    rows, episodes = [], {}
     for name, (wrong, primitive) in VARIANTS.items():
         if names is not None and name not in names:
             continue
         res = scoop_episode(sim, task, TopologyConfig(resolution=64), seed=seed, reward_cfg=reward,
                             primitive=primitive(spoon))
+        if keep:
+            episodes[name] = res
         rows.append({"variant": name, "wrong": wrong, "reward": round(res["reward"], 4),
                      "per_chunk": [round(r, 4) for r in res["per_chunk"]],
                      "held": [s["held"] for s in res["scoops"]], "cup_pieces": res["cup_piece_sizes"],
                      "spilled": res["spilled"], "distances": [[round(d, 4) for d in row] for row in res["distances"]],
                      "seconds": round(res["seconds"], 1)})
-    return {"task": "scooping", "n_grid": n_grid, "device": device, "seed": seed, "scoops": spoon.scoops,
-            "particles": res["particles"], "target_points": res["target_points"], "rows": rows,
-            "seconds": round(time.perf_counter() - t0, 1)}
+    out = {"task": "scooping", "n_grid": n_grid, "device": device, "seed": seed, "scoops": spoon.scoops,
+           "particles": res["particles"], "target_points": res["target_points"], "rows": rows,
+           "seconds": round(time.perf_counter() - t0, 1)}
+    return {**out, "episodes": episodes} if keep else out
 
 
 def target_rules(states: str) -> list[dict]:

@@ -9,7 +9,15 @@ import pytest
 from topocut.reward import RewardConfig
 from topocut.tasks.config import SpoonConfig
 from topocut.tasks.scooping_reward import scoop_total, scooping_reward
-from topocut.tasks.scooping_scene import block_particles, bowl_cap, cap_volume, chunk_masks, chunk_targets, spilled_mask
+from topocut.tasks.scooping_scene import (
+    block_particles,
+    bowl_cap,
+    cap_volume,
+    chunk_masks,
+    chunk_targets,
+    in_cup,
+    spilled_mask,
+)
 
 S = 0.01  # the particle spacing of the hand-built targets and pieces
 
@@ -130,15 +138,54 @@ def test_spilled_is_by_cluster_and_by_place():
     assert spilled_mask(x, lab, sp, bz, 0.02).tolist() == [False] * 4 + [True, True, True, False]
 
 
-def test_reference_beats_the_scoop_two_cm_short():
-    """n_grid 32, one scoop (1350 particles, ~75 s on 2 shared cores).  The scripted scoop scores 0.86-0.87 here (the
-    chunk is ~112 particles; the pour changes its shape, d_spec 0.018, and its extents shrink 1-3%): >= 0.9 is the
-    smoke scale's (n_grid 48, 0.95, docs/tasks.md).  The scoop 2 cm short brings up a chunk about half as big: R 0."""
+SCOOP = [[-0.03, 0.0]]  # one scoop, 3 cm before the block's centre
+
+
+@pytest.fixture(scope="module")
+def scooped():
+    """n_grid 32, one scoop (dx 3.1 cm, 1350 particles, ~40 s a variant on the CPU): the reference and the scoop 2 cm
+    short, as experiments/reference_scooping.py runs them, each whole episode kept."""
     pytest.importorskip("taichi")
     from experiments.reference_scooping import scooping
 
-    out = scooping(n_grid=32, scoops=[[-0.03, 0.0]], names=["reference", "2 cm short"])
-    rows = {r["variant"]: r for r in out["rows"]}
+    return scooping(n_grid=32, scoops=SCOOP, names=["reference", "2 cm short"], keep=True)
+
+
+def test_one_scoop_moves_a_chunk_into_the_cup(scooped):
+    """The reference's episode: the chunk leaves the block, lands in the cup, is its own cluster."""
+    from topocut.sim import SimConfig
+
+    sp, sim = SpoonConfig(scoops=SCOOP), SimConfig(n_grid=scooped["n_grid"])
+    res = scooped["episodes"]["reference"]
+    arr = res["arrays"]
+    x, lab, chunk = arr["x"], arr["labels"], arr["chunk"]
+    s = sim.spacing
+    # expected count: the cap of the bowl's mid-sphere (bowl_cap) in particle cells; a particle stands for a cube of
+    # side s, so the chunk's boundary is known to +- s/2: the band is the cap with its radius and height shrunk / grown
+    rad, height = bowl_cap(sp)
+    lo, hi = cap_volume(rad - s / 2, height - s / 2) / s ** 3, cap_volume(rad + s / 2, height + s / 2) / s ** 3
+    cup = in_cup(x, sp, sim.board_z)
+    assert lo <= cup.sum() <= hi, (lo, int(cup.sum()), hi)
+    # and it is the target's material: the particles the mid-sphere holds at rest (0.99 of them alike, measured)
+    target = chunk_masks(arr["x_0"], sp)[0]
+    assert (target & (chunk == 1)).sum() / (target | (chunk == 1)).sum() > 0.9
+    # the block keeps the rest: everything not in the cup is still on the block's footprint, on the board
+    half = np.asarray(sp.block[:2]) / 2 + s
+    on_block = (np.abs(x[:, :2] - sp.block_center) <= half).all(1) & (x[:, 2] <= sim.board_z + sp.block[2] + s)
+    assert (on_block | cup).all() and not (on_block & cup).any()
+    # the bookkeeping: the chunk is what landed; discovery gives it one cluster id, not the block's
+    assert (chunk == 1).sum() == res["scoops"][0]["held"] and cup[chunk == 1].mean() > 0.95
+    assert res["chunks_in_cup"] == 1 and res["chunks_distinct"]
+    cid, frac = res["chunk_clusters"][0]
+    assert frac > 0.95 and (lab[cup] == cid).mean() > 0.95 and not (lab[on_block] == cid).any()
+    assert res["per_chunk"][0] > 0 and res["spilled"] == 0
+
+
+def test_reference_beats_the_scoop_two_cm_short(scooped):
+    """The scripted scoop scores 0.86-0.87 here (the chunk is ~112 particles; the pour changes its shape, d_spec 0.018,
+    and its extents shrink 1-3%): >= 0.9 is the smoke scale's (n_grid 48, 0.95, docs/tasks.md).  The scoop 2 cm short
+    brings up a chunk about half as big: R 0."""
+    rows = {r["variant"]: r for r in scooped["rows"]}
     ref, short = rows["reference"], rows["2 cm short"]
     assert ref["reward"] >= 0.8 and len(ref["cup_pieces"]) == 1 and ref["spilled"] == 0, ref
     assert short["wrong"] and short["reward"] <= ref["reward"] - 0.3, (short, ref)

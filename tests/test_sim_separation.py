@@ -40,9 +40,18 @@ def big(labels: np.ndarray, at_least: int = 50) -> list[np.ndarray]:
 def test_a_cut_splits_on_its_plane_wherever_it_falls_in_a_cell(n_grid, positions):
     dx = 1.0 / n_grid
     planes = 0.5 + dx * np.arange(positions) / positions  # spread over one cell (5 and 4: the suite stays under 20 min)
-    env = CuttingEnv(SimConfig(n_grid=n_grid), batch_size=len(planes))
+    cfg = SimConfig(n_grid=n_grid)
+    env = CuttingEnv(cfg, batch_size=len(planes))
     x0 = env.reset("cube", POSE).x[0].astype(np.float64)
-    env.cut([KnifeAction(x=float(c), y=0.5) for c in planes])
+    info = env.cut([KnifeAction(x=float(c), y=0.5) for c in planes])
+    cut = env.state()
+    for b, c in enumerate(planes):  # the damage stays within a cell of the blade, wherever it falls in the cell
+        d = cut.damage[b]
+        assert info.newly_damaged[b] == d.sum() > 0
+        band = np.abs(x0[:, 0] - c) <= cfg.knife_half_thickness + cfg.dx
+        assert band[d].mean() >= 0.9, (n_grid, c, band[d].mean())
+        # the skin fractures by softening, not by the core's J thresholds: no skin damaged away from the blade
+        assert not (d & (cut.material[b] == 1) & ~band).any(), (n_grid, c)
     env.push()
     st = env.state()
     from topocut.topology.discover import discover
@@ -65,37 +74,6 @@ def test_a_cut_splits_on_its_plane_wherever_it_falls_in_a_cell(n_grid, positions
         assert res.num_clusters == 2, (n_grid, c, res.num_clusters)
 
 
-@pytest.mark.parametrize("n_grid", [64])  # 96 cost 35 s of the suite; the kerf band is checked at 32 in test_sim_physics
-def test_damage_stays_within_a_cell_of_the_blade(n_grid):
-    cfg = SimConfig(n_grid=n_grid)
-    env = CuttingEnv(cfg, batch_size=1)
-    x0 = env.reset("cube", POSE).x[0]
-    c = 0.5 + 0.3 / n_grid
-    info = env.cut(KnifeAction(x=c, y=0.5))
-    d = env.state().damage[0]
-    assert info.newly_damaged[0] == d.sum() > 0
-    near = np.abs(x0[d, 0] - c) <= cfg.knife_half_thickness + cfg.dx
-    assert near.mean() >= 0.9, (n_grid, near.mean())
-    # the skin fractures by softening, not by the core's J thresholds: no skin damaged away from the blade
-    skin = env.state().material == 1
-    assert not (d & skin & (np.abs(x0[:, 0] - c) > cfg.knife_half_thickness + cfg.dx)).any()
-
-
-def oracle_beats_wrong_thickness(x, x0, goal, first, spacing):
-    """Issue #29: the oracle's simulated first slab scores above ideal slabs of the wrong thickness (0.5t, 1.5t),
-    cut by hand from the initial particles (the goal's first plane is vertical, normal +x)."""
-    from topocut.reward import spectral_reward
-    from topocut.tasks import task_config
-
-    t = task_config("slice").thickness
-    face = float(first.x) + t
-    sim = spectral_reward([x[p] for p in big(components(x, spacing), 50)], goal.fragments).per_goal[0]
-    for r in (0.5, 1.5):
-        thin = x0[:, 0] > face - r * t
-        wrong = spectral_reward([x0[thin], x0[~thin]], goal.fragments).per_goal[0]
-        assert sim > wrong, (r, sim, wrong)
-
-
 # cake-slice is left out to keep the suite under 20 min: cake-stick makes the cake's slices first (and turns one)
 # the cube's slice and stick steps run in the simulator through stage=eval in tests/test_answer_key_sim.py (the oracle
 # scored against its goal, at 64^3 with 5 cm pieces); here the cake's laid-flat sticks, piece by piece
@@ -103,8 +81,7 @@ def oracle_beats_wrong_thickness(x, x0, goal, first, spacing):
 def test_goal_steps_executed_give_the_goal_pieces(object, task):
     """The oracle: the goal's own steps (cuts, and the Turn that lays the cake's slab flat) executed exactly give
     every goal piece: IoU >= 0.8 with a discovered piece, and >= 95% of its particles in one of our own
-    components, on the cube a different one for each goal piece (the cake's slices may touch after their pushes).  On the cube's slices: after four 3 cm cuts, 5 pieces,
-    each slab holding >= 95% of the particles that started between its two planes."""
+    components (not a different one for each: the cake's slices may lean on each other after their pushes)."""
     from topocut.tasks import Cut, get_task, task_config
     from topocut.topology.discover import discover
 
@@ -114,28 +91,16 @@ def test_goal_steps_executed_give_the_goal_pieces(object, task):
     goal = get_task(task).make_goal(task_config(task), object, POSE, spacing=cfg.spacing, board_z=cfg.board_z)
     # the stick slab is set aside first: laid flat (the cake's wide slab) or moved unturned (the cube's)
     assert [s.angle == 0.0 for s in goal.steps if s.kind == "turn"] == ([] if task == "slice" else [object == "cube"])
-    labels, next_id, cuts = None, None, 0
+    labels, next_id = None, None
     for step in goal.steps:
         if isinstance(step, Cut):
             env.cut(step.action)
             env.push()
-            cuts += 1
         else:
             env.turn(step)
         st = env.state()
         res = discover(st.x[0], st.damage[0], st.sweeps[0], previous_labels=labels, next_id=next_id)
         labels, next_id = res.labels, res.next_id
-        if (object, task) == ("cube", "slice") and cuts == 1 and isinstance(step, Cut):
-            oracle_beats_wrong_thickness(st.x[0].astype(np.float64), x0, goal, step.action, cfg.spacing)
-        if (object, task) == ("cube", "slice") and cuts == 4 and isinstance(step, Cut):
-            x = st.x[0].astype(np.float64)
-            own = big(components(x, cfg.spacing), 50)
-            assert len(own) == 5, [len(p) for p in own]
-            planes = sorted(float(c.action.x) for c in goal.steps[:4])  # vertical planes normal to x
-            edges = [-np.inf] + planes + [np.inf]
-            for lo, hi in zip(edges[:-1], edges[1:]):
-                between = np.flatnonzero((x0[:, 0] >= lo) & (x0[:, 0] < hi))
-                assert max(len(np.intersect1d(between, p)) for p in own) >= 0.95 * len(between), (lo, hi)
     x = env.state().x[0].astype(np.float64)
     # the goal piece of each particle: the goal fragments are the same particles (same sampling), in their
     # initial positions, so each particle of a goal piece has an exact match in x0
@@ -144,21 +109,15 @@ def test_goal_steps_executed_give_the_goal_pieces(object, task):
     dist, nn = cKDTree(pts).query(x0)
     goal_of = np.where(dist <= 1e-3 * cfg.spacing, owner[nn], -1)
     assert (goal_of >= 0).sum() == len(pts)
-    if (object, task) == ("cube", "slice"):
-        assert cuts >= 4
     own = components(x, cfg.spacing)
-    taken = set()
     for i in range(len(goal.fragments)):
         want = np.flatnonzero(goal_of == i)
         assert len(want) > 50
         iou = max(len(np.intersect1d(want, np.flatnonzero(labels == k))) / len(np.union1d(want, np.flatnonzero(labels == k)))
                   for k in np.unique(labels[labels >= 0]))
         assert iou >= 0.8, (object, task, i, iou)
-        comp, count = np.unique(own[want], return_counts=True)
+        _, count = np.unique(own[want], return_counts=True)
         assert count.max() >= 0.95 * len(want), (object, task, i, count.max() / len(want))
-        if object == "cube":  # the cube's slabs and sticks stand apart; the cake's slices may lean on each other
-            assert comp[np.argmax(count)] not in taken, (object, task, i)  # every goal piece its own component
-            taken.add(comp[np.argmax(count)])
 
 
 def test_pieces_on_opposite_sides_of_the_blade_never_share_a_velocity_field():

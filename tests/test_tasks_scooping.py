@@ -1,5 +1,5 @@
-"""Ice-cream scooping: spoon kinematics, the shell SDF, and one simulated scoop (its chunk against the target's rule).
-The targets and the score: tests/test_reference_scooping.py."""
+"""Ice-cream scooping: spoon kinematics and the shell SDF.  One simulated scoop (its chunk against the target's rule),
+the targets and the score: tests/test_reference_scooping.py."""
 import math
 
 import numpy as np
@@ -7,7 +7,7 @@ import pytest
 
 from topocut.sim.spoon import Keyframe, SpoonPath, bowl_axis, scoop_keyframes, spoon_sdf_np
 from topocut.tasks.config import SpoonConfig
-from topocut.tasks.scooping_scene import block_particles, bowl_cap, cap_volume, chunk_masks, in_cup
+from topocut.tasks.scooping_scene import block_particles, in_cup
 
 
 def test_path_interpolates_pose_and_rigid_velocity():
@@ -67,35 +67,3 @@ def test_block_and_cup_regions():
     assert in_cup(inside, sp, 0.05).tolist() == [True, False, True, False]
 
 
-def test_one_scoop_moves_a_chunk_into_the_cup():
-    """n_grid 32 (dx 3.1 cm, 1350 particles, ~15 s): the chunk leaves the block, lands in the cup, is its own cluster."""
-    from topocut.sim import SimConfig
-    from topocut.tasks import task_config
-    from topocut.tasks.scooping_scene import scoop_episode
-    from topocut.topology import TopologyConfig
-
-    sp = SpoonConfig(scoops=[[-0.03, 0.0]])
-    sim = SimConfig(n_grid=32)
-    res = scoop_episode(sim, task_config("scooping", spoon=sp).validate(), TopologyConfig(resolution=64))
-    arr = res["arrays"]
-    x, lab, chunk = arr["x"], arr["labels"], arr["chunk"]
-    s = sim.spacing
-    # expected count: the cap of the bowl's mid-sphere (bowl_cap) in particle cells; a particle stands for a cube of
-    # side s, so the chunk's boundary is known to +- s/2: the band is the cap with its radius and height shrunk / grown
-    rad, height = bowl_cap(sp)
-    lo, hi = cap_volume(rad - s / 2, height - s / 2) / s ** 3, cap_volume(rad + s / 2, height + s / 2) / s ** 3
-    cup = in_cup(x, sp, sim.board_z)
-    assert lo <= cup.sum() <= hi, (lo, int(cup.sum()), hi)
-    # and it is the target's material: the particles the mid-sphere holds at rest (0.99 of them alike, measured)
-    target = chunk_masks(arr["x_0"], sp)[0]
-    assert (target & (chunk == 1)).sum() / (target | (chunk == 1)).sum() > 0.9
-    # the block keeps the rest: everything not in the cup is still on the block's footprint, on the board
-    half = np.asarray(sp.block[:2]) / 2 + s
-    on_block = (np.abs(x[:, :2] - sp.block_center) <= half).all(1) & (x[:, 2] <= sim.board_z + sp.block[2] + s)
-    assert (on_block | cup).all() and not (on_block & cup).any()
-    # the bookkeeping: the chunk is what landed; discovery gives it one cluster id, not the block's
-    assert (chunk == 1).sum() == res["scoops"][0]["held"] and cup[chunk == 1].mean() > 0.95
-    assert res["chunks_in_cup"] == 1 and res["chunks_distinct"]
-    cid, frac = res["chunk_clusters"][0]
-    assert frac > 0.95 and (lab[cup] == cid).mean() > 0.95 and not (lab[on_block] == cid).any()
-    assert res["per_chunk"][0] > 0 and res["spilled"] == 0

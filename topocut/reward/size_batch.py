@@ -288,7 +288,7 @@ def _spacings(X, seg, start, count, budget: int):
     idx3 = seg[:, None].expand(-1, 3)
     extent = (X.new_full((F, 3), -np.inf).scatter_reduce(0, idx3, X, "amax")
               - X.new_full((F, 3), np.inf).scatter_reduce(0, idx3, X, "amin")).amax(1)  # F: the widest side
-    h = torch.maximum(2.0 * (box / n) ** (1.0 / 3.0), extent / 256.0 + 1e-12)  # at most 256 cells a side
+    h = torch.maximum(2.0 * (box / n) ** (1.0 / 3.0), extent / 64.0 + 1e-12)  # at most 64 cells a side (memory)
     every = torch.arange(len(X), device=dev)
     nn = near(X, q, qseg, every, seg, h, F, lambda d, _: d.topk(NN_K + 1, dim=-1, largest=False).values, NN_K + 1,
               budget)  # Q,K+1: itself first, as the host's query(k + 1)
