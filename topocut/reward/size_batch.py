@@ -33,62 +33,20 @@ from topocut.reward.size import NN_K, NN_RATIO, PROFILE_QUANTILES, SPACING_QUERI
 from topocut.reward.strays import CORE_NEIGHBOURS, LINK
 
 HOST_BELOW = 2 * CORE_NEIGHBOURS + 4  # fewer particles: the host path (its small-piece rules; rare, tiny)
-PAIR_BUDGET = 1 << 25  # query x particle distances held at once (float64: 256 MiB)
-CELL_BUDGET = 1 << 23  # query x candidate distances held at once by ``near`` (with their coordinates: ~300 MiB)
-_FAR = 1e9  # padding particles: past every radius and every nearest neighbour
+CELL_BUDGET = 1 << 23  # distances held at once (by ``near`` with their candidates' coordinates: ~300 MiB)
 
 
-def _blocks(tasks, budget: int):
-    """Group (fragment, query rows (m,), reference rows (n,)) tasks into padded blocks of at most ``budget``
-    distances: [(tasks in block, rows per task chunk)].  A task whose queries alone pass the budget is split by rows."""
-    pieces = []
-    for t, (_, q, r) in enumerate(tasks):
-        rows = max(1, budget // max(len(r), 1))
-        pieces += [(t, a, min(a + rows, len(q))) for a in range(0, len(q), rows)]
-    pieces.sort(key=lambda p: len(tasks[p[0]][2]))  # similar reference sizes share a block (less padding)
-    block, qmax, nmax = [], 0, 0
-    for p in pieces:
-        m, n = p[2] - p[1], len(tasks[p[0]][2])
-        if block and (len(block) + 1) * max(qmax, m) * max(nmax, n) > budget:
-            yield block
-            block, qmax, nmax = [], 0, 0
-        block.append(p)
-        qmax, nmax = max(qmax, m), max(nmax, n)
-    if block:
-        yield block
-
-
-def per_query(X, tasks, reduce, width: int, budget: int = PAIR_BUDGET):
-    """reduce(distances (b, q, n), block task indices (b,)) -> (b, q, width) for every query row of every task.
-
-    X (P,3) the particles on the device; tasks [(fragment, query rows, reference rows)] (host int arrays into X).
-    Returns (sum of query rows, width) in task order, then row order.  Padding references lie at _FAR."""
+def _brute_nearest(X, q, ref, k: int, budget: int = CELL_BUDGET):
+    """The k smallest distances (Q, k) from each of the rows q of X to the rows ref of X, ascending: every pair, in
+    chunks of at most ``budget`` distances (the fallback of ``_spacings`` for the few queries cell lists cannot
+    settle)."""
     import torch
 
-    dev = X.device
-    counts = np.array([len(q) for _, q, _ in tasks], np.int64)
-    offset = np.concatenate([[0], np.cumsum(counts)])
-    out = X.new_empty(int(offset[-1]), width)
-    for block in _blocks(tasks, budget):
-        b = len(block)
-        qmax = max(e - a for _, a, e in block)
-        nmax = max(len(tasks[t][2]) for t, _, _ in block)
-        q_src = np.concatenate([tasks[t][1][a:e] for t, a, e in block])
-        q_dst = np.concatenate([j * qmax + np.arange(e - a) for j, (_, a, e) in enumerate(block)])
-        r_src = np.concatenate([tasks[t][2] for t, _, _ in block])
-        r_dst = np.concatenate([j * nmax + np.arange(len(tasks[t][2])) for j, (t, _, _) in enumerate(block)])
-        res = [offset[t] + np.arange(a, e) for t, a, e in block]  # where each row's result goes
-        q_src, q_dst, r_src, r_dst, res = (torch.from_numpy(np.asarray(v, np.int64)).to(dev)
-                                          for v in (q_src, q_dst, r_src, r_dst, np.concatenate(res)))
-        Q = X.new_zeros(b * qmax, 3)
-        Q[q_dst] = X[q_src]
-        R = X.new_full((b * nmax, 3), _FAR)
-        R[r_dst] = X[r_src]
-        # exact differences, not |x|^2 - 2 x.y + |y|^2 (its cancellation moves neighbour distances of 1e-3 by 1e-9)
-        D = torch.cdist(Q.view(b, qmax, 3), R.view(b, nmax, 3), compute_mode="donot_use_mm_for_euclid_dist")
-        which = torch.tensor([t for t, _, _ in block], device=dev)
-        out[res] = reduce(D, which).reshape(b * qmax, width)[q_dst]
-    return out
+    rows = max(1, budget // max(len(ref), 1))
+    R = X[ref][None]  # 1,n,3
+    # exact differences, not |x|^2 - 2 x.y + |y|^2 (its cancellation moves neighbour distances of 1e-3 by 1e-9)
+    return torch.cat([torch.cdist(X[q[a:a + rows]][None], R, compute_mode="donot_use_mm_for_euclid_dist")[0]
+                      .topk(k, dim=-1, largest=False).values for a in range(0, len(q), rows)])
 
 
 def near(X, q, qseg, ref, rseg, h, F: int, reduce, width: int, budget: int = CELL_BUDGET):
@@ -217,7 +175,7 @@ def _descriptors(X, seg, F: int, s, profile: bool):
     return torch.cat(out, 1)
 
 
-def fragment_sizes(items, cfg, spacing: float | None = None, budget: int = PAIR_BUDGET) -> list:
+def fragment_sizes(items, cfg, spacing: float | None = None, budget: int = CELL_BUDGET) -> list:
     """(size descriptor, the points described) of each (fragment (N,3), its set's goal sizes (G, 5+Q)) in ``items``:
     ``topocut.reward.distance._fragment_size`` of every fragment, batched on ``cfg.device``."""
     import torch
@@ -292,14 +250,10 @@ def _spacings(X, seg, start, count, budget: int):
     every = torch.arange(len(X), device=dev)
     nn = near(X, q, qseg, every, seg, h, F, lambda d, _: d.topk(NN_K + 1, dim=-1, largest=False).values, NN_K + 1,
               budget)  # Q,K+1: itself first, as the host's query(k + 1)
-    unsure = (nn[:, -1] > h[qseg]).nonzero().reshape(-1)
-    if len(unsure):  # against every particle of the fragment
-        u = unsure.cpu().numpy()
-        useg = qseg[unsure].cpu().numpy()
-        tasks = [(f, q[unsure[useg == f]].cpu().numpy(), start[f] + np.arange(count[f])) for f in np.unique(useg)]
-        brute = per_query(X, tasks, lambda D, _: D.topk(NN_K + 1, dim=-1, largest=False).values, NN_K + 1)
-        order = np.concatenate([u[useg == f] for f in np.unique(useg)])
-        nn[torch.from_numpy(order).to(dev)] = brute
+    unsure = nn[:, -1] > h[qseg]  # Q,
+    for f in torch.unique(qseg[unsure]).tolist():  # against every particle of the fragment (rare: strays, sheets)
+        u = (unsure & (qseg == f)).nonzero().reshape(-1)
+        nn[u] = _brute_nearest(X, q[u], every[start[f]:start[f] + count[f]], NN_K + 1, budget)
     return _medians(nn[:, 1:].reshape(-1), qseg.repeat_interleave(NN_K), F) / NN_RATIO
 
 
