@@ -166,8 +166,8 @@ def _score_sets(fragment_sets, goal_fragments, cfg: RewardConfig | None = None, 
                        for k, g in ugoals])
     gres = [_cached(("resample", k, ckey), lambda g=g: resample(g, cfg)) for k, g in ugoals]
     set_goals = gidx if per_set else gidx * len(raw)  # each set's goal indices into ugoals
-    # every scene's pieces in one thread pool, each profiled only where its extents and fill leave R > 0, each
-    # described by its body (its strays left out) where that matters
+    # every scene's pieces at once (on the device, or in one host thread pool: reward.size_solver), each profiled only
+    # where its extents and fill leave R > 0, each described by its body (its strays left out) where that matters
     todo = [(f, gsizes[row]) for fs, row in zip(raw, set_goals) for f in fs]
     flat_sizes = iter(_fragment_sizes(todo, cfg, spacing))
     sized = [[next(flat_sizes) for _ in fs] for fs in raw]
@@ -220,12 +220,19 @@ def _fragment_size(points: np.ndarray, goal_sizes: np.ndarray, cfg: RewardConfig
     otherwise it is described by its body (topocut.reward.strays.body).  spacing: the known particle spacing (None: estimated)."""
     s = particle_spacing(points) if spacing is None else float(spacing)
     base = size_descriptor(points, s, profile=False)
-    if len(goal_sizes):
-        bound = size_distance(base, goal_sizes, cfg.size_weight, cfg.fill_weight, 0.0, cfg.size_tolerance)  # G,
-        if not (piecewise_reward(np.atleast_1d(bound), cfg) > 0).any():
-            return base, points
+    if past_zero_by_size(base, goal_sizes, cfg):
+        return base, points
     kept = body(points, s, cfg.stray_share)  # the points themselves where stray_share is 0
     return size_descriptor(kept, s), kept
+
+
+def past_zero_by_size(base: np.ndarray, goal_sizes: np.ndarray, cfg: RewardConfig) -> bool:
+    """Whether a fragment's extents and fill alone (its size descriptor without the profile, (5+Q,)) put R at 0 for
+    every goal piece (G, 5+Q) of its set: then it is neither profiled nor described (False without goal pieces)."""
+    if not len(goal_sizes):
+        return False
+    bound = size_distance(base, goal_sizes, cfg.size_weight, cfg.fill_weight, 0.0, cfg.size_tolerance)  # G,
+    return not (piecewise_reward(np.atleast_1d(bound), cfg) > 0).any()
 
 
 def _size_matrix(sizes: np.ndarray, goal_sizes: np.ndarray, cfg: RewardConfig) -> np.ndarray:

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from topocut.reward.size import NN_K, NN_RATIO, PROFILE_QUANTILES, SPACING_QUERIES, size_distance
+from topocut.reward.size import NN_K, NN_RATIO, PROFILE_QUANTILES, SPACING_QUERIES
 from topocut.reward.strays import CORE_NEIGHBOURS, LINK
 
 HOST_BELOW = 2 * CORE_NEIGHBOURS + 4  # fewer particles: the host path (its small-piece rules; rare, tiny)
@@ -180,7 +180,7 @@ def fragment_sizes(items, cfg, spacing: float | None = None, budget: int = CELL_
     ``topocut.reward.distance._fragment_size`` of every fragment, batched on ``cfg.device``."""
     import torch
 
-    from topocut.reward.distance import _fragment_size, piecewise_reward
+    from topocut.reward.distance import _fragment_size, past_zero_by_size
 
     out: list = [None] * len(items)
     dev = torch.device(cfg.device)
@@ -204,12 +204,9 @@ def fragment_sizes(items, cfg, spacing: float | None = None, budget: int = CELL_
         for f, i in enumerate(big):
             if f in host:
                 continue
-            goals = items[i][1]
-            if len(goals):
-                bound = size_distance(base[f], goals, cfg.size_weight, cfg.fill_weight, 0.0, cfg.size_tolerance)
-                if not (piecewise_reward(np.atleast_1d(bound), cfg) > 0).any():
-                    out[i] = (base[f], pts[f])
-                    continue
+            if past_zero_by_size(base[f], items[i][1], cfg):
+                out[i] = (base[f], pts[f])
+                continue
             on.append(f)
         if on:
             keep = _bodies(X, start, count, s, on, cfg.stray_share, budget)  # host masks, one per fragment in on
