@@ -2,12 +2,16 @@
 import pytest
 
 
-@pytest.fixture(scope="session", autouse=True)
+@pytest.fixture(scope="module", autouse=True)
 def _taichi_single_threaded():
-    """One Taichi runtime per test process, single-threaded on the CPU: atomic adds then run in a fixed
-    order, so two runs of the same cut are bit-identical (teleop replay, batched vs sequential rollouts)."""
-    from topocut.sim.mpm import init_taichi
+    """A fresh Taichi runtime per test file, single-threaded on the CPU: atomic adds then run in a fixed
+    order, so two runs of the same cut are bit-identical (teleop replay, batched vs sequential rollouts).
 
+    Fresh per file (make test gives each file whole to one worker): a file's fields then get the same SNode ids
+    whichever files ran before it, so its kernels hit Taichi's cache on disk (topocut.sim.mpm.reset_taichi)."""
+    from topocut.sim.mpm import init_taichi, reset_taichi
+
+    reset_taichi()
     init_taichi("cpu", seed=0, cpu_threads=1)
     yield
 

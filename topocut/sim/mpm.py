@@ -36,6 +36,7 @@ from topocut.sim.materials import FixedCorotated, MaterialUpdate, make_materials
 from topocut.sim.scatter import Scatter
 
 _STATE = {"arch": None}
+_ON_RESET: list = []  # callables dropping module-level Taichi objects before reset_taichi frees them
 
 
 KERNEL_CACHE_BYTES = 1 << 30  # Taichi's default, 100 MiB, is less than this project's kernels
@@ -80,6 +81,22 @@ def init_taichi(arch: str = "cpu", seed: int = 0, debug: bool = False, cpu_threa
         raise RuntimeError("arch=cuda requested but Taichi found no usable CUDA device; use sim.arch=cpu")
     _STATE["arch"] = arch
     return arch
+
+
+def reset_taichi() -> None:
+    """Free the process's Taichi runtime (every field and kernel); the next init_taichi starts a new one.
+
+    Taichi's kernel cache on disk is keyed by each kernel's IR, which names its fields' SNode ids, and those ids count
+    up over a runtime's life.  So a simulator built after others compiles kernels a previous process cached under
+    other ids.  The tests reset before each file: a file's simulators then get the same ids, and hit the cache,
+    whichever files its worker ran before.  Objects registered in ``_ON_RESET`` (the device split's) are dropped
+    first; anything else still holding fields must not be used after this.
+    """
+    for drop in _ON_RESET:
+        drop()
+    if _STATE["arch"] is not None:
+        ti.reset()
+    _STATE["arch"] = None
 
 
 @ti.func

@@ -26,6 +26,7 @@ API: ``split_batch(x (B,n,3), counts (B,), piece (B,n) i32, sweeps [KnifeSweep |
 import numpy as np
 import taichi as ti
 
+from topocut.sim.mpm import _ON_RESET
 from topocut.sim.pieces import LINK, MIN_PIECE
 
 CELL_MARGIN = 1.001  # cells a bit wider than the bond length: a bond's ends lie in adjacent cells despite rounding
@@ -282,6 +283,7 @@ class DeviceSplit:
 
 
 _CACHE: dict = {}  # B -> DeviceSplit: fields and kernels kept between cuts while the capacity suffices
+_ON_RESET.append(_CACHE.clear)  # reset_taichi frees their fields
 
 
 def _capacity(n: int) -> int:
