@@ -28,8 +28,9 @@ eval.jobs), into `<out>/outputs`.  The full sizes come from the same config with
 - pretrain, bc: the dataset just made, copied to `--train-episodes` episodes (default a quarter of the full count:
   whole batches, the full train/val ratio), trained for K1 and K2 epochs (`--epochs`; bc's default 1 and 1 +
   policy.train.val_sample_every, so that the extra epochs sample val/mask_acc as often as a long training); the
-  difference is the steady epoch, the intercept the start-up.  Full: seconds an episode-epoch x epochs x the full
-  episode count (steps per epoch follow the episodes).  bc: every learned policy, eval.train_seeds seeds,
+  difference is the steady epoch, the intercept the start-up.  Full: epochs x an epoch at the full episode count.
+  With one size the whole epoch scales with the episodes (an upper bound: an epoch also has a fixed part); with two
+  (`--train-episodes 64 256`) the line through both sizes' epochs (epoch_cost).  bc: every learned policy, eval.train_seeds seeds,
   trainer.jobs at once, as `make paper`.
 - eval: `--eval-episodes` a (task, object) cell for every policy and training seed in eval.jobs processes; each work
   unit's process seconds (a batch of sim.batch_size specs, or one MPPI spec: topocut.eval.runner.eval_tasks) by
@@ -84,6 +85,19 @@ def fit_epochs(k1: int, w1: float, k2: int, w2: float) -> tuple[float, float]:
         per = (w2 - w1) / (k2 - k1)
         return per, max(0.0, w1 - k1 * per)
     return w2 / max(k2, 1), 0.0
+
+
+def epoch_cost(sizes: list[tuple[int, float]]) -> tuple[float, float]:
+    """An epoch's (fixed seconds, seconds an episode) from (episodes, seconds an epoch) at one or two dataset sizes.
+    One size: all of it scales with the episodes (an upper bound where an epoch has a fixed part: validation's start,
+    the checkpoint, the loaders' workers).  Two: the line through both (fit_epochs' rule: no positive slope, the
+    larger size's epoch over its episodes, no fixed part)."""
+    if len(sizes) == 1:
+        (n, per), = sizes
+        return 0.0, per / n
+    (n1, e1), (n2, e2) = sorted(sizes)
+    per_episode, fixed = fit_epochs(n1, e1, n2, e2)
+    return fixed, per_episode
 
 
 def demo_costs(parts, t: dict, h: dict, every: int, overhead: float) -> tuple[list[float], float]:
@@ -299,12 +313,11 @@ class Bench:
                                  merge_s / n_meas if ok else 0.0, "s an episode", self.n_full, "episodes", 1, 0.0, ok))
         return rows
 
-    def train_data(self) -> tuple[str, str, int]:
-        """The latest dataset of data.dataset copied to --train-episodes episodes: (name, version, episodes)."""
+    def train_data(self, n: int) -> tuple[str, str, int]:
+        """The latest dataset of data.dataset copied to n episodes: (name, version, episodes)."""
         from topocut.data.episodes import EpisodeDataset, EpisodeWriter
         from topocut.data.store import ArtifactStore
 
-        n = self.args.train_episodes or max(2, math.ceil(self.n_full / 4))
         store, name = ArtifactStore(self.root), self.cfg["data"]["dataset"]
         src = store.resolve("dataset", name, "latest")
         ds = EpisodeDataset(src / "data.zarr")
@@ -322,26 +335,38 @@ class Bench:
     def train(self, stage: str) -> list[dict]:
         from omegaconf import OmegaConf
 
-        name, version, n = self.train_data()
         key = "trainer.max_epochs" if stage == "pretrain" else "policy.train.max_epochs"
         every = int(self.cfg["policy"]["train"]["val_sample_every"]) if stage == "bc" else 1
         k1, k2 = self.args.epochs or (1, 1 + (every if every > 1 else 2))
-        walls = []
-        for k in (k1, k2):
-            r = self.run(f"{stage}-{k}", stage, [f"data.dataset={name}", f"data.version={version}", f"{key}={k}"])
-            if r["stopped"]:
-                return [make_row(stage, f"not measured: {k} epochs stopped at --minutes", 0.0, "", 0, "", 1, 0.0, False)]
-            walls.append(r["wall"])
-        per, fixed = fit_epochs(k1, walls[0], k2, walls[1])
+        sizes = sorted(self.args.train_episodes or [max(2, math.ceil(self.n_full / 4))])
+        fits = []  # per dataset size: (episodes, seconds an epoch, fixed seconds, walls)
+        for size in sizes:
+            name, version, n = self.train_data(size)
+            walls = []
+            for k in (k1, k2):
+                tag = f"{stage}-{k}" if len(sizes) == 1 else f"{stage}-{n}ep-{k}"
+                r = self.run(tag, stage, [f"data.dataset={name}", f"data.version={version}", f"{key}={k}"])
+                if r["stopped"]:
+                    return [make_row(stage, f"not measured: {k} epochs of {n} episodes stopped at --minutes", 0.0, "",
+                                     0, "", 1, 0.0, False)]
+                walls.append(r["wall"])
+            fits.append((n, *fit_epochs(k1, walls[0], k2, walls[1]), walls))
+        epoch_a, per_episode = epoch_cost([(n, per) for n, per, *_ in fits])
         epochs = int(self.cfg["trainer"]["max_epochs"] if stage == "pretrain" else
                      self.cfg["policy"]["train"]["max_epochs"])
+        fixed = fits[-1][2]  # the larger size's start-up, the nearer the full one's (loading the dataset grows with it)
+        epoch_full = epoch_a + per_episode * self.n_full
         policies = ", ".join(OmegaConf.load(REPO / "conf" / "stage" / "bc.yaml").run.policies)
         what = "F" if stage == "pretrain" else \
             f"{policies} x {self.cfg['eval']['train_seeds']} seeds, {self.cfg['trainer']['jobs']} at once"
-        return [make_row(stage, f"{what}: {k1} and {k2} epochs of {n} episodes ({per:.1f} s an epoch)", per / n,
-                         "s an episode-epoch", epochs * self.n_full, f"episode-epochs ({epochs} x {self.n_full})", 1,
-                         fixed, epoch_s=per, walls_s=walls, epochs=[k1, k2], train_episodes=n,
-                         epoch_upper_bound=not (k2 > k1 and walls[1] > walls[0]))]
+        of = " and ".join(f"{n} ({per:.1f} s an epoch)" for n, per, *_ in fits)
+        return [make_row(stage, f"{what}: {k1} and {k2} epochs of {of} episodes; {epoch_full:.1f} s an epoch of "
+                         f"{self.n_full}", epoch_full / self.n_full, "s an episode-epoch", epochs * self.n_full,
+                         f"episode-epochs ({epochs} x {self.n_full})", 1, fixed, epoch_s=fits[-1][1],
+                         walls_s=fits[-1][3], epochs=[k1, k2], train_episodes=fits[-1][0],
+                         sizes=[{"episodes": n, "epoch_s": per, "fixed_s": f, "walls_s": w} for n, per, f, w in fits],
+                         epoch_fixed_s=epoch_a, epoch_per_episode_s=per_episode,
+                         epoch_upper_bound=not all(k2 > k1 and w[1] > w[0] for *_, w in fits))]
 
     def eval(self) -> list[dict]:
         sizes = [f"eval.episodes_per_cell={self.args.eval_episodes}"]
@@ -401,7 +426,9 @@ def main(argv=None) -> dict:
     ap.add_argument("--minutes", type=float, help="stop a stage's command after this many minutes")
     ap.add_argument("--episodes", type=int, default=2, help="demonstrations a cell (data.episodes)")
     ap.add_argument("--epochs", type=int, nargs=2, metavar=("K1", "K2"), help="the two training lengths")
-    ap.add_argument("--train-episodes", type=int, help="the trainings' dataset (default: a quarter of the full one)")
+    ap.add_argument("--train-episodes", type=int, nargs="+", metavar="N",
+                    help="the trainings' dataset, one or two sizes (default: a quarter of the full one); two "
+                    "separate an epoch's fixed part from its part per episode")
     ap.add_argument("--eval-episodes", type=int, default=1, help="evaluation episodes a cell (eval.episodes_per_cell)")
     ap.add_argument("--jobs", type=int, help="processes of the demonstrations and the evaluation (default: config)")
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="Hydra overrides for every command")

@@ -32,6 +32,13 @@ def test_fit_epochs_takes_the_difference_and_the_intercept():
     assert pc.fit_epochs(1, 10.0, 2, 9.0) == (4.5, 0.0)  # no positive difference: w2 / k2, no intercept
 
 
+def test_epoch_cost_splits_an_epoch_into_a_fixed_part_and_a_part_per_episode():
+    assert pc.epoch_cost([(128, 3.2)]) == (0.0, 0.025)  # one size: all of it per episode
+    # 64 episodes 2.0 s, 256 episodes 5.0 s: 3 s over 192 episodes, 2.0 - 64 x 3 / 192 = 1.0 s fixed
+    assert pc.epoch_cost([(256, 5.0), (64, 2.0)]) == pytest.approx((1.0, 3.0 / 192))
+    assert pc.epoch_cost([(64, 2.0), (256, 1.9)]) == (0.0, 1.9 / 256)  # no positive slope: the larger size alone
+
+
 def test_demo_costs_by_hand():
     parts = [("dice", 0, 10), ("slice", 60, 7), ("stick", 11, 3)]
     t, h = {"dice": 30.0, "slice": 10.0, "stick": 20.0}, {"dice": 5.0, "slice": 2.0, "stick": 4.0}
