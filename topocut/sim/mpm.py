@@ -92,9 +92,11 @@ def reset_taichi() -> None:
     whichever files its worker ran before.  Objects registered in ``_ON_RESET`` (the device split's) are dropped
     first; anything else still holding fields must not be used after this.
     """
+    from taichi.lang import impl
+
     for drop in _ON_RESET:
         drop()
-    if _STATE["arch"] is not None:
+    if impl.get_runtime().prog is not None:  # also a runtime started by a plain ti.init (teleop's viewer)
         ti.reset()
     _STATE["arch"] = None
 

@@ -1,0 +1,64 @@
+"""The Taichi runtime's life (topocut.sim.mpm: init_taichi, reset_taichi, offline_cache_size).
+
+Taichi's kernel cache on disk is keyed by each kernel's IR, which names its fields' SNode ids; the tests reset the
+runtime before every file (tests/conftest.py) so that a file's fields get the same ids whatever ran before it.
+"""
+import os
+
+import numpy as np
+import taichi as ti
+
+from topocut.sim.mpm import KERNEL_CACHE_BYTES, init_taichi, offline_cache_size, reset_taichi
+
+
+def _ids_of_two_fields() -> list[int]:
+    a, b = ti.field(ti.f32, shape=8), ti.Vector.field(3, ti.i32, shape=(2, 4))
+    a.fill(1.0)  # materialise the tree
+    return [a.snode._id, b.snode._id, a.snode._snode_tree_id, b.snode._snode_tree_id]
+
+
+def test_a_reset_runtime_gives_new_fields_the_same_snode_ids():
+    reset_taichi()
+    init_taichi("cpu", cpu_threads=1)
+    first = _ids_of_two_fields()
+    later = _ids_of_two_fields()  # the same runtime: the ids count on
+    assert later != first
+    reset_taichi()
+    init_taichi("cpu", cpu_threads=1)
+    assert _ids_of_two_fields() == first
+
+
+def test_reset_drops_the_device_splits_cached_fields_and_a_split_still_runs():
+    from topocut.sim import pieces as P
+    from topocut.sim import pieces_device as D
+    from topocut.sim.action import KnifeAction
+    from topocut.sim.config import SimConfig
+    from topocut.sim.objects import ObjectPose, sample_object
+
+    cfg = SimConfig(n_grid=32)
+    x, _ = sample_object("cube", ObjectPose(x=0.5, y=0.5, yaw=0.0, scale=1.0), spacing=cfg.spacing, seed=0)
+    x = x.astype(np.float64)
+    sweep = P.blade_sweep(KnifeAction(x=0.5, y=0.5).canonical(), x, cfg)[0]
+    piece = np.zeros(len(x), np.int32)
+    host = P.split(x, piece, sweep, cfg.spacing)
+    assert host.max() == 1  # two pieces
+
+    def device():
+        return D.split_batch(x[None], [len(x)], piece[None], [sweep], cfg.spacing)[0]
+
+    np.testing.assert_array_equal(device(), host)
+    assert D._CACHE
+    reset_taichi()
+    assert not D._CACHE  # its fields were freed with the runtime: a new tree is built
+    init_taichi("cpu", cpu_threads=1)
+    np.testing.assert_array_equal(device(), host)
+
+
+def test_the_kernel_cache_is_capped_at_a_gibibyte_unless_the_environment_says():
+    from taichi.lang import impl
+
+    if "TI_OFFLINE_CACHE_MAX_SIZE_OF_FILES" in os.environ:
+        assert offline_cache_size() == {}
+    else:
+        assert offline_cache_size() == {"offline_cache_max_size_of_files": KERNEL_CACHE_BYTES}
+        assert impl.current_cfg().offline_cache_max_size_of_files == KERNEL_CACHE_BYTES
