@@ -30,8 +30,8 @@ eval.jobs), into `<out>/outputs`.  The full sizes come from the same config with
   policy.train.val_sample_every, so that the extra epochs sample val/mask_acc as often as a long training); the
   difference is the steady epoch, the intercept the start-up.  Full: epochs x an epoch at the full episode count.
   With one size the whole epoch scales with the episodes (an upper bound: an epoch also has a fixed part); with two
-  (`--train-episodes 64 256`) the line through both sizes' epochs (epoch_cost).  bc: every learned policy, eval.train_seeds seeds,
-  trainer.jobs at once, as `make paper`.
+  (`--train-episodes 64 256`) the line through both sizes' epochs (epoch_cost).  bc: every learned policy,
+  eval.train_seeds seeds, trainer.jobs at once, as `make paper`.
 - eval: `--eval-episodes` a (task, object) cell for every policy and training seed in eval.jobs processes; each work
   unit's process seconds (a batch of sim.batch_size specs, or one MPPI spec: topocut.eval.runner.eval_tasks) by
   policy.  Full: the protocol's units list-scheduled over eval.jobs workers, plus the measured start-up and report.
@@ -433,6 +433,9 @@ def main(argv=None) -> dict:
     ap.add_argument("--jobs", type=int, help="processes of the demonstrations and the evaluation (default: config)")
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="Hydra overrides for every command")
     args = ap.parse_args(argv)
+    sizes = args.train_episodes or []
+    if len(sizes) > 2 or len(set(sizes)) < len(sizes) or any(n < 2 for n in sizes):
+        ap.error(f"--train-episodes {' '.join(map(str, sizes))}: one or two different sizes, each at least 2 episodes")
     bench = Bench(args)
     path = bench.out / "paper_cost.json"
     rows = {r["stage"]: r for r in (json.loads(path.read_text())["rows"] if path.exists() else [])}

@@ -39,6 +39,14 @@ def test_epoch_cost_splits_an_epoch_into_a_fixed_part_and_a_part_per_episode():
     assert pc.epoch_cost([(64, 2.0), (256, 1.9)]) == (0.0, 1.9 / 256)  # no positive slope: the larger size alone
 
 
+@pytest.mark.parametrize("sizes", [["64", "128", "256"], ["64", "64"], ["1"]])
+def test_train_episodes_takes_one_or_two_different_sizes(sizes, tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:
+        pc.main(["--out", str(tmp_path), "--train-episodes", *sizes])
+    assert e.value.code == 2
+    assert "--train-episodes" in capsys.readouterr().err and not list(tmp_path.iterdir())  # nothing written
+
+
 def test_demo_costs_by_hand():
     parts = [("dice", 0, 10), ("slice", 60, 7), ("stick", 11, 3)]
     t, h = {"dice": 30.0, "slice": 10.0, "stick": 20.0}, {"dice": 5.0, "slice": 2.0, "stick": 4.0}
