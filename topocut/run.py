@@ -63,8 +63,32 @@ class Terminated(KeyboardInterrupt):
     work is kept, one line is printed."""
 
 
+# A library's bare `except: pass` can swallow the one Terminated a SIGTERM raises: Taichi's AST helpers
+# (`is_taichi_class`, `is_matrix_class`) run thousands of times while kernels compile, and a run signalled then
+# went on to finish and exit 0.  So once signalled, a timer raises it again every REDELIVER_S until it reaches
+# run_stage or main (stop_redelivery).
+REDELIVER_S = 1.0
+_SIGNALLED = {"signum": 0}
+
+
 def _raise_terminated(signum, frame) -> None:
-    raise Terminated(f"signal {signum}")
+    import signal
+
+    if signum == signal.SIGTERM and not _SIGNALLED["signum"]:
+        _SIGNALLED["signum"] = signum
+        signal.signal(signal.SIGALRM, _raise_terminated)
+        signal.setitimer(signal.ITIMER_REAL, REDELIVER_S, REDELIVER_S)
+    if _SIGNALLED["signum"]:
+        raise Terminated(f"signal {_SIGNALLED['signum']}")
+
+
+def stop_redelivery() -> None:
+    """The stage is ending (any exception reached run_stage or main): no more Terminated from the timer."""
+    if _SIGNALLED["signum"]:
+        import signal
+
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        _SIGNALLED["signum"] = 0
 
 
 def is_user_error(e: BaseException) -> bool:
@@ -102,6 +126,7 @@ def run_stage(cfg: DictConfig, run_dir: Path, overrides: list[str] | None = None
             print_summary(f"{cfg.stage.name}: done in {time.time() - started:.1f}s", summary)
         return summary
     except BaseException as e:
+        stop_redelivery()
         status.update(status="failed", error=f"{type(e).__name__}: {e}", traceback=traceback.format_exc())
         if isinstance(e, NothingUsable):
             status["failures"] = e.failures
@@ -177,12 +202,15 @@ def main(cfg: DictConfig) -> None:
         log.error("%s: %s", type(e).__name__, e)
         sys.exit(2)
     except KeyboardInterrupt as e:
+        stop_redelivery()
         if not single:
             raise
         log.error("%s: committed work is kept; re-run the same command to resume (%s)",
                   "terminated (SIGTERM)" if isinstance(e, Terminated) else "interrupted",
                   Path(hc.runtime.output_dir) / "status.json")
         sys.exit(143 if isinstance(e, Terminated) else 130)
+    finally:  # a stage that finished before a swallowed Terminated came round again has done its work
+        stop_redelivery()
     log.info("summary: %s", json.dumps(summary, default=str))
 
 
