@@ -87,7 +87,8 @@ def run(ctx: RunContext, policy, trainer, data, policies: list[str]) -> dict:
         work = work_dir(writer)
         history = MetricHistory(work / "history.json")
         fit = build_trainer(trainer, policy.train.max_epochs, work, logger=ctx.logger.lightning(ctx.run_dir),
-                            progress=ctx.progress, callbacks=[history], gradient_clip_val=clip)
+                            progress=ctx.progress, callbacks=[history], gradient_clip_val=clip,
+                            run_dir=ctx.run_dir / name)
         fit.fit(module, train_dl, val_dl, ckpt_path=resume_path(work))
         metrics = finish_fit(fit, writer, work, history)
         if metrics is None:  # a DDP rank other than 0: rank 0 commits

@@ -34,7 +34,7 @@ def run(ctx: RunContext, model, trainer, data) -> dict:
     work = work_dir(writer)  # Lightning's own checkpoints while training (resume point)
     history = MetricHistory(work / "history.json")
     fit = build_trainer(trainer, trainer.max_epochs, work, logger=ctx.logger.lightning(ctx.run_dir),
-                        progress=ctx.progress, callbacks=[history])
+                        progress=ctx.progress, callbacks=[history], run_dir=ctx.run_dir)
     fit.fit(module, datamodule=dm, ckpt_path=resume_path(work))
     metrics = finish_fit(fit, writer, work, history)
     if metrics is None:  # a DDP rank other than 0: rank 0 commits

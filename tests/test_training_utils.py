@@ -219,6 +219,16 @@ def test_build_trainer_writes_last_ckpt_every_epoch_and_a_resume_continues(tmp_p
     fit.fit(Tiny(), data, data, ckpt_path=resume_path(tmp_path / "work"))
     assert again.epochs == [2] and fit.global_step == 9  # resumed after epoch 1: epoch 2 only
     assert torch.load(tmp_path / "work" / "last.ckpt", weights_only=False)["global_step"] == 9
+    # trainer.profiler: Lightning's report of the fit in the run's directory, one row per hook with its calls
+    cfg.profiler = "simple"
+    build_trainer(cfg, 2, tmp_path / "work2", progress=False, run_dir=tmp_path / "run").fit(Tiny(), data, data)
+    rows = {r[0]: r[1:] for r in (
+        [c.strip() for c in line.strip().strip("|").split("|")] for line in
+        (tmp_path / "run" / "fit-profile.txt").read_text().splitlines() if line.startswith("|"))}
+    assert rows["[Strategy]SingleDeviceStrategy.training_step"][1] == "6"  # 2 epochs x 3 steps
+    assert rows["run_training_epoch"][1] == "2" and float(rows["run_training_epoch"][2]) > 0
+    with pytest.raises(ValueError, match="trainer.profiler='fast'.*simple"):
+        build_trainer(SimpleNamespace(**{**vars(cfg), "profiler": "fast"}), 1, tmp_path / "w3", progress=False)
 
 
 _LOG_SCRIPT = """

@@ -29,6 +29,7 @@ from topocut.topology.observation import ObservationConfig
 from topocut.utils.logger import LoggerConfig
 
 STAGES = ("simulate", "mppi", "teleop", "merge", "pretrain", "bc", "eval", "all")
+PROFILERS = ("none", "simple", "advanced", "pytorch")  # trainer.profiler: Lightning's, by its own names
 
 
 class ConfigError(ValueError):
@@ -63,6 +64,10 @@ class TrainerConfig:
     num_workers: int = 0
     val_fraction: float = 0.2
     log_every_n_steps: int = 5
+    # Lightning's profiler of the fit: none | simple (seconds per hook: batch fetch, training_step, backward,
+    # optimizer step, validation, checkpoint) | advanced (cProfile per hook) | pytorch (operators, CUDA kernels);
+    # its report goes to fit-profile.txt in the run's directory. Costs little for simple, much for the others
+    profiler: str = "none"
     held_out_objects: list[str] = field(default_factory=lambda: ["donut", "burger", "sushi", "steak"])
     # stage=all: training seeds (eval.train_seeds) trained at once, each stage=bc in its own process on the same
     # device (joblib's loky workers; scale=paper: 3).  Not part of a checkpoint's key
@@ -270,6 +275,8 @@ def validate(cfg: DictConfig) -> None:
         _check(value >= lo, key, f"{value} is not valid; must be >= {lo}")
     _check(cfg.trainer.max_epochs >= 1 or (cfg.trainer.max_epochs == -1 and cfg.trainer.max_steps > 0),
            "trainer.max_epochs", f"{cfg.trainer.max_epochs} is not valid; must be >= 1 (or -1 with trainer.max_steps > 0)")
+    _check(cfg.trainer.profiler in PROFILERS, "trainer.profiler",
+           f"{cfg.trainer.profiler!r} is not a profiler; valid: {', '.join(PROFILERS)}")
     _check(cfg.trainer.max_steps == -1 or cfg.trainer.max_steps >= 1, "trainer.max_steps",
            f"{cfg.trainer.max_steps} is not valid; -1 (no limit) or >= 1")
     # Taichi's random_seed is an int32 and episode seeds are mixed modulo 2**31 - 1 (mix_seed)

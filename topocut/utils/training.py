@@ -149,11 +149,13 @@ class EpochLines(Callback):
 
 
 def build_trainer(trainer_cfg, max_epochs: int, ckpt_dir: Path, logger=False, progress: bool = True,
-                  callbacks=(), gradient_clip_val: float | None = None):
-    """A Lightning Trainer from the `trainer` config group (accelerator, devices, strategy, precision).
+                  callbacks=(), gradient_clip_val: float | None = None, run_dir: Path | None = None):
+    """A Lightning Trainer from the `trainer` config group (accelerator, devices, strategy, precision, profiler).
 
     ``ckpt_dir/last.ckpt`` is rewritten after every epoch (after its validation), the resume point of
     ``resume_path``.  (Lightning's ``save_last=True`` with ``save_top_k=0`` writes it only when fit returns.)
+    ``trainer.profiler`` other than none: Lightning's profiler of that name, its report ``fit-profile.txt`` in
+    ``run_dir`` (else ``ckpt_dir``).
     """
     import lightning as L
     from lightning.pytorch.callbacks import ModelCheckpoint
@@ -168,7 +170,21 @@ def build_trainer(trainer_cfg, max_epochs: int, ckpt_dir: Path, logger=False, pr
                      precision=trainer_cfg.precision, max_epochs=max_epochs, max_steps=trainer_cfg.max_steps,
                      logger=logger, callbacks=[ckpt, *callbacks], enable_progress_bar=progress,
                      log_every_n_steps=trainer_cfg.log_every_n_steps, default_root_dir=str(ckpt_dir),
-                     gradient_clip_val=gradient_clip_val, enable_model_summary=False, deterministic=False)
+                     gradient_clip_val=gradient_clip_val, enable_model_summary=False, deterministic=False,
+                     profiler=build_profiler(getattr(trainer_cfg, "profiler", "none"), run_dir or ckpt_dir))
+
+
+def build_profiler(name: str, dirpath: Path):
+    """Lightning's profiler called ``name`` writing ``dirpath/fit-profile.txt``; None for none."""
+    if name == "none":
+        return None
+    from lightning.pytorch import profilers
+
+    kinds = {"simple": profilers.SimpleProfiler, "advanced": profilers.AdvancedProfiler,
+             "pytorch": profilers.PyTorchProfiler}
+    if name not in kinds:
+        raise ValueError(f"trainer.profiler={name!r} is not a profiler; valid: none, {', '.join(kinds)}")
+    return kinds[name](dirpath=str(dirpath), filename="profile")
 
 
 def work_dir(writer) -> Path:
