@@ -184,6 +184,8 @@ PY
     timeout ${LIMIT:-570} python3 benchmarks/paper_cost.py --out /tmp/pc --stages ${STAGES:-simulate mppi} \
       ${PC_ARGS:-} 2>&1 | grep -v -i warn | tail -40 | tee -a "$OUT/paper_cost.txt"
     cp /tmp/pc/paper_cost.json /tmp/pc/paper_cost.md "$OUT/" 2>/dev/null
+    # the fits' Lightning reports (PC_ARGS="--set trainer.profiler=simple"), one per training run
+    (cd /tmp/pc && find . -name fit-profile.txt | tar -czf "$OUT/profiles.tgz" -T -) 2>/dev/null
     mps_stop ;;
   reference)  # #54: the pyramid's own plane against three wrong planes (experiments/reference_check.py) at GRIDS
     for grid in ${GRIDS:-64 128}; do

@@ -76,7 +76,8 @@ def run(ctx: RunContext, policy, trainer, data, policies: list[str]) -> dict:
             inputs["encoder"] = ctx.store.ref(enc_path)
             encoder_ckpt = str(enc_path / "model.ckpt")
         config = as_dict(("policy", policy), ("trainer", trainer), ("kind", name), ("seed", ctx.seed))
-        config["trainer"].pop("jobs", None)  # how many trainings run at once, not what is trained
+        for key in ("jobs", "profiler"):  # how many trainings run at once, what is measured: not what is trained
+            config["trainer"].pop(key, None)
         config["policy"]["train"].pop("val_sample_every", None)  # how often val/mask_acc is measured, likewise
         writer, existing = ctx.store.begin("checkpoint", name, config, inputs, extra={"seed": ctx.seed})
         if existing is not None:

@@ -19,7 +19,8 @@ def run(ctx: RunContext, model, trainer, data) -> dict:
     ds_path = ctx.store.resolve("dataset", data.dataset, data.version)
     inputs = {"dataset": ctx.store.ref(ds_path)}
     config = as_dict(("model", model), ("trainer", trainer), ("seed", ctx.seed))
-    config["trainer"].pop("jobs", None)  # how many trainings run at once, not what is trained
+    for key in ("jobs", "profiler"):  # how many trainings run at once, what is measured: not what is trained
+        config["trainer"].pop(key, None)
     name = checkpoint_name(model)
     writer, existing = ctx.store.begin("checkpoint", name, config, inputs, extra={"seed": ctx.seed,
                                                                                   "device": ctx.device})

@@ -325,7 +325,8 @@ def test_stage_all_runs_the_whole_pipeline_and_each_stage_reads_the_last_ones_ar
     root = tmp_path / "o"
     small = [o for o in FAST if not o.startswith("stage.run.")]  # stage=all passes its stages no stage.run.* key
     _ok(topocut(root, "stage=all", "scale=smoke", *small, "data.episodes=2", "trainer.max_epochs=1",
-                "policy.train.max_epochs=1", "eval.max_cuts=1", "eval.bootstrap_resamples=100", timeout=900))
+                "policy.train.max_epochs=1", "eval.max_cuts=1", "eval.bootstrap_resamples=100",
+                "trainer.profiler=simple", timeout=900))
     store = ArtifactStore(root)
     demos = store.resolve("dataset", "demos")
     assert EpisodeDataset(demos / "data.zarr").num_episodes == 2  # data.episodes of the one smoke cell
@@ -338,6 +339,11 @@ def test_stage_all_runs_the_whole_pipeline_and_each_stage_reads_the_last_ones_ar
         assert (ckpts[name] / "model.ckpt").is_file(), name
         assert store.manifest(ckpts[name])["inputs"]["dataset"] == demos_ref, name
     assert store.manifest(ckpts["pddp"])["inputs"]["encoder"] == store.ref(store.resolve("checkpoint", "perception"))
+    # trainer.profiler: a report per fit in its run's directory (bc: per policy), and no part of a checkpoint's key
+    profiles = {p.parent.name for p in (root / "runs").rglob("fit-profile.txt")}
+    assert profiles == {"pretrain", *learned}, profiles
+    for ck in [store.resolve("checkpoint", "perception"), *ckpts.values()]:
+        assert "profiler" not in store.manifest(ck)["config"]["trainer"]
     table = store.resolve("eval", "table1")
     inputs = store.manifest(table)["inputs"]
     assert {store.ref(c) for c in ckpts.values()} <= set(inputs.values())  # the checkpoints bc just committed
