@@ -25,7 +25,7 @@ run: setup
 
 # pytest-xdist: a worker per core, each test file whole on one worker (its module fixtures built once): 25 -> 17 min
 # on the 2-core machine when it was measured; on 2026-11-29 the same machine took 40 min, 33 with OMP_NUM_THREADS=1
-# and Taichi's kernel cache no longer evicting (topocut.sim.mpm.offline_cache_size); 26:40 on 2026-11-30 with a fresh
+# and Taichi's kernel cache no longer evicting (topocut.sim.runtime.offline_cache_size); 26:40 on 2026-11-30 with a fresh
 # Taichi runtime per test file (tests/conftest.py: its kernels then hit the cache whatever ran before them on the
 # worker; 59 min on the run that filled the cache, beside other work).  TEST_WORKERS=0 runs in one process.  OMP_NUM_THREADS=1: the stages a test starts as processes train tiny models, where a second OpenMP thread
 # beside the other worker only spins (tests/conftest.py's one_thread does the same inside the workers).

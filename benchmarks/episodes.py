@@ -296,7 +296,7 @@ def main() -> None:
     p.add_argument("--profile", default="", help="demo: cProfile the measured episode into this file and print the "
                    "60 entries of most cumulative time (on CUDA a host sync books the queued work's wait)")
     args = p.parse_args()
-    from topocut.sim.mpm import init_taichi
+    from topocut.sim.runtime import init_taichi
 
     init_taichi(args.device)
     parts = args.only or ("demo", "eval", "policy")

@@ -35,8 +35,8 @@ from taichi.lang.expr import Expr
 
 from topocut.sim.config import SimConfig
 from topocut.sim.materials import polar_rotation
-from topocut.sim.mpm import init_taichi
 from topocut.sim.objects import sample_object
+from topocut.sim.runtime import init_taichi
 from topocut.sim.scatter import warp_run_add
 from topocut.sim.scenes import cell_order
 

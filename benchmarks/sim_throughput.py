@@ -31,8 +31,9 @@ import yaml
 from topocut.sim.action import KnifeAction
 from topocut.sim.config import SimConfig, TuningConfig
 from topocut.sim.env import CuttingEnv, cell_order
-from topocut.sim.mpm import apic_gather, init_taichi
+from topocut.sim.mpm import apic_gather
 from topocut.sim.objects import sample_object
+from topocut.sim.runtime import init_taichi
 
 
 @ti.data_oriented

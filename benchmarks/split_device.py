@@ -23,8 +23,8 @@ import numpy as np
 from topocut.sim import pieces as P
 from topocut.sim.action import KnifeAction
 from topocut.sim.config import SimConfig
-from topocut.sim.mpm import init_taichi
 from topocut.sim.objects import ObjectPose, sample_object
+from topocut.sim.runtime import init_taichi
 from topocut.utils.runtime import host_threads
 
 

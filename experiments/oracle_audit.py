@@ -87,7 +87,7 @@ def simulated_batch(args):
     from topocut.reward import RewardConfig
     from topocut.sim.config import SimConfig
     from topocut.sim.env import CuttingEnv
-    from topocut.sim.mpm import init_taichi
+    from topocut.sim.runtime import init_taichi
     from topocut.tasks import piece_sizes, task_config
 
     init_taichi(args.device)
@@ -156,8 +156,8 @@ def simulated(args):
     from topocut.reward import RewardConfig
     from topocut.sim.config import SimConfig
     from topocut.sim.env import CuttingEnv
-    from topocut.sim.mpm import init_taichi
     from topocut.sim.render import render_sequences
+    from topocut.sim.runtime import init_taichi
     from topocut.tasks import piece_sizes, task_config
 
     init_taichi(args.device)

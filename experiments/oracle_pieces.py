@@ -104,7 +104,7 @@ def main():
             obj, task = f.stem.split("-")[:2]
             results[(obj, task)] = (run, score(run))
     else:
-        from topocut.sim.mpm import init_taichi
+        from topocut.sim.runtime import init_taichi
 
         init_taichi(args.device)
         for obj, task in CASES:

@@ -8,8 +8,8 @@ def _taichi_single_threaded():
     order, so two runs of the same cut are bit-identical (teleop replay, batched vs sequential rollouts).
 
     Fresh per file (make test gives each file whole to one worker): a file's fields then get the same SNode ids
-    whichever files ran before it, so its kernels hit Taichi's cache on disk (topocut.sim.mpm.reset_taichi)."""
-    from topocut.sim.mpm import init_taichi, reset_taichi
+    whichever files ran before it, so its kernels hit Taichi's cache on disk (topocut.sim.runtime.reset_taichi)."""
+    from topocut.sim.runtime import init_taichi, reset_taichi
 
     reset_taichi()
     init_taichi("cpu", seed=0, cpu_threads=1)

@@ -12,8 +12,8 @@ import pytest
 from topocut.sim import pieces as P
 from topocut.sim.action import KnifeAction
 from topocut.sim.config import SimConfig, TuningConfig
-from topocut.sim.mpm import init_taichi, reset_taichi
 from topocut.sim.objects import ObjectPose, sample_object
+from topocut.sim.runtime import init_taichi, reset_taichi
 
 POSE = ObjectPose(x=0.5, y=0.5, yaw=0.0, scale=1.0)
 CAP = 24000  # rows of every call (counts below it): one set of device fields, compiled once

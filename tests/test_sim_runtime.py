@@ -1,4 +1,4 @@
-"""The Taichi runtime's life (topocut.sim.mpm: init_taichi, reset_taichi, offline_cache_size).
+"""The Taichi runtime's life (topocut.sim.runtime: init_taichi, reset_taichi, offline_cache_size, memoize_source_positions).
 
 Taichi's kernel cache on disk is keyed by each kernel's IR, which names its fields' SNode ids; the tests reset the
 runtime before every file (tests/conftest.py) so that a file's fields get the same ids whatever ran before it.
@@ -8,7 +8,7 @@ import os
 import numpy as np
 import taichi as ti
 
-from topocut.sim.mpm import KERNEL_CACHE_BYTES, init_taichi, offline_cache_size, reset_taichi
+from topocut.sim.runtime import KERNEL_CACHE_BYTES, init_taichi, offline_cache_size, reset_taichi
 
 
 def _ids_of_two_fields() -> list[int]:
@@ -62,3 +62,42 @@ def test_the_kernel_cache_is_capped_at_a_gibibyte_unless_the_environment_says():
     else:
         assert offline_cache_size() == {"offline_cache_max_size_of_files": KERNEL_CACHE_BYTES}
         assert impl.current_cfg().offline_cache_max_size_of_files == KERNEL_CACHE_BYTES
+
+
+def test_source_excerpts_are_taichis_own_and_made_once_per_place(monkeypatch):
+    """memoize_source_positions: every excerpt a kernel's transform asks for equals Taichi's own text for that
+    node, and Taichi makes each place's once although a @ti.func inlined three times asks for its nodes thrice."""
+    import taichi as ti
+    from taichi.lang.ast import ast_transformer_utils as utils
+
+    from topocut.sim import runtime
+
+    init_taichi("cpu")
+    memo = utils.ASTTransformerContext.get_pos_info
+    assert memo.memoized
+    original, made, asked, wrong = runtime._TAICHI_POS_INFO, [], [], []
+    monkeypatch.setattr(runtime, "_EXCERPTS", {})
+    monkeypatch.setattr(runtime, "_TAICHI_POS_INFO",
+                        lambda ctx, node: made.append(ctx.func.func.__name__) or original(ctx, node))
+
+    def spy(ctx, node):
+        text = memo(ctx, node)
+        asked.append(ctx.func.func.__name__)
+        if text != original(ctx, node):
+            wrong.append((node.lineno, text))
+        return text
+
+    monkeypatch.setattr(utils.ASTTransformerContext, "get_pos_info", spy)
+
+    @ti.func
+    def affine(x):
+        return 2.0 * x + 1.0
+
+    @ti.kernel
+    def three(a: ti.f32) -> ti.f32:
+        return affine(a) + affine(a + 1.0) + affine(a + 2.0)
+
+    assert three(1.0) == 3.0 + 5.0 + 7.0
+    assert not wrong
+    assert len(made) == len(runtime._EXCERPTS) < len(asked)
+    assert asked.count("affine") >= 3 * made.count("affine") > 0  # inlined thrice, each place made once

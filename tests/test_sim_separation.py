@@ -12,8 +12,8 @@ from scipy.spatial import cKDTree
 from topocut.sim.action import KnifeAction
 from topocut.sim.config import SimConfig
 from topocut.sim.env import CuttingEnv
-from topocut.sim.mpm import init_taichi
 from topocut.sim.objects import ObjectPose
+from topocut.sim.runtime import init_taichi
 
 POSE = ObjectPose(x=0.5, y=0.5, yaw=0.0, scale=1.0)
 

@@ -7,8 +7,8 @@ import pytest
 from topocut.sim.action import KnifeAction
 from topocut.sim.config import SimConfig
 from topocut.sim.env import CuttingEnv
-from topocut.sim.mpm import init_taichi
 from topocut.sim.objects import ObjectPose
+from topocut.sim.runtime import init_taichi
 from topocut.tasks import Turn
 
 R_Y90 = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])  # about +y by +90 deg: x -> -z, z -> x

@@ -321,12 +321,32 @@ def test_eval_in_two_processes_writes_the_episodes_of_one(tmp_path):
 def test_stage_all_runs_the_whole_pipeline_and_each_stage_reads_the_last_ones_artifact(tmp_path):
     """`make run`'s command (stage=all at smoke scale), shrunk: simulate → mppi → pretrain → bc → eval for real in
     one process tree. Every stage commits its artifact, each reads the one before it (the manifests' inputs
-    name them), and the evaluation holds every Table 1 policy on every episode spec."""
+    name them), and the evaluation holds every Table 1 policy on every episode spec.  With the default logger
+    (wandb, offline) and progress on, as a user's first `make run` has them (issue #48; the suite's own runs set
+    WANDB_MODE=disabled): each stage leaves its offline run in its run directory, says where in one line and
+    prints no wandb banner (~30 lines a stage), and a training in a log gets a line per epoch."""
     root = tmp_path / "o"
-    small = [o for o in FAST if not o.startswith("stage.run.")]  # stage=all passes its stages no stage.run.* key
-    _ok(topocut(root, "stage=all", "scale=smoke", *small, "data.episodes=2", "trainer.max_epochs=1",
-                "policy.train.max_epochs=1", "eval.max_cuts=1", "eval.bootstrap_resamples=100",
-                "trainer.profiler=simple", timeout=900))
+    # stage=all passes its stages no stage.run.* key; the logger and the progress lines as a user has them
+    small = [o for o in FAST if not o.startswith("stage.run.") and o not in ("logger=none", "progress=false")]
+    proc = _ok(subprocess.run(
+        _cmd(root, "stage=all", "scale=smoke", *small, "logger=wandb", "data.episodes=2", "trainer.max_epochs=1",
+             "policy.train.max_epochs=1", "eval.max_cuts=1", "eval.bootstrap_resamples=100", "trainer.profiler=simple"),
+        cwd=REPO, env=dict(_env(root), WANDB_MODE="offline"), capture_output=True, text=True, timeout=900))
+    out = _output(proc)
+    (run_dir,) = (root / "runs" / "all").iterdir()
+    said = [ln for ln in out.splitlines() if "wandb: offline run written to" in ln]
+    for stage_dir in [run_dir, *(run_dir / s for s in ("simulate", "mppi", "pretrain", "bc", "eval"))]:
+        offline = list((stage_dir / "wandb").glob("offline-run-*"))
+        assert len(offline) == 1 and list(offline[0].glob("*.wandb")), f"no offline run in {stage_dir}"
+        assert sum(str(offline[0]) in ln for ln in said) == 1, f"{stage_dir.name}:\n{out[-3000:]}"
+    assert "Tracking run with wandb" not in out and "Run summary" not in out, f"a wandb banner:\n{out[-3000:]}"
+    epochs = [ln.split(" - epoch 1/1: ", 1)[1] for ln in out.splitlines() if " - epoch 1/1: " in ln]
+    assert len(epochs) >= 2 and "…" not in out, out[-3000:]  # F's and the policies' (names whole, not a bar's)
+    from tests.test_logger import _keys_documented
+
+    pretrain = _summary(proc)["pretrain"]  # every key its summary and its epoch line print is explained
+    _keys_documented(pretrain, REPO / "docs" / "perception.md")
+    _keys_documented(dict(kv.rsplit(" ", 1) for kv in epochs[0].split(", ")), REPO / "docs" / "perception.md")
     store = ArtifactStore(root)
     demos = store.resolve("dataset", "demos")
     assert EpisodeDataset(demos / "data.zarr").num_episodes == 2  # data.episodes of the one smoke cell

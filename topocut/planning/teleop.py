@@ -140,6 +140,7 @@ def _ensure_taichi() -> None:
     from taichi.lang import impl
 
     if impl.get_runtime().prog is None:  # never re-init: that would free the simulator's fields
-        from topocut.sim.mpm import offline_cache_size
+        from topocut.sim.runtime import memoize_source_positions, offline_cache_size
 
+        memoize_source_positions()
         ti.init(arch=ti.cpu, offline_cache=True, **offline_cache_size())

@@ -10,7 +10,7 @@ from topocut.utils.lazy import lazy_exports
 
 _LAZY = {
     "CuttingEnv": "topocut.sim.env", "SimState": "topocut.sim.env", "CutInfo": "topocut.sim.env",
-    "SimulationDiverged": "topocut.sim.env", "init_taichi": "topocut.sim.mpm", "reset_taichi": "topocut.sim.mpm",
+    "SimulationDiverged": "topocut.sim.env", "init_taichi": "topocut.sim.runtime", "reset_taichi": "topocut.sim.runtime",
     "MPMSolver": "topocut.sim.mpm",
     "SimConfig": "topocut.sim.config", "TuningConfig": "topocut.sim.config", "KnifeAction": "topocut.sim.action",
     "KnifeSweep": "topocut.sim.action", "cut_mask": "topocut.sim.action", "OBJECTS": "topocut.sim.objects",

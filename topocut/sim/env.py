@@ -24,8 +24,9 @@ import numpy as np
 from topocut.sim import pieces as P
 from topocut.sim.action import KnifeAction, KnifeSweep
 from topocut.sim.config import SimConfig
-from topocut.sim.mpm import MPMSolver, init_taichi
+from topocut.sim.mpm import MPMSolver
 from topocut.sim.primitives import Primitives
+from topocut.sim.runtime import init_taichi
 from topocut.sim.scenes import NO_STEP, Scenes, SimState, cell_order  # noqa: F401 - SimState, cell_order: re-exported
 from topocut.utils.runtime import host_threads
 

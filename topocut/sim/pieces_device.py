@@ -26,8 +26,8 @@ API: ``split_batch(x (B,n,3), counts (B,), piece (B,n) i32, sweeps [KnifeSweep |
 import numpy as np
 import taichi as ti
 
-from topocut.sim.mpm import _ON_RESET
 from topocut.sim.pieces import LINK, MIN_PIECE
+from topocut.sim.runtime import _ON_RESET
 
 CELL_MARGIN = 1.001  # cells a bit wider than the bond length: a bond's ends lie in adjacent cells despite rounding
 BIG = 1e300
