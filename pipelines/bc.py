@@ -15,17 +15,15 @@ from __future__ import annotations
 import json
 import shutil
 
-import torch
-
 from pipelines._common import as_dict
 from topocut.policies import registry
 from topocut.utils.context import RunContext
-from topocut.utils.training import MetricHistory, build_trainer, finish_fit, resume_path, split_episodes, work_dir
 
 
 def _loaders(dataset, split, batch_size: int, num_workers: int):
+    from torch.utils.data import DataLoader as make
+
     train, val = split["train"], split["val"] + split["unseen"]
-    make = torch.utils.data.DataLoader
     return (make(dataset(train), batch_size=batch_size, shuffle=True, num_workers=num_workers,
                  drop_last=len(train) > batch_size),
             make(dataset(val), batch_size=batch_size, num_workers=num_workers) if val else None)
@@ -55,7 +53,9 @@ def check_train_keys(train) -> None:
 
 
 def run(ctx: RunContext, policy, trainer, data, policies: list[str]) -> dict:
+    # Lightning's import (~7 s on a 2-core CPU) in the run, not when the config check imports this module
     from topocut.data.episodes import EpisodeDataset
+    from topocut.utils.training import MetricHistory, build_trainer, finish_fit, resume_path, split_episodes, work_dir
 
     registry.check(policies, "stage.run.policies", registry.learned())
     check_train_keys(policy.train)

@@ -6,7 +6,6 @@ import shutil
 
 from pipelines._common import as_dict
 from topocut.utils.context import RunContext
-from topocut.utils.training import MetricHistory, build_trainer, finish_fit, resume_path, work_dir
 
 
 def checkpoint_name(model) -> str:
@@ -14,7 +13,9 @@ def checkpoint_name(model) -> str:
 
 
 def run(ctx: RunContext, model, trainer, data) -> dict:
+    # Lightning's import (~7 s on a 2-core CPU) in the run, not when the config check imports this module
     from topocut.models import DynamicsModule, EpisodeDataModule
+    from topocut.utils.training import MetricHistory, build_trainer, finish_fit, resume_path, work_dir
 
     ds_path = ctx.store.resolve("dataset", data.dataset, data.version)
     inputs = {"dataset": ctx.store.ref(ds_path)}
