@@ -1,7 +1,7 @@
 """Where a training step of F goes on a real dataset, against synthetic box cuts in the same process.
 
     python benchmarks/train_steps.py --dataset <outputs>/dataset/demos/v001/data.zarr --device cuda \
-        [--steps 300 --batch 64 --amp --workers 4 --emd-tol 0.01 --emd-method auto]
+        [--steps 300 --batch 64 --amp --workers 4 --emd-tol 0.01 --emd-method auto --emd-rounds 0]
 
 `benchmarks/train.py` times F on synthetic box-cut transitions from an untrained model; `make paper`'s
 pretraining ran ~8x slower a sample than it.  This script trains F for --steps steps (AdamW with the module's
@@ -24,7 +24,7 @@ from topocut.models import DynamicsModule, EpisodeDataModule
 from topocut.models.config import DynamicsConfig
 from topocut.models.datamodule import TransitionDataset, synthetic_steps
 from topocut.models.losses import hungarian_cluster_loss, masked_targets
-from topocut.models.point_losses import auction_assignment, chamfer, emd, hausdorff
+from topocut.models.point_losses import auction_assignment, chamfer, emd, exact_rows, hausdorff
 
 PARTS = ("fetch", "forward", "cd+hd", "emd", "topo", "backward+step")
 
@@ -71,8 +71,9 @@ def train(batches, cfg: DynamicsConfig, args) -> list[dict]:
         p, q = ((pred.float() - c) / cfg.pos_scale).double(), ((b["x_t1"] - c) / cfg.pos_scale).double()
         cd_hd = chamfer(p, q, v).mean() + hausdorff(p, q, v).mean()
         lap(row, "cd+hd")
-        e = emd(p, q, v, args.emd_method, args.emd_tol).mean()
+        e = emd(p, q, v, args.emd_method, args.emd_tol, args.emd_rounds).mean()
         row["rounds"] = getattr(auction_assignment, "last_rounds", 0)
+        row["host"] = getattr(exact_rows, "last_items", 0)
         lap(row, "emd")
         topo = hungarian_cluster_loss(logits.float(), masked_targets(b["f_t1"].long(), v))
         lap(row, "topo")
@@ -87,15 +88,18 @@ def train(batches, cfg: DynamicsConfig, args) -> list[dict]:
 
 
 def report(name: str, rows: list[dict], batch: int, window: int) -> float:
-    print(f"\n{name}: ms a step by part (mean over each window), the auction's rounds (mean / max)")
-    print(f"{'steps':>9} " + " ".join(f"{p:>13}" for p in PARTS) + f" {'total':>8} {'samples/s':>9} {'rounds':>11}")
+    print(f"\n{name}: ms a step by part (mean over each window), the auction's rounds (mean / max), the items a step "
+          "solved on the host past --emd-rounds (mean)")
+    print(f"{'steps':>9} " + " ".join(f"{p:>13}" for p in PARTS) + f" {'total':>8} {'samples/s':>9} {'rounds':>11} "
+          f"{'host':>5}")
     for lo in range(0, len(rows), window):
         w = rows[lo:lo + window]
         ms = {p: 1e3 * sum(r[p] for r in w) / len(w) for p in PARTS}
         total = sum(ms.values())
         rounds = [r["rounds"] for r in w]
         print(f"{lo:>4}-{lo + len(w) - 1:<4} " + " ".join(f"{ms[p]:>13.1f}" for p in PARTS) +
-              f" {total:>8.1f} {1e3 * batch / total:>9.0f} {sum(rounds) / len(w):>6.0f}/{max(rounds):<4}")
+              f" {total:>8.1f} {1e3 * batch / total:>9.0f} {sum(rounds) / len(w):>6.0f}/{max(rounds):<4} "
+              f"{sum(r['host'] for r in w) / len(w):>5.1f}")
     steady = rows[len(rows) // 2:]
     return sum(sum(r[p] for p in PARTS) for r in steady) / len(steady)
 
@@ -111,6 +115,8 @@ def main(argv=None) -> None:
     ap.add_argument("--amp", action="store_true", help="bf16 autocast of the forward pass (trainer=gpu's bf16-mixed)")
     ap.add_argument("--emd-tol", type=float, default=DynamicsConfig.emd_tol)
     ap.add_argument("--emd-method", default=DynamicsConfig.emd_method, choices=["auto", "exact", "auction"])
+    ap.add_argument("--emd-rounds", type=int, default=DynamicsConfig.emd_rounds,
+                    help="the auction's round budget (model.emd_rounds; 0: none)")
     args = ap.parse_args(argv)
     cfg = DynamicsConfig().validate()
     steady = {}

@@ -8,7 +8,7 @@ import torch
 from scipy.optimize import linear_sum_assignment
 
 from topocut.models.losses import position_losses
-from topocut.models.point_losses import chamfer, emd, emd_auction, hausdorff
+from topocut.models.point_losses import auction_assignment, chamfer, emd, emd_auction, exact_rows, hausdorff
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 
@@ -65,6 +65,33 @@ def test_identical_and_permuted_sets_are_exact(warm):
     b = a[ar, perm]  # b[perm^-1[i]] = a[i]
     d, cols = emd_auction(a, b, return_assignment=True, warm_iters=warm)
     assert torch.all(d == 0) and torch.equal(perm[ar, cols], torch.arange(128).expand(3, 128))
+
+
+def test_a_round_budget_leaves_the_unfinished_items_to_scipy_and_the_bound_holds():
+    """A lattice against jittered copies of itself: a row left free must displace a chain of others across the
+    cloud, one step a round (as on the simulator's particle clouds: docs/perception.md), so the auction needs ~100
+    rounds alone (32-132 here).  With a budget of 16 the close item (jitter 0.05, 8 rounds: each item goes through its
+    ε phases on its own, not at the batch's pace) finishes in the auction and the far ones go to the host's exact
+    assignment; every item stays within the bound, the host's equal scipy's value, and with padding
+    rows (``valid``) the host solves the valid block only."""
+    ax = torch.arange(4, dtype=torch.float64)
+    lat = torch.stack(torch.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)  # 64 points, spacing 1
+    g = torch.Generator().manual_seed(0)
+    jitter = torch.tensor([0.05, 0.5, 0.5, 1.0], dtype=torch.float64)[:, None, None]
+    a, b = lat.expand(4, 64, 3).clone(), lat + jitter * torch.randn(4, 64, 3, generator=g, dtype=torch.float64)
+    valid = torch.ones(4, 64, dtype=torch.bool)
+    valid[3, ::7] = False
+    emd_auction(a, b, valid, tol=0.01)
+    assert auction_assignment.last_rounds > 32  # what the budget cuts
+    got, cols = emd_auction(a, b, valid, tol=0.01, return_assignment=True, rounds=16)
+    assert auction_assignment.last_rounds <= 16 and exact_rows.last_items == 3
+    for i in range(4):
+        v = valid[i]
+        exact = brute(a[i][v].numpy(), b[i][v].numpy())[2]
+        assert exact * (1 - 1e-12) <= float(got[i]) <= exact * 1.01
+        if i > 0:  # solved on the host
+            assert float(got[i]) == pytest.approx(exact, rel=1e-12)
+        assert sorted(cols[i][v].tolist()) == v.nonzero().flatten().tolist() and torch.all(cols[i][~v] == -1)
 
 
 def test_batched_equals_per_item():

@@ -290,7 +290,8 @@ def validate(cfg: DictConfig) -> None:
         msg = str(e)
         raise ConfigError(msg if msg.startswith("sim.") else f"sim: {msg}") from e
     for group, node in (("planner", cfg.planner), ("observation", cfg.observation), ("policy.net", cfg.policy.net),
-                        ("eval", cfg.eval), ("reward", cfg.reward), ("task", cfg.task), ("topology", cfg.topology)):
+                        ("eval", cfg.eval), ("reward", cfg.reward), ("task", cfg.task), ("topology", cfg.topology),
+                        ("model", cfg.model)):
         obj = OmegaConf.to_object(node)
         try:
             obj.validate()

@@ -42,6 +42,9 @@ class DynamicsConfig:
     pos_scale: float = 0.1  # point-set distances are measured in units of this length (O(1) losses)
     emd_method: str = "auto"  # exact (scipy, host) | auction (device, <= (1 + emd_tol) x exact) | auto (auction on cuda)
     emd_tol: float = 0.01  # relative error bound of the auction EMD (models/point_losses.py)
+    # the auction's round budget, 0 = none: an item unfinished after it is solved exactly on the host (the bound holds
+    # either way).  On real clouds a few rows can take hundreds of rounds (docs/perception.md)
+    emd_rounds: int = 0
     # -- optimisation ---------------------------------------------------------
     lr: float = 1e-3
     weight_decay: float = 1e-4
@@ -66,6 +69,8 @@ class DynamicsConfig:
             raise ValueError(f"model.pointnet_dims: width {bad[0]} is not divisible by model.num_heads={self.num_heads}")
         if self.emd_method not in ("auto", "exact", "auction"):
             raise ValueError(f"model.emd_method={self.emd_method!r} is not valid; choose one of auto, exact, auction")
+        if self.emd_rounds < 0:
+            raise ValueError(f"model.emd_rounds={self.emd_rounds} must be >= 0 (0: no budget)")
         if not self.emd_tol > 0:
             raise ValueError(f"model.emd_tol={self.emd_tol} must be > 0 (a relative error bound)")
         for name in ("coord_scale", "pos_scale"):  # lengths that divide positions / point-set distances

@@ -159,20 +159,21 @@ def per_sample(fn, a: torch.Tensor, b: torch.Tensor, valid: torch.Tensor | None 
 
 def position_losses(pred: torch.Tensor, target: torch.Tensor, scale: float = 1.0,
                     valid: torch.Tensor | None = None, emd_method: str = "auto",
-                    emd_tol: float = 0.01) -> dict[str, torch.Tensor]:
+                    emd_tol: float = 0.01, emd_rounds: int = 0) -> dict[str, torch.Tensor]:
     """Chamfer, EMD and Hausdorff of pred vs target (B,N,3), in units of ``scale``; each (B,).
 
     ``valid`` (B,N bool): the rows that are distinct particles; padding copies (TransitionDataset) are left
     out so that a particle counts once.  Computed in float64 around the target centroid: cdist's matmul
     formulation loses sqrt(float32 rounding) ~ 3e-4 of the coordinate magnitude, which would floor the loss
     and add gradient noise.  All three are batched on the inputs' device (point_losses.py); the EMD is exact
-    (scipy, host) or the device auction within (1 + emd_tol) of it, per ``emd_method`` (auto: auction on CUDA).
+    (scipy, host) or the device auction within (1 + emd_tol) of it, per ``emd_method`` (auto: auction on CUDA);
+    ``emd_rounds`` > 0 caps the auction's rounds, the items left solved exactly on the host.
     """
     from topocut.models.point_losses import chamfer, emd, hausdorff
 
     c = target.mean(dim=1, keepdim=True).detach()
     p, t = ((pred - c) / scale).double(), ((target - c) / scale).double()
-    out = {"chamfer": chamfer(p, t, valid), "emd": emd(p, t, valid, emd_method, emd_tol),
+    out = {"chamfer": chamfer(p, t, valid), "emd": emd(p, t, valid, emd_method, emd_tol, emd_rounds),
            "hausdorff": hausdorff(p, t, valid)}
     return {k: v.to(pred.dtype) for k, v in out.items()}
 
@@ -185,7 +186,7 @@ def dynamics_loss(pred_x: torch.Tensor, logits: torch.Tensor, x_t1: torch.Tensor
     """
     cfg = cfg or DynamicsConfig()
     parts = {k: v.mean() for k, v in position_losses(pred_x, x_t1, cfg.pos_scale, valid,
-                                                                 cfg.emd_method, cfg.emd_tol).items()}
+                                                                 cfg.emd_method, cfg.emd_tol, cfg.emd_rounds).items()}
     loss_pos = cfg.w_chamfer * parts["chamfer"] + cfg.w_emd * parts["emd"] + cfg.w_hausdorff * parts["hausdorff"]
     loss_topo = hungarian_cluster_loss(logits, masked_targets(f_t1, valid))
     return {"loss": cfg.lambda_pos * loss_pos + cfg.lambda_topo * loss_topo, "loss_pos": loss_pos,

@@ -138,14 +138,16 @@ WARM_EPS0 = 3.0  # after the Sinkhorn warm start the auction's ε-scaling starts
 def auction_assignment(cost: torch.Tensor, eps: torch.Tensor, valid: torch.Tensor | None = None,
                        phases: int | None = None, factor: float = 8.0, check_every: int = 4,
                        max_rounds: int = 100_000, price0: torch.Tensor | None = None,
-                       eps0: torch.Tensor | None = None) -> torch.Tensor:
+                       eps0: torch.Tensor | None = None, budget: int | None = None) -> torch.Tensor:
     """Column (B,N) assigned to each row of the (B,N,N) ``cost``, minimising the summed cost within N·eps.
 
     eps (B,) is the final ε of each item; ε-scaling starts at ``eps0`` (default a quarter of the item's largest
-    cost) and divides by ``factor`` per phase (prices carried over, assignment restarted).  Rows/columns outside
-    ``valid`` take no part and get -1.  Jacobi auction: each round, every unassigned row bids for its best column
+    cost) and divides by ``factor`` per phase (prices carried over, assignment restarted; each item moves on when
+    it alone is complete).  Rows/columns outside ``valid`` take no part and get -1.  Jacobi auction: each round, every unassigned row bids for its best column
     (value = -cost - price) raising the price by (best - second best) + ε; each column goes to its highest bid.
     Termination is tested every ``check_every`` rounds (a round with every row assigned changes nothing).
+    ``budget``: stop after that many rounds instead; an item not fully assigned in the final phase by then comes
+    back all -1 (emd_auction solves those exactly).  Without it, ``max_rounds`` rounds raise RuntimeError.
     """
     B, N, _ = cost.shape
     dev, dt = cost.device, cost.dtype
@@ -163,22 +165,57 @@ def auction_assignment(cost: torch.Tensor, eps: torch.Tensor, valid: torch.Tenso
     graph = None
     if USE_CUDA_GRAPHS and cost.is_cuda:
         graph, state = _graphed(("auction", B, N, dt, dev, check_every), state, _auction_round, check_every)
+    # ε of each item's phases, B,phases; every item moves to its next phase (prices kept, assignment restarted) as
+    # soon as it is complete, not when the whole batch is: an item's rounds are those it takes alone
+    E = torch.stack([eps if phases == 1 else torch.maximum(eps0 * (eps / eps0) ** (k / (phases - 1)), eps)
+                     for k in range(phases)], 1)
+    phase = torch.zeros(B, dtype=torch.long, device=dev)
+    state["e"].copy_(E[:, :1])
+    state["assign"].fill_(-1)
     rounds = 0
-    for k in range(phases):
-        e = eps if phases == 1 else torch.maximum(eps0 * (eps / eps0) ** (k / (phases - 1)), eps)
-        state["e"].copy_(e[:, None])
-        state["assign"].fill_(-1)
-        while bool(((state["assign"] < 0) & state["valid"]).any()):
-            if rounds >= max_rounds:
-                raise RuntimeError(f"auction did not terminate in {max_rounds} rounds")
-            rounds += check_every
-            if graph is not None:
-                graph.replay()
-            else:
-                for _ in range(check_every):
-                    _auction_round(state)
+    while True:
+        complete = ~((state["assign"] < 0) & state["valid"]).any(1)
+        step_up = complete & (phase < phases - 1)
+        phase += step_up.long()
+        state["assign"].masked_fill_(step_up[:, None], -1)
+        state["e"].copy_(E.gather(1, phase[:, None]))
+        done = complete & ~step_up  # complete in its final phase
+        if bool(done.all()) or (budget is not None and rounds >= budget):
+            break
+        if rounds >= max_rounds:
+            raise RuntimeError(f"auction did not terminate in {max_rounds} rounds")
+        rounds += check_every
+        if graph is not None:
+            graph.replay()
+        else:
+            for _ in range(check_every):
+                _auction_round(state)
     auction_assignment.last_rounds = rounds
-    return state["assign"].clone()  # the graph's static buffer is reused by the next call
+    # the graph's static buffer is reused by the next call; an item out of budget comes back all -1
+    cols = torch.where(done[:, None], state["assign"], torch.full_like(state["assign"], -1))
+    return cols
+
+
+def exact_rows(cost: torch.Tensor, cols: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
+    """``cols`` with every item that has an unassigned valid row solved exactly by scipy on the host (those items
+    only: one transfer of their (N,N) costs each way)."""
+    from scipy.optimize import linear_sum_assignment
+
+    v = torch.ones_like(cols, dtype=torch.bool) if valid is None else valid.bool()
+    left = ((cols < 0) & v).any(1)
+    items = left.nonzero().flatten().tolist()
+    exact_rows.last_items = len(items)
+    if not items:
+        return cols
+    c, m = cost[items].detach().cpu().double().numpy(), v[items].cpu().numpy()
+    fill = torch.full((len(items), cols.shape[1]), -1, dtype=cols.dtype)
+    for k in range(len(items)):
+        idx = m[k].nonzero()[0]
+        r, j = linear_sum_assignment(c[k][idx][:, idx])
+        fill[k, torch.as_tensor(idx[r])] = torch.as_tensor(idx[j])
+    out = cols.clone()
+    out[items] = fill.to(cols.device)
+    return out
 
 
 def _sinkhorn_step(s: dict):
@@ -218,7 +255,7 @@ def sinkhorn_potentials(cost: torch.Tensor, eps: torch.Tensor, iters: int, valid
 
 
 def emd_auction(a: torch.Tensor, b: torch.Tensor, valid: torch.Tensor | None = None, tol: float = 0.01,
-                return_assignment: bool = False, warm_iters: int = 30):
+                return_assignment: bool = False, warm_iters: int = 30, rounds: int = 0):
     """Earth Mover's distance (B,) of equal-size sets by the auction: emd <= result <= (1 + tol)·emd (module doc).
 
     ``warm_iters`` Sinkhorn iterations (ε down to 30 tol-ε) give the auction near-optimal starting prices, which
@@ -226,6 +263,9 @@ def emd_auction(a: torch.Tensor, b: torch.Tensor, valid: torch.Tensor | None = N
     30, not more: on an H100 at B=256, N=256 the auction took 8 rounds after 30, 60 or 150 iterations and 20
     from zero prices, for 26.8 / 43.9 / 96.2 / 21.5 ms (the same assignment every time).
     With ``return_assignment`` also the (B,N) column of b matched to each row of a (-1 outside ``valid``).
+    ``rounds`` > 0: the auction's budget; the items it leaves unfinished are solved exactly on the host
+    (``exact_rows``), so the bound holds for every item.  On real point clouds a few rows of an item can take
+    hundreds of rounds (docs/perception.md, "The auction's rounds on real data").
     """
     _check(a, b, valid, equal=True)
     with torch.no_grad():
@@ -239,9 +279,12 @@ def emd_auction(a: torch.Tensor, b: torch.Tensor, valid: torch.Tensor | None = N
             g = sinkhorn_potentials(d, 30 * eps, warm_iters, valid)
             # eps0 / eps is WARM_EPS0 for every item (eps > 0): the phase count is known without a host sync
             cols = auction_assignment(d, eps, valid, price0=-g, eps0=WARM_EPS0 * eps,
-                                      phases=auction_phases(WARM_EPS0))
+                                      phases=auction_phases(WARM_EPS0), budget=rounds or None)
         else:
-            cols = auction_assignment(d, eps, valid)
+            cols = auction_assignment(d, eps, valid, budget=rounds or None)
+        exact_rows.last_items = 0
+        if rounds:
+            cols = exact_rows(d, cols, valid)
     ar = torch.arange(a.shape[0], device=a.device)[:, None]
     dist = (a - b[ar, cols.clamp(min=0)]).norm(dim=-1)
     out = _mean(dist, valid)
@@ -249,7 +292,7 @@ def emd_auction(a: torch.Tensor, b: torch.Tensor, valid: torch.Tensor | None = N
 
 
 def emd(a: torch.Tensor, b: torch.Tensor, valid: torch.Tensor | None = None, method: str = "auto",
-        tol: float = 0.01) -> torch.Tensor:
+        tol: float = 0.01, rounds: int = 0) -> torch.Tensor:
     """EMD (B,): ``exact`` = scipy's Hungarian assignment on the host (topocut.metrics.emd, per sample),
     ``auction`` = on the device within (1 + tol) of exact, ``auto`` = auction on CUDA, exact elsewhere."""
     if method not in EMD_METHODS:
@@ -257,7 +300,7 @@ def emd(a: torch.Tensor, b: torch.Tensor, valid: torch.Tensor | None = None, met
     if method == "auto":
         method = "auction" if a.is_cuda else "exact"
     if method == "auction":
-        return emd_auction(a, b, valid, tol)
+        return emd_auction(a, b, valid, tol, rounds=rounds)
     from topocut.metrics import emd as exact
 
     _check(a, b, valid)
