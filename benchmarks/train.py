@@ -88,7 +88,7 @@ def measure(name: str, device: str, batch: dict, steps: int, amp: bool = False, 
 
     @torch.no_grad()
     def pos_only():
-        position_losses(x, batch["x_t1"], cfg.pos_scale, valid, cfg.emd_method, cfg.emd_tol)
+        position_losses(x, batch["x_t1"], cfg.pos_scale, valid, cfg.emd_method, cfg.emd_tol, cfg.emd_rounds)
 
     model.train()
     t_train = timed(train_step, device, steps)
