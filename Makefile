@@ -31,7 +31,7 @@ run: setup
 # beside the other worker only spins (tests/conftest.py's one_thread does the same inside the workers).
 TEST_WORKERS ?= auto
 test: setup
-	WANDB_MODE=disabled OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder $(ARGS)
+	WANDB_MODE=disabled OMP_NUM_THREADS=1 TI_CPU_MAX_NUM_THREADS=1 $(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder $(ARGS)
 
 lint: setup
 	$(BIN)/ruff check topocut pipelines tests benchmarks

@@ -3,6 +3,8 @@
 Every simulator, the device split of pieces and the tests start Taichi through ``init_taichi``.  Besides ti.init's
 options it memoises the source excerpt Taichi writes for each AST node it transforms (``memoize_source_positions``).
 """
+import os
+
 import taichi as ti
 
 _STATE = {"arch": None}
@@ -17,8 +19,6 @@ def offline_cache_size() -> dict:
     default holds fewer kernels than the grids, batch sizes and materials of one test suite compile (~100 MiB on the
     CPU backend); past the cap each process exit deletes the least recently used quarter, and the next process to use
     those kernels compiles them again (3-40 s each)."""
-    import os
-
     return {} if os.environ.get("TI_OFFLINE_CACHE_MAX_SIZE_OF_FILES") else {
         "offline_cache_max_size_of_files": KERNEL_CACHE_BYTES}
 
@@ -44,9 +44,16 @@ def init_taichi(arch: str = "cpu", seed: int = 0, debug: bool = False, cpu_threa
     memoize_source_positions()
     kw = dict(default_fp=ti.f32, random_seed=seed, debug=debug, offline_cache=True, log_level=ti.WARN,
               **offline_cache_size())
+    # an explicit cpu_threads wins over TI_CPU_MAX_NUM_THREADS (make test sets it for the stages its tests start)
+    # without Taichi's "overridden by ti.init argument" warning
+    held = os.environ.pop("TI_CPU_MAX_NUM_THREADS", None) if cpu_threads else None
     if cpu_threads:
         kw["cpu_max_num_threads"] = int(cpu_threads)
-    ti.init(arch=ti.cuda if arch == "cuda" else ti.cpu, **kw)
+    try:
+        ti.init(arch=ti.cuda if arch == "cuda" else ti.cpu, **kw)
+    finally:
+        if held is not None:
+            os.environ["TI_CPU_MAX_NUM_THREADS"] = held
     if arch == "cuda" and impl.current_cfg().arch != ti.cuda:
         ti.reset()
         raise RuntimeError("arch=cuda requested but Taichi found no usable CUDA device; use sim.arch=cpu")
