@@ -27,8 +27,12 @@ run: setup
 # on the 2-core machine when it was measured; on 2026-11-29 the same machine took 40 min, 33 with OMP_NUM_THREADS=1
 # and Taichi's kernel cache no longer evicting (topocut.sim.runtime.offline_cache_size); 26:40 on 2026-11-30 with a fresh
 # Taichi runtime per test file (tests/conftest.py: its kernels then hit the cache whatever ran before them on the
-# worker; 59 min on the run that filled the cache, beside other work).  TEST_WORKERS=0 runs in one process.  OMP_NUM_THREADS=1: the stages a test starts as processes train tiny models, where a second OpenMP thread
-# beside the other worker only spins (tests/conftest.py's one_thread does the same inside the workers).
+# worker; 59 min on the run that filled the cache, beside other work); 22:37 on 2026-11-30 (Taichi's source excerpts
+# memoised, Lightning imported by the trainings only, the longest files first: tests/conftest.py LONGEST_FIRST, with
+# --no-loadscope-reorder, else pytest-xdist orders files by their number of tests).  TEST_WORKERS=0 runs in one
+# process.  OMP_NUM_THREADS=1 and TI_CPU_MAX_NUM_THREADS=1: the stages a test starts as processes train tiny models
+# and simulate small scenes, where a second thread beside the other worker only spins (tests/conftest.py's
+# one_thread and its single-threaded Taichi do the same inside the workers).
 TEST_WORKERS ?= auto
 test: setup
 	WANDB_MODE=disabled OMP_NUM_THREADS=1 TI_CPU_MAX_NUM_THREADS=1 $(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder $(ARGS)
