@@ -199,7 +199,7 @@ def auction_assignment(cost: torch.Tensor, eps: torch.Tensor, valid: torch.Tenso
 def exact_rows(cost: torch.Tensor, cols: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
     """``cols`` with every item that has an unassigned valid row solved exactly by scipy on the host (those items
     only: one transfer of their (N,N) costs each way)."""
-    from scipy.optimize import linear_sum_assignment
+    from topocut.models.losses import _match  # scipy's assignment, row -> column
 
     v = torch.ones_like(cols, dtype=torch.bool) if valid is None else valid.bool()
     left = ((cols < 0) & v).any(1)
@@ -211,8 +211,7 @@ def exact_rows(cost: torch.Tensor, cols: torch.Tensor, valid: torch.Tensor | Non
     fill = torch.full((len(items), cols.shape[1]), -1, dtype=cols.dtype)
     for k in range(len(items)):
         idx = m[k].nonzero()[0]
-        r, j = linear_sum_assignment(c[k][idx][:, idx])
-        fill[k, torch.as_tensor(idx[r])] = torch.as_tensor(idx[j])
+        fill[k, torch.as_tensor(idx)] = torch.as_tensor(idx[_match(c[k][idx][:, idx])])
     out = cols.clone()
     out[items] = fill.to(cols.device)
     return out
