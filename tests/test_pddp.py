@@ -340,3 +340,31 @@ def test_pddp_checkpoint_with_pretrained_encoder_travels_without_its_perception_
                                                     / "model.ckpt")
     for k, v in trained.items():  # the state dict, not the relocated file's (other) weights, wins
         torch.testing.assert_close(relocated.state_dict()[k], v, msg=k)
+
+
+def test_loader_workers_draw_their_own_fps_starts(one_thread):
+    """Each DataLoader worker counts its own accesses: without its id in the seed, worker 1's first access of a
+    step would repeat worker 0's FPS start.  The main process (num_workers=0) keeps the seeds it always had, and
+    stage=bc's persistent workers (pipelines/bc.py) keep counting from one epoch to the next."""
+    from pipelines.bc import _loaders
+
+    steps, _ = synthetic_steps(2, n_points=200)  # 200 points, 16 taken: the start decides the sample
+
+    def points(loader):
+        return [b["points"][0].numpy() for b in loader]
+
+    one_step = [0, 0, 0, 0]  # step 0 four times: workers 0, 1, 0, 1 (batches handed out in turn)
+    ds = PolicyDataset(steps, 16, 8)
+    w0a, w1a, w0b, w1b = points(torch.utils.data.DataLoader(ds, batch_size=1, num_workers=2, sampler=one_step))
+    main = PolicyDataset(steps, 16, 8)
+    m1, m2 = main[0]["points"].numpy(), main[0]["points"].numpy()
+    assert not np.array_equal(w0a, w1a)  # the two workers' first accesses: different starts
+    np.testing.assert_array_equal(w0a, m1)  # worker 0 seeds as the main process does
+    np.testing.assert_array_equal(w0b, m2)
+    assert not np.array_equal(w1b, m2)
+
+    train, val = _loaders(lambda idx: PolicyDataset(steps, 16, 8, indices=idx),
+                          {"train": [0, 1], "val": [], "unseen": [1]}, batch_size=1, num_workers=2)
+    assert train.persistent_workers and val.persistent_workers and val.num_workers == 2
+    first, second = points(train), points(train)
+    assert not any(np.array_equal(a, b) for a in first for b in second)  # counters carried over the epoch

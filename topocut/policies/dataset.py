@@ -12,6 +12,8 @@ import torch
 
 from topocut.policies.inputs import goal_inputs, policy_inputs, sample_indices, step_obs, step_targets
 
+WORKER_STRIDE = 1_000_000_007  # workers' seeds ~1e9 apart: far past any worker's access count
+
 
 def subsample(n_total: int, points, n: int, seed: int) -> np.ndarray:
     """Indices of ``n`` of the points (``topocut.policies.inputs.sample_indices`` with a random FPS start; the
@@ -22,8 +24,9 @@ def subsample(n_total: int, points, n: int, seed: int) -> np.ndarray:
 class PolicyDataset(torch.utils.data.Dataset):
     """Step dicts (an EpisodeDataset or a list) -> fixed-size tensors for PDDP (``topocut.policies.inputs``).
 
-    Each access draws a fresh FPS start point for the observation (seed from ``seed`` and a counter), a mild
-    augmentation; the goal fields are the deterministic ones every policy receives (cached per step).
+    Each access draws a fresh FPS start point for the observation (seed from ``seed``, the step, a counter and,
+    in a DataLoader worker, the worker's id: each worker counts its own accesses, and without the id workers
+    would repeat one another's starts), a mild augmentation; the goal fields are the deterministic ones every policy receives (cached per step).
     ``mask_label``: the target mask (PolicyTrainConfig.mask_label).  Fields: points, labels, valid, history, goal,
     goal_labels, goal_valid, mask, prev_mask (the plane-from-previous-cut floor), has_prev.
     """
@@ -42,7 +45,8 @@ class PolicyDataset(torch.utils.data.Dataset):
         j = int(self.indices[i])
         s = self.steps[j]
         self._calls += 1
-        seed = (self.seed * 1_000_003 + j * 7919 + self._calls) % (2**31)
+        worker = torch.utils.data.get_worker_info()  # None in the main process: the seeds of num_workers=0
+        seed = (self.seed * 1_000_003 + j * 7919 + self._calls + (worker.id * WORKER_STRIDE if worker else 0)) % (2**31)
         obs = step_obs(s)
         if j not in self._goals:
             self._goals[j] = goal_inputs(obs["goal"], obs["goal_labels"], self.num_goal_points)
