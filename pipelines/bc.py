@@ -88,7 +88,8 @@ def run(ctx: RunContext, policy, trainer, data, policies: list[str]) -> dict:
         config = as_dict(("policy", policy), ("trainer", trainer), ("kind", name), ("seed", ctx.seed))
         for key in ("jobs", "profiler"):  # how many trainings run at once, what is measured: not what is trained
             config["trainer"].pop(key, None)
-        config["policy"]["train"].pop("val_sample_every", None)  # how often val/mask_acc is measured, likewise
+        for key in ("val_sample_every", "sample"):  # how often val/mask_acc is measured, where the FPS runs: likewise
+            config["policy"]["train"].pop(key, None)
         writer, existing = ctx.store.begin("checkpoint", name, config, inputs, extra={"seed": ctx.seed})
         if existing is not None:
             results[name] = {"checkpoint": str(existing), "seed": ctx.seed, "reused": True}

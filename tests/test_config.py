@@ -116,6 +116,7 @@ def test_stick_with_one_cut_is_refused_naming_the_key():
     ("trainer.profiler=fast", r"trainer\.profiler: 'fast' .*valid: none, simple, advanced, pytorch"),
     ("model.emd_rounds=-1", r"model\.emd_rounds=-1 must be >= 0"),
     ("model.emd_tol=0", r"model\.emd_tol=0\.0 must be > 0"),
+    ("policy.train.sample=gpu", r"policy\.train\.sample: 'gpu' is not valid; valid: loader, batch"),
 ])
 def test_out_of_range_values_fail_up_front_naming_the_key(override, key):
     """Caught at composition, before a simulator or a dataset is touched (they failed deep in a stage before)."""

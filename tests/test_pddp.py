@@ -199,7 +199,9 @@ def test_trainer_logs_metrics(tmp_path, one_thread):
     steps, _ = synthetic_steps(16, n_points=32)
     tr = PolicyTrainConfig(num_points=32, num_goal_points=16, warmup_steps=1, val_sample_steps=4)
     module = PDDPModule(PDDPConfig(graph="absorbing", goal_mode="cross", **TINY), "graphconv", train=tr)
-    dl = torch.utils.data.DataLoader(PolicyDataset(steps, 32, 16), batch_size=8)
+    # sample="batch": the FPS in the module's on_after_batch_transfer, for training and validation batches alike
+    dl = torch.utils.data.DataLoader(PolicyDataset(steps, 32, 16, sample="batch"), batch_size=8)
+    assert "cloud" in next(iter(dl))
     trainer = L.Trainer(max_steps=4, limit_val_batches=1, logger=False, enable_checkpointing=False,
                         enable_progress_bar=False, enable_model_summary=False, accelerator="cpu",
                         default_root_dir=tmp_path)
@@ -368,3 +370,38 @@ def test_loader_workers_draw_their_own_fps_starts(one_thread):
     assert train.persistent_workers and val.persistent_workers and val.num_workers == 2
     first, second = points(train), points(train)
     assert not any(np.array_equal(a, b) for a in first for b in second)  # counters carried over the epoch
+
+
+def test_batch_sampling_gives_the_loader_batches(one_thread):
+    """policy.train.sample=batch: the whole cloud goes to the batch, whose FPS (sample_batch, float64 from each
+    item's drawn start) picks what the loader's per-item numpy FPS picks, so every field of every batch is the
+    same; a cloud of few distinct points repeats picks, flagged in ``valid`` as valid_rows flags them; after a
+    first cut ``prev_mask`` is that cut's mask on the picked rows, before it the sampled mask's majority."""
+    from topocut.policies.dataset import sample_batch
+
+    steps, action = synthetic_steps(12, n_points=200)
+    for k, s in enumerate(steps):
+        if k % 2:  # a previous cut: the plane-from-previous-cut floor
+            s["history"] = history_from_actions([KnifeAction(0.45 + 0.01 * k, 0.5, 0.3, 0.0)])
+    steps[3]["x_t"] = np.repeat(steps[3]["x_t"][:10], 20, axis=0)  # 10 distinct points for 16 picks
+    loader = PolicyDataset(steps, num_points=16, num_goal_points=8, seed=3)
+    batch = PolicyDataset(steps, num_points=16, num_goal_points=8, seed=3, sample="batch")
+    item = PolicyDataset(steps, num_points=16, num_goal_points=8, seed=3, sample="batch")[0]  # its own counter
+    assert set(item) >= {"cloud", "cloud_mask", "start"} and "points" not in item
+    fields = ("points", "labels", "valid", "history", "goal", "goal_labels", "goal_valid", "mask", "prev_mask",
+              "has_prev")
+    for epoch in range(2):  # the second epoch draws other starts in both
+        for a, b in zip(torch.utils.data.DataLoader(loader, batch_size=4),
+                        torch.utils.data.DataLoader(batch, batch_size=4)):
+            b = sample_batch(b, 16)
+            assert set(b) == set(a)
+            for k in fields:
+                assert b[k].dtype == a[k].dtype and torch.equal(b[k], a[k]), (epoch, k)
+    assert not loader[3]["valid"].all() and loader[1]["has_prev"] and not loader[0]["has_prev"]
+    done = sample_batch(b, 16)
+    assert done is b  # a batch without clouds passes through
+    assert PolicyDataset(steps, num_points=256, sample="batch").sample == "loader"  # 200 points: padded copies
+    for k in ("x_t", "f_t", "mask"):
+        steps[5][k] = steps[5][k][:100]
+    mixed = PolicyDataset(steps, num_points=16, sample="batch")  # a batch stacks one size: the loader's FPS
+    assert mixed.sample == "loader" and "points" in mixed[5]

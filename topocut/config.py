@@ -275,6 +275,11 @@ def validate(cfg: DictConfig) -> None:
         _check(value >= lo, key, f"{value} is not valid; must be >= {lo}")
     _check(cfg.trainer.max_epochs >= 1 or (cfg.trainer.max_epochs == -1 and cfg.trainer.max_steps > 0),
            "trainer.max_epochs", f"{cfg.trainer.max_epochs} is not valid; must be >= 1 (or -1 with trainer.max_steps > 0)")
+    from topocut.policies.config import LOSSES, MASK_LABELS, SAMPLES
+
+    for key, choices in (("sample", SAMPLES), ("mask_label", MASK_LABELS), ("loss", LOSSES)):  # stage=bc's, up front
+        value = cfg.policy.train[key]
+        _check(value in choices, f"policy.train.{key}", f"{value!r} is not valid; valid: {', '.join(choices)}")
     _check(cfg.trainer.profiler in PROFILERS, "trainer.profiler",
            f"{cfg.trainer.profiler!r} is not a profiler; valid: {', '.join(PROFILERS)}")
     _check(cfg.trainer.max_steps == -1 or cfg.trainer.max_steps >= 1, "trainer.max_steps",

@@ -52,8 +52,11 @@ def fps(points, n: int, seed: int = 0, start: str = "farthest") -> np.ndarray:
     return idx
 
 
-def fps_torch(points, n: int, mask=None):
+def fps_torch(points, n: int, mask=None, start=None):
     """Batched FPS: points (B,N,3) tensor -> indices (B,n) long into N, same start rule as ``fps``.
+
+    start (B,) long: each cloud's first pick (``fps``'s start="random" draws it as
+    ``np.random.default_rng(seed).integers(N)``); None: the farthest-from-centroid rule below.
 
     mask (B,N) bool marks each cloud's valid points (None: all valid), so clouds of different sizes can be
     padded into one batch; invalid points are never selected and their coordinates are ignored.  The start
@@ -115,7 +118,10 @@ def fps_torch(points, n: int, mask=None):
             d0 = torch.where(mask, sqdist(centroid), neg)
             # -inf on padding: torch.minimum keeps it, so argmax never returns an invalid point
             dist = torch.where(mask, torch.tensor(float("inf"), dtype=p.dtype, device=p.device), neg)
-        cur = d0.argmax(1)  # B, first maximum, as np.argmax
+        if start is None:
+            cur = d0.argmax(1)  # B, first maximum, as np.argmax
+        else:
+            cur = torch.as_tensor(start, dtype=torch.long, device=p.device).reshape(B).clone()
         if p.is_cuda and n >= GRAPH_MIN_PICKS:
             idx = _picks_graph(p, dist, cur, n, sqdist)
         else:

@@ -14,7 +14,7 @@ import torch.nn as nn
 from torch.optim.swa_utils import AveragedModel
 
 from topocut.policies.config import PDDPConfig, PolicyTrainConfig
-from topocut.policies.dataset import PolicyDataset, subsample, to_tensors  # noqa: F401 - importable from here too
+from topocut.policies.dataset import PolicyDataset, sample_batch, subsample, to_tensors  # noqa: F401 - importable from here too
 from topocut.policies.diffusion import build_noise, get_loss, sample
 from topocut.policies.encoders import build_encoder
 from topocut.policies.pddp import PDDPNet
@@ -150,6 +150,10 @@ class PDDPModule(L.LightningModule):
         ctx = self._context(model, batch)
         return self.loss_fn(model, batch["mask"], ctx, self.graph, self.noise, t=t, generator=generator,
                             valid=batch.get("valid")).mean()
+
+    def on_after_batch_transfer(self, batch, dataloader_idx):
+        """PolicyDataset(sample="batch") batches: the observation's FPS for the whole batch on its device."""
+        return sample_batch(batch, self.train_cfg.num_points)
 
     def training_step(self, batch, batch_idx):
         loss = self.loss(batch)

@@ -276,7 +276,7 @@ def training_setup(name: str, policy, steps, train_indices, seed: int, encoder_c
 
         def pddp_dataset(indices):
             return PolicyDataset(steps, train_cfg.num_points, train_cfg.num_goal_points, seed=seed, indices=indices,
-                                 mask_label=train_cfg.mask_label)
+                                 mask_label=train_cfg.mask_label, sample=train_cfg.sample)
 
         return module, pddp_dataset, None
     if spec.family == "pose":
