@@ -112,8 +112,8 @@ def sample_batch(batch: dict, num_points: int) -> dict:
     out["points"] = cloud.gather(1, idx[..., None].expand(-1, -1, 3))  # B,N,3
     out["labels"] = batch["cloud_labels"].long().gather(1, idx)
     out["mask"] = batch["cloud_mask"].long().gather(1, idx)
-    seen = torch.triu(torch.ones(num_points, num_points, dtype=torch.bool, device=idx.device), 1)  # j < i
-    out["valid"] = ~((idx[:, :, None] == idx[:, None, :]) & seen.T).any(2)  # B,N: no earlier row took it
+    earlier = torch.tril(torch.ones(num_points, num_points, dtype=torch.bool, device=idx.device), -1)  # N,N: j < i
+    out["valid"] = ~((idx[:, :, None] == idx[:, None, :]) & earlier).any(2)  # B,N: no earlier row took it
     majority = (out["mask"] * out["valid"]).sum(1) > 0.5 * out["valid"].sum(1)  # B
     prev = batch["cloud_prev"].long().gather(1, idx)
     has = batch["has_prev"].bool()[:, None]
