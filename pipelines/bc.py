@@ -21,22 +21,13 @@ from topocut.utils.context import RunContext
 
 
 def _loaders(dataset, split, batch_size: int, num_workers: int):
-    """Training and validation loaders.  ``num_workers`` > 0: workers that live through the fit (PolicyDataset's
-    FPS, ~5 ms an item on the host, made a PDDP epoch wait on its loader 3/4 of the time with none on an H200)
-    and page-locked batches when CUDA is present, as the perception datamodule's."""
-    import torch
-    from torch.utils.data import DataLoader
-
-    from topocut.utils.training import worker_context
-
-    def make(ds, **kw):
-        return DataLoader(ds, batch_size=batch_size, num_workers=num_workers, persistent_workers=num_workers > 0,
-                          pin_memory=torch.cuda.is_available(), multiprocessing_context=worker_context(num_workers),
-                          **kw)
+    """Training and validation loaders (``data_loader``: with ``num_workers`` > 0, workers that live through the
+    fit; PolicyDataset's per-item FPS made a PDDP epoch wait on its loader 3/4 of the time with none on an H200)."""
+    from topocut.utils.training import data_loader
 
     train, val = split["train"], split["val"] + split["unseen"]
-    return (make(dataset(train), shuffle=True, drop_last=len(train) > batch_size),
-            make(dataset(val)) if val else None)
+    return (data_loader(dataset(train), batch_size, num_workers, shuffle=True, drop_last=len(train) > batch_size),
+            data_loader(dataset(val), batch_size, num_workers) if val else None)
 
 
 # policy.train keys each learned policy's training sets itself (registry.training_setup): a value given on the

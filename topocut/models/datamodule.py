@@ -138,20 +138,17 @@ class EpisodeDataModule(L.LightningDataModule):
         self.val_set = ConcatDataset([p for p in parts if len(p)]) if any(len(p) for p in parts) else None
 
     def train_dataloader(self) -> DataLoader:
-        from topocut.utils.training import worker_context
+        from topocut.utils.training import data_loader
 
-        return DataLoader(self.train_set, batch_size=self.batch_size, shuffle=True, num_workers=self.num_workers,
-                          drop_last=len(self.train_set) > self.batch_size, persistent_workers=self.num_workers > 0,
-                          pin_memory=self.pin_memory, multiprocessing_context=worker_context(self.num_workers))
+        return data_loader(self.train_set, self.batch_size, self.num_workers, self.pin_memory, shuffle=True,
+                           drop_last=len(self.train_set) > self.batch_size)
 
     def val_dataloader(self):
         if self.val_set is None:
             return []
-        from topocut.utils.training import worker_context
+        from topocut.utils.training import data_loader
 
-        return DataLoader(self.val_set, batch_size=self.batch_size, shuffle=False, num_workers=self.num_workers,
-                          persistent_workers=self.num_workers > 0, pin_memory=self.pin_memory,
-                          multiprocessing_context=worker_context(self.num_workers))
+        return data_loader(self.val_set, self.batch_size, self.num_workers, self.pin_memory, shuffle=False)
 
 
 def synthetic_steps(num_steps: int, num_points: int = 512, seed: int = 0, board_z: float = 0.05,

@@ -243,6 +243,18 @@ def split_episodes(objects: list[str], val_fraction: float, seed: int, held_out=
     return {"train": sorted(seen[n_val:].tolist()), "val": sorted(seen[:n_val].tolist()), "unseen": unseen}
 
 
+def data_loader(dataset, batch_size: int, num_workers: int = 0, pin_memory: bool | None = None, **kw):
+    """A training run's DataLoader: ``num_workers`` > 0 keeps its workers through the fit (started in the
+    platform's way inside a joblib worker: ``worker_context``); batches pinned in page-locked memory when
+    ``pin_memory`` (None: when CUDA is present).  ``kw``: shuffle, drop_last, ..."""
+    import torch
+    from torch.utils.data import DataLoader
+
+    pin = torch.cuda.is_available() if pin_memory is None else bool(pin_memory)
+    return DataLoader(dataset, batch_size=batch_size, num_workers=num_workers, persistent_workers=num_workers > 0,
+                      pin_memory=pin, multiprocessing_context=worker_context(num_workers), **kw)
+
+
 def worker_context(num_workers: int):
     """multiprocessing context for DataLoader workers (None: torch's default).
 
