@@ -109,13 +109,12 @@ def fps_torch(points, n: int, mask=None, start=None):
                 return d
 
         if mask is None:
-            centroid = p.mean(1)  # B,3
-            d0 = sqdist(centroid)
+            d0 = sqdist(p.mean(1)) if start is None else None  # B,N distances to the centroid
             dist = torch.full((B, N), float("inf"), dtype=p.dtype, device=p.device)
         else:
             centroid = p.sum(1) / count[:, None].to(p.dtype)  # padding is zero
             neg = torch.tensor(float("-inf"), dtype=p.dtype, device=p.device)
-            d0 = torch.where(mask, sqdist(centroid), neg)
+            d0 = torch.where(mask, sqdist(centroid), neg) if start is None else None
             # -inf on padding: torch.minimum keeps it, so argmax never returns an invalid point
             dist = torch.where(mask, torch.tensor(float("inf"), dtype=p.dtype, device=p.device), neg)
         if start is None:
