@@ -1,11 +1,11 @@
 """stage=bc refuses the policy.train keys each policy's training sets itself, instead of overwriting them."""
-import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 
 from pipelines.bc import SET_PER_POLICY, check_train_keys
+from tests.stage_runner import run as run_stage
 from topocut.policies.config import PolicyTrainConfig
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -21,9 +21,8 @@ def test_defaults_pass_and_each_overridden_key_is_named():
 
 
 def test_the_command_line_override_exits_2_before_any_data_is_read(tmp_path):
-    proc = subprocess.run([sys.executable, "-m", "topocut.run", "stage=bc", "policy.train.encoder=none",
-                           f"outputs_root={tmp_path}", "logger=none"], cwd=ROOT, capture_output=True, text=True,
-                          timeout=300)
+    proc = run_stage([sys.executable, "-m", "topocut.run", "stage=bc", "policy.train.encoder=none",
+                      f"outputs_root={tmp_path}", "logger=none"], cwd=ROOT, timeout=300)
     out = proc.stdout + proc.stderr
     assert proc.returncode == 2, out[-2000:]
     assert "policy.train.encoder='none': stage=bc takes it from each policy's own encoder" in out, out[-2000:]

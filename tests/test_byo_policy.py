@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.stage_runner import run as run_stage
 from topocut.eval import EvalConfig
 from topocut.policies import registry
 
@@ -34,8 +35,8 @@ def _env(root: Path) -> dict:
 
 
 def topocut(root: Path, *overrides: str, timeout: float = 300) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "topocut.run", *overrides, f"outputs_root={root}"], cwd=REPO,
-                          env=_env(root), capture_output=True, text=True, timeout=timeout)
+    return run_stage([sys.executable, "-m", "topocut.run", *overrides, f"outputs_root={root}"], cwd=REPO,
+                     env=_env(root), timeout=timeout)
 
 
 @pytest.fixture

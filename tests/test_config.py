@@ -8,6 +8,7 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from tests.stage_runner import run as run_stage
 from topocut.config import STAGES, ConfigError, register_configs, validate
 
 CONF = str(Path(__file__).resolve().parents[1] / "conf")
@@ -131,10 +132,9 @@ def test_boundary_values_pass():
 
 
 def test_help_lists_every_group_choice_and_examples():
-    import subprocess
     import sys
 
-    proc = subprocess.run([sys.executable, "-m", "topocut.run", "--help"], capture_output=True, text=True, timeout=120)
+    proc = run_stage([sys.executable, "-m", "topocut.run", "--help"], timeout=120)
     assert proc.returncode == 0, proc.stderr[-2000:]
     for line in ("stage: all, bc, eval, merge, mppi, pretrain, simulate, teleop",
                  "object: burger, cake, cube, ditto, donut, ham, potato, steak, sushi, tomato",
@@ -145,7 +145,6 @@ def test_help_lists_every_group_choice_and_examples():
 def test_open_dicts_take_new_keys_from_the_command_line():
     """`eval.task_overrides={slice:{...}}` as documented: under scale=paper (which sets no such key) OmegaConf's
     struct flag refused the new key; the entry point gives open-dict overrides Hydra's `++`."""
-    import subprocess
     import sys
 
     from hydra.errors import ConfigCompositionException
@@ -159,9 +158,9 @@ def test_open_dicts_take_new_keys_from_the_command_line():
                                          "eval.tasks=[slice]", "eval.checkpoints_x=1"]
     with pytest.raises(ConfigCompositionException, match="task_overrides"):  # what the rewrite is for
         _compose("stage=eval", "scale=paper", "eval.task_overrides={slice:{thickness:0.05}}")
-    proc = subprocess.run([sys.executable, "-m", "topocut.run", "stage=eval", "scale=paper",
-                           "eval.task_overrides={slice:{thickness:0.05}}", "--cfg", "job", "-p", "eval.task_overrides"],
-                          capture_output=True, text=True, timeout=120)
+    proc = run_stage([sys.executable, "-m", "topocut.run", "stage=eval", "scale=paper",
+                      "eval.task_overrides={slice:{thickness:0.05}}", "--cfg", "job", "-p", "eval.task_overrides"],
+                     timeout=120)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "thickness: 0.05" in proc.stdout, proc.stdout
 

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.stage_runner import run as run_stage
 from topocut.data import store as st  # st.InvalidName, st.UnsupportedSchema: looked up in the tests that use them
 from topocut.data.episodes import EpisodeDataset, EpisodeWriter
 from topocut.data.store import ArtifactStore, CorruptArtifact
@@ -33,7 +34,7 @@ def _env(root: Path) -> dict:
 
 def topocut(root: Path, *overrides: str, timeout: float = 120) -> subprocess.CompletedProcess:
     cmd = [sys.executable, "-m", "topocut.run", "logger=none", "progress=false", *overrides, f"outputs_root={root}"]
-    return subprocess.run(cmd, cwd=REPO, env=_env(root), capture_output=True, text=True, timeout=timeout)
+    return run_stage(cmd, cwd=REPO, env=_env(root), timeout=timeout)
 
 
 def _out(proc) -> str:

@@ -12,6 +12,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from tests.stage_runner import run as run_stage
 from topocut.data.store import ArtifactStore, MissingArtifact
 from topocut.eval import stats
 from topocut.eval.report import CSV_COLUMNS, load_episodes, summarize, write_report
@@ -234,13 +235,12 @@ TINY = ["stage=eval", "device=cpu", "logger=none", "progress=false", "eval.polic
 def _eval_once(root: Path) -> Path:
     """One `python -m topocut.run stage=eval` in a fresh process, as a user re-runs a command."""
     import os
-    import subprocess
     import sys
 
     env = dict(os.environ, WANDB_MODE="disabled", TOPOCUT_OUTPUTS=str(root), HYDRA_FULL_ERROR="0")
     env.pop("CUDA_VISIBLE_DEVICES", None)
-    proc = subprocess.run([sys.executable, "-m", "topocut.run", *TINY, f"outputs_root={root}"], cwd=REPO, env=env,
-                          capture_output=True, text=True, timeout=300)
+    proc = run_stage([sys.executable, "-m", "topocut.run", *TINY, f"outputs_root={root}"], cwd=REPO, env=env,
+                     timeout=300)
     assert proc.returncode == 0, (proc.stdout + proc.stderr)[-4000:]
     (path,) = (root / "eval" / "table1").glob("v*")
     return path

@@ -14,6 +14,7 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
+from tests.stage_runner import run as run_stage
 from topocut.eval import EvalConfig
 from topocut.eval.videos import STATE_HOLD_FRAMES, VIDEO_HEIGHT, VIDEO_WIDTH
 from topocut.sim.cut_frames import pick_cut_frames
@@ -32,8 +33,8 @@ TINY = ["stage=eval", "device=cpu", "logger=none", "progress=false", f"eval.poli
 def topocut(root: Path, *overrides: str) -> subprocess.CompletedProcess:
     env = dict(os.environ, WANDB_MODE="disabled", TOPOCUT_OUTPUTS=str(root), HYDRA_FULL_ERROR="0")
     env.pop("CUDA_VISIBLE_DEVICES", None)
-    return subprocess.run([sys.executable, "-m", "topocut.run", *overrides, f"outputs_root={root}"], cwd=REPO,
-                          env=env, capture_output=True, text=True, timeout=300)
+    return run_stage([sys.executable, "-m", "topocut.run", *overrides, f"outputs_root={root}"], cwd=REPO,
+                     env=env, timeout=300)
 
 
 def _evaluation(root: Path, *overrides: str) -> Path:

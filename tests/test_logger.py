@@ -3,6 +3,7 @@ import csv
 
 import pytest
 
+from tests.stage_runner import run as run_stage
 from topocut.utils.logger import RunLogger
 
 
@@ -81,16 +82,15 @@ def test_teleop_runs_with_the_default_wandb_logger_offline(tmp_path):
     """stage=teleop with logger=wandb under WANDB_MODE=offline: exit 0, an offline run directory in the stage's
     run directory, named by one line of the output, and no wandb banner (silenced: ~30 lines a stage)."""
     import os
-    import subprocess
     import sys
     from pathlib import Path
 
     repo = Path(__file__).resolve().parents[1]
     env = dict(os.environ, WANDB_MODE="offline", HYDRA_FULL_ERROR="0", TOPOCUT_OUTPUTS=str(tmp_path))
     env.pop("CUDA_VISIBLE_DEVICES", None)
-    proc = subprocess.run([sys.executable, "-m", "topocut.run", "logger=wandb", *SMALL_SIM, "stage=teleop",
-                           "task=slice", "stage.run.replay=examples/teleop_slice_cake.json", f"outputs_root={tmp_path}"],
-                          cwd=repo, env=env, capture_output=True, text=True, timeout=300)
+    proc = run_stage([sys.executable, "-m", "topocut.run", "logger=wandb", *SMALL_SIM, "stage=teleop",
+                      "task=slice", "stage.run.replay=examples/teleop_slice_cake.json", f"outputs_root={tmp_path}"],
+                     cwd=repo, env=env, timeout=300)
     out = proc.stdout + proc.stderr
     assert proc.returncode == 0, f"exit {proc.returncode}\n{out[-4000:]}"
     (run_dir,) = (tmp_path / "runs" / "teleop").iterdir()

@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
 import sys
 from pathlib import Path
 
+from tests.stage_runner import run as run_stage
 from topocut.run import OUTPUTS_ENV, REPO_ROOT, absolute_outputs_root
 
 REPO = Path(__file__).resolve().parents[1]
@@ -52,8 +52,8 @@ def test_a_run_from_another_directory_writes_under_the_repo_relative_root(tmp_pa
     env = dict(os.environ, WANDB_MODE="disabled", HYDRA_FULL_ERROR="0", **{OUTPUTS_ENV: rel},
                PYTHONPATH=os.pathsep.join(p for p in (str(REPO), os.environ.get("PYTHONPATH")) if p))
     # a missing input: the cheapest stage run there is (exit 2 before any work), and it still writes status.json
-    proc = subprocess.run([sys.executable, "-m", "topocut.run", "stage=pretrain", "data.version=v999", "logger=none"],
-                          cwd=cwd, env=env, capture_output=True, text=True, timeout=120)
+    proc = run_stage([sys.executable, "-m", "topocut.run", "stage=pretrain", "data.version=v999", "logger=none"],
+                     cwd=cwd, env=env, timeout=120)
     out = proc.stdout + proc.stderr
     assert proc.returncode == 2 and "MissingArtifact" in out, out[-3000:]
     (status,) = (root / "runs" / "pretrain").glob("*/status.json")

@@ -5,6 +5,7 @@ from types import SimpleNamespace
 
 import pytest
 
+from tests.stage_runner import run as run_stage
 from topocut.data.store import ArtifactStore
 
 
@@ -413,7 +414,6 @@ def test_mppi_keeps_one_simulator_per_process_for_equal_configs():
 def test_stage_merge_of_every_shard_gives_the_episodes_in_one_runs_order(tmp_path):
     """stage=merge with no stage.run.only, for real: shards committed in scrambled order (as two machines' carried
     episode ranges arrive) merge cell by cell (data.tasks x data.objects), each cell's parts by first episode."""
-    import subprocess
     import sys
 
     from test_contracts import REPO, _env
@@ -431,9 +431,9 @@ def test_stage_merge_of_every_shard_gives_the_episodes_in_one_runs_order(tmp_pat
         EpisodeWriter(w.path / "data.zarr", points_per_step=32).add_episode(*make_episode(1, 20, seed=i, task=task,
                                                                                             obj=obj))
         w.commit()
-    proc = subprocess.run([sys.executable, "-m", "topocut.run", "stage=merge", "logger=none", "progress=false",
-                           "data.tasks=[slice,dice]", "data.objects=[cake,cube]", f"outputs_root={tmp_path}"],
-                          cwd=REPO, env=_env(tmp_path), capture_output=True, text=True, timeout=300)
+    proc = run_stage([sys.executable, "-m", "topocut.run", "stage=merge", "logger=none", "progress=false",
+                      "data.tasks=[slice,dice]", "data.objects=[cake,cube]", f"outputs_root={tmp_path}"],
+                     cwd=REPO, env=_env(tmp_path), timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     ds = EpisodeDataset(store.resolve("dataset", "demos") / "data.zarr")
     assert [ds.meta(e)["seed"] for e in range(ds.num_episodes)] == [0, 1, 2, 3, 4]

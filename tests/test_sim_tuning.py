@@ -5,7 +5,6 @@ unknown key under sim.tuning, or an old flat key (sim.warp_scatter) is refused n
 switch does is checked in tests/test_sim_{fused,grid_box,warp_scatter,resort,grid_layout,block_dim}.py.
 """
 import os
-import subprocess
 import sys
 from pathlib import Path
 
@@ -13,6 +12,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
+from tests.stage_runner import run as run_stage
 from topocut.config import ConfigError, check_known_keys, register_configs, validate
 from topocut.sim.config import SimConfig, TuningConfig
 
@@ -58,7 +58,7 @@ def _topocut(tmp_path, *overrides):
     env = dict(os.environ, WANDB_MODE="disabled", TOPOCUT_OUTPUTS=str(tmp_path), HYDRA_FULL_ERROR="0")
     cmd = [sys.executable, "-m", "topocut.run", "logger=none", "progress=false", *overrides,
            f"outputs_root={tmp_path}"]
-    proc = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
+    proc = run_stage(cmd, cwd=REPO, env=env, timeout=120)
     out = proc.stdout + proc.stderr
     assert proc.returncode == 2 and "Traceback" not in out, f"exit {proc.returncode}\n{out[-3000:]}"
     return out

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.stage_runner import run as run_stage
 from topocut.data.episodes import EpisodeDataset
 from topocut.data.store import ArtifactStore
 
@@ -46,8 +47,7 @@ def _cmd(root: Path, *overrides: str) -> list[str]:
 
 
 def topocut(root: Path, *overrides: str, timeout: float = 180) -> subprocess.CompletedProcess:
-    return subprocess.run(_cmd(root, *overrides), cwd=REPO, env=_env(root), capture_output=True, text=True,
-                          timeout=timeout)
+    return run_stage(_cmd(root, *overrides), cwd=REPO, env=_env(root), timeout=timeout)
 
 
 def _output(proc) -> str:
@@ -328,10 +328,10 @@ def test_stage_all_runs_the_whole_pipeline_and_each_stage_reads_the_last_ones_ar
     root = tmp_path / "o"
     # stage=all passes its stages no stage.run.* key; the logger and the progress lines as a user has them
     small = [o for o in FAST if not o.startswith("stage.run.") and o not in ("logger=none", "progress=false")]
-    proc = _ok(subprocess.run(
+    proc = _ok(run_stage(
         _cmd(root, "stage=all", "scale=smoke", *small, "logger=wandb", "data.episodes=2", "trainer.max_epochs=1",
              "policy.train.max_epochs=1", "eval.max_cuts=1", "eval.bootstrap_resamples=100", "trainer.profiler=simple"),
-        cwd=REPO, env=dict(_env(root), WANDB_MODE="offline"), capture_output=True, text=True, timeout=900))
+        cwd=REPO, env=dict(_env(root), WANDB_MODE="offline"), timeout=900))
     out = _output(proc)
     (run_dir,) = (root / "runs" / "all").iterdir()
     said = [ln for ln in out.splitlines() if "wandb: offline run written to" in ln]

@@ -4,6 +4,7 @@ from pathlib import Path
 
 import pytest
 
+from tests.stage_runner import run as run_stage
 from tests.test_config import CONF, _compose  # conf/'s composer (test_config registers the config schemas)
 from topocut.config import STAGES, ConfigError, validate
 from topocut.tasks import TASKS, PenConfig, TaskConfig, get_task, task_config
@@ -86,11 +87,10 @@ def test_a_key_of_another_task_is_refused_naming_the_tasks_own_keys():
 
 def test_a_key_of_another_task_on_the_command_line_is_one_line_and_exit_2():
     """`--cfg job` composes as a run does: the same one-line message, exit status 2, no traceback."""
-    import subprocess
     import sys
 
-    proc = subprocess.run([sys.executable, "-m", "topocut.run", "task=pyramid", "task.width=0.05", "--cfg", "job"],
-                          cwd=Path(CONF).parent, capture_output=True, text=True, timeout=120)
+    proc = run_stage([sys.executable, "-m", "topocut.run", "task=pyramid", "task.width=0.05", "--cfg", "job"],
+                     cwd=Path(CONF).parent, timeout=120)
     assert proc.returncode == 2, proc.stdout[-2000:] + proc.stderr[-2000:]
     assert "Traceback" not in proc.stderr and proc.stderr.strip().count("\n") == 0, proc.stderr
     assert proc.stderr.startswith("ConfigError: task.width: unknown key"), proc.stderr

@@ -1,0 +1,50 @@
+"""tests/stage_runner.py: a stage run forked from the preloaded server gives what `python -m topocut.run` gives."""
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from tests import stage_runner
+
+REPO = Path(__file__).resolve().parents[1]
+STAMP = re.compile(r"^\[\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3}\]")  # the log lines' time
+
+
+def _cmd(root, *overrides):
+    return [sys.executable, "-m", "topocut.run", *overrides, "logger=none", f"outputs_root={root}"]
+
+
+def _lines(text: str) -> list[str]:
+    return [STAMP.sub("[time]", ln) for ln in text.splitlines() if not ln.startswith("[Taichi] version")]
+
+
+@pytest.mark.parametrize("overrides", [("stage=simulate", "sim.n_grid=-3"), ("stage=pretrain", "data.version=v999")])
+def test_a_forked_run_exits_and_prints_as_a_real_process(tmp_path, overrides):
+    env = dict(os.environ, WANDB_MODE="disabled", HYDRA_FULL_ERROR="0")
+    assert stage_runner._forkable(_cmd(tmp_path, *overrides), env)
+    forked = stage_runner.run(_cmd(tmp_path / "f", *overrides), cwd=REPO, env=env, timeout=120)
+    real = subprocess.run(_cmd(tmp_path / "f", *overrides), cwd=REPO, env=env, capture_output=True, text=True,
+                          timeout=120)
+    assert forked.returncode == real.returncode == 2, forked.stderr + real.stderr
+    assert _lines(forked.stderr) == _lines(real.stderr)
+    assert _lines(forked.stdout) == _lines(real.stdout)  # but for Taichi's banner, printed where it was imported
+
+
+def test_what_is_not_forked(tmp_path):
+    env = dict(os.environ)
+    cmd = _cmd(tmp_path, "stage=simulate")
+    assert stage_runner._forkable(cmd, env)
+    assert stage_runner._forkable(cmd, dict(env, PYTHONPATH=str(tmp_path)))  # put on sys.path by the child
+    assert not stage_runner._forkable(cmd, dict(env, OMP_NUM_THREADS="7"))  # read as torch loads OpenMP
+    assert not stage_runner._forkable(["python3", "-m", "topocut.run"], env)  # another interpreter
+    assert not stage_runner._forkable([sys.executable, "-c", "pass"], env)
+
+
+def test_a_forked_run_past_its_timeout_is_killed(tmp_path):
+    with pytest.raises(subprocess.TimeoutExpired):
+        stage_runner.run(_cmd(tmp_path, "stage=simulate"), cwd=REPO, timeout=0.05)
+    # the server serves the next run
+    assert stage_runner.run(_cmd(tmp_path, "stage=simulate", "sim.n_grid=-3"), cwd=REPO, timeout=120).returncode == 2
