@@ -29,7 +29,9 @@ run: setup
 # Taichi runtime per test file (tests/conftest.py: its kernels then hit the cache whatever ran before them on the
 # worker; 59 min on the run that filled the cache, beside other work); 22:37 on 2026-11-30 (Taichi's source excerpts
 # memoised, Lightning imported by the trainings only, the longest files first: tests/conftest.py LONGEST_FIRST, with
-# --no-loadscope-reorder, else pytest-xdist orders files by their number of tests).  TEST_WORKERS=0 runs in one
+# --no-loadscope-reorder, else pytest-xdist orders files by their number of tests); 19:57 on 2026-11-30 (user 42.5 ->
+# 37.0 min: the stage runs forked from a server that imported torch, Taichi and Lightning once, tests/stage_runner.py;
+# one Taichi thread's scatter a serial loop without atomics, docs/sim.md "Determinism").  TEST_WORKERS=0 runs in one
 # process.  OMP_NUM_THREADS=1 and TI_CPU_MAX_NUM_THREADS=1: the stages a test starts as processes train tiny models
 # and simulate small scenes, where a second thread beside the other worker only spins (tests/conftest.py's
 # one_thread and its single-threaded Taichi do the same inside the workers).

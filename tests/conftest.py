@@ -2,7 +2,7 @@
 import pytest
 
 # The longest files first (`make test` passes --no-loadscope-reorder, so pytest-xdist hands files out in this order;
-# by default it orders them by their number of tests): the answer key, ~10 min on one core, started near the end
+# by default it orders them by their number of tests): the answer key, ~8-10 min on one core, started near the end
 # left one worker idle while it ran.  Measured on 2026-11-30 (make test 22:37); the rest keep their collection order.
 LONGEST_FIRST = ("test_answer_key_sim.py", "test_sim_separation.py", "test_stages.py", "test_paper_cost.py",
                  "test_reference_writing.py", "test_reference_scooping.py", "test_docs_commands.py",

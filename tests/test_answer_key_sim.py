@@ -3,7 +3,7 @@
 `python -m topocut.run stage=eval` at 64^3 with 5 cm pieces (Table 1's paper-scale run), the oracle alone, on
 slice, stick and dice for the cube, the potato and the donut, 5 cuts each, at the protocol's random poses: mean
 raw R >= 0.9 per task, every episode >= 0.75, and success (N_C = G and R >= task.success_threshold) where the
-episode's own R and N_C say so.  ~10 min on one core of a 2-core CPU (583 s in make test, 2026-11-30).
+episode's own R and N_C say so.  ~8 min on one core of a 2-core CPU (468 s in make test, 2026-11-30).
 """
 import json
 

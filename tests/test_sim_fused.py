@@ -106,3 +106,23 @@ def test_stepping_options_are_validated():
         SimConfig(tuning=TuningConfig(fuse_substeps=0)).validate()
     assert TuningConfig().core_rotation_method("cuda") == "svd"
     assert TuningConfig().core_rotation_method("cpu") == "polar"
+
+
+def test_one_cpu_thread_scatters_in_a_serial_loop_with_the_parallel_loops_result(env, monkeypatch):
+    """With one CPU thread (this session's) the scatter runs as a serial loop, whose atomic adds Taichi compiles as
+    plain ones (Scatter.scatter); the parallel loop it replaces gives the same pieces, damage and masses, and the
+    particles within float32 round-off (fused multiply-adds), over a batched cut, push and settling."""
+    import topocut.sim.mpm as mpm
+
+    serial, _ = _run(env, 16)
+    assert env.solver.serial_scatter  # the session's Taichi runs one thread
+    monkeypatch.setattr(mpm, "cpu_threads", lambda: 2)  # a solver that takes the runtime for a threaded one
+    threaded_env = _env()
+    threaded, _ = _run(threaded_env, 16)
+    assert not threaded_env.solver.serial_scatter
+    assert serial["newly"].min() > 0  # the knife cut both scenes
+    for k in ("piece0", "piece1", "damage0", "damage1", "body0", "body1", "newly"):
+        np.testing.assert_array_equal(serial[k], threaded[k], err_msg=k)
+    for b in range(2):
+        np.testing.assert_allclose(serial[f"x{b}"], threaded[f"x{b}"], rtol=0, atol=1e-5, err_msg=f"x{b}")
+        np.testing.assert_allclose(serial[f"v{b}"], threaded[f"v{b}"], rtol=0, atol=1e-3, err_msg=f"v{b}")

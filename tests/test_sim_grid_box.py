@@ -2,9 +2,11 @@
 
 A node outside the box has no mass, so grid_op skips it either way: the box changes which nodes are
 visited, never a value.  With the session's single CPU thread a batched cut, push and settle must
-therefore agree bit for bit with the whole-grid path, and the box must be the particles' stencil
-bounds worked out in numpy.  The spoon's sided scatter grows the same box.
+therefore agree bit for bit with the whole-grid path (the scatter's atomic loop: ``atomic_scatter``), and the box
+must be the particles' stencil bounds worked out in numpy.  The spoon's sided scatter grows the same box.
 """
+from contextlib import contextmanager
+
 import numpy as np
 import pytest
 
@@ -15,12 +17,27 @@ ACTIONS = [KnifeAction(0.5, 0.5, depth=5.0), KnifeAction(0.45, 0.5, yaw=0.3)]
 SMALL = dict(n_grid=32, batch_size=2, push_time=0.008, settle_time=0.0074)
 
 
+@contextmanager
+def atomic_scatter():
+    """Solvers built inside scatter in the threaded loop with atomic adds, even on one CPU thread: the box must leave
+    its adds bit for bit unchanged.  One thread's serial loop (MPMSolver.serial_scatter) adds plainly, and the
+    compiler may fuse those adds with their multiplies differently in the box's kernels and the whole grid's:
+    float32 round-off (tests/test_sim_fused.py compares the two loops)."""
+    import topocut.sim.mpm as mpm
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(mpm, "cpu_threads", lambda: 0)
+        yield
+
+
 def _run(grid_box: str):
     from topocut.sim.env import CuttingEnv
 
     env = CuttingEnv(SimConfig(**SMALL, tuning=TuningConfig(grid_box=grid_box)))
     assert env.solver is None or env.solver.use_box == (grid_box == "on")
-    env.reset("cube")
+    with atomic_scatter():
+        env.reset("cube")
+    assert not env.solver.serial_scatter
     info = env.cut(ACTIONS)
     env.push()
     out = {f"{k}{b}": np.asarray(v) for b in range(env.B) for k, v in env.get_state(b).items()
@@ -76,8 +93,10 @@ def _spoon_run(grid_box: str):
     sp = SpoonConfig()
     env = CuttingEnv(sim)
     x = block_particles(sp, sim.spacing, sim.board_z, seed=0)
-    env.load_particles(x, np.zeros(len(x), np.int32))
+    with atomic_scatter():
+        env.load_particles(x, np.zeros(len(x), np.int32))
     s = env.solver
+    assert not s.serial_scatter
     tools = ToolColliders(s, sp)
     top = float(x[:, 2].max())
     centre = np.array([*sp.block_center, top + sp.radius * 0.3])  # the bowl half sunk in the block

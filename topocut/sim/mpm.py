@@ -33,6 +33,7 @@ from taichi.lang.field import ScalarField
 from topocut.sim.config import SimConfig
 from topocut.sim.knife import Knife
 from topocut.sim.materials import FixedCorotated, MaterialUpdate, make_materials
+from topocut.sim.runtime import cpu_threads
 from topocut.sim.scatter import Scatter
 
 
@@ -115,6 +116,7 @@ class MPMSolver(MaterialUpdate, Knife, Scatter):
         self.use_box = tune.grid_box_enabled(cfg.arch, B)
         self.use_warp = tune.warp_scatter_enabled(cfg.arch)
         self.scatter_block, self.gather_block = tune.block_dims(cfg.arch, B)  # None on the CPU: Taichi's chunking
+        self.serial_scatter = not self.use_warp and cpu_threads() == 1  # Scatter.scatter
         self.box = ti.field(ti.i32)
         # substep number from which scene b is frozen (2**30 = never): every phase skips it from then on,
         # so a batched cut gives scene b its own substep budget.  A field, so ti.graph runs read it live.

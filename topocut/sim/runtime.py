@@ -61,6 +61,15 @@ def init_taichi(arch: str = "cpu", seed: int = 0, debug: bool = False, cpu_threa
     return arch
 
 
+def cpu_threads() -> int:
+    """Threads of the running Taichi runtime's CPU backend; 0 on a GPU or before init_taichi."""
+    from taichi.lang import impl
+
+    if impl.get_runtime().prog is None or impl.current_cfg().arch not in (ti.x64, ti.arm64):
+        return 0
+    return int(impl.current_cfg().cpu_max_num_threads)
+
+
 def reset_taichi() -> None:
     """Free the process's Taichi runtime (every field and kernel); the next init_taichi starts a new one.
 

@@ -181,6 +181,7 @@ class ToolColliders:
         """The solver's p2g (clear + scatter; MPMSolver.particle_update for the material), sided."""
         s = self.s
         s.clear_grid()  # the solver's clear (its grid box, sim.tuning.grid_box, when on)
+        ti.loop_config(serialize=s.serial_scatter)  # one CPU thread: plain adds (Scatter.scatter)
         for b, p in ti.ndrange(s.B, s.capacity):
             if p < n and s.active(b, step) and s.live(b, p):
                 xp = s.x[b, p]
