@@ -9,9 +9,10 @@ exit status returned; its stdout and stderr (file descriptors 1 and 2, so Taichi
 ``subprocess.run(capture_output=True, text=True)`` captures them.  (multiprocessing's forkserver would re-import
 the parent's ``__main__``, pytest's, in every child; so this small server instead.)
 
-Not forked, a real process instead: a command that is not ``python -m topocut.run``; an environment that differs
-from the server's in a variable read when those modules load (``IMPORT_TIME_ENV``: OpenMP's threads, Taichi's,
-CUDA's devices, Python's own but PYTHONPATH); ``TOPOCUT_TEST_FORK=0``.  The commands the docs print run as written, as real
+A server serves the runs whose environment matches the one it was started with in the variables read when those
+modules load (``IMPORT_TIME_ENV``: OpenMP's threads, Taichi's, CUDA's devices, Python's own but PYTHONPATH); up to
+``MAX_SERVERS`` such environments get one each.  Not forked, a real process instead: a command that is not
+``python -m topocut.run``; a further environment; ``TOPOCUT_TEST_FORK=0``.  The commands the docs print run as written, as real
 processes (tests/test_docs_commands.py), as do the tests that kill a run midway (Popen).
 """
 from __future__ import annotations
@@ -40,7 +41,8 @@ PRELOAD = ("torch", "taichi", "warp", "hydra", "omegaconf", "lightning", "zarr",
 # theirs at import), so a run that sets them differently gets an interpreter of its own
 IMPORT_TIME_ENV = ("OMP_", "MKL_", "KMP_", "GOMP_", "TI_", "CUDA_", "PYTHON", "TORCH", "LD_", "WARP_", "OPENBLAS_",
                    "NVIDIA_", "MALLOC_")
-_server: dict = {}
+MAX_SERVERS = 2  # import-time environments served at once (a test may change one, e.g. pop a variable)
+_servers: dict = {}  # the import-time environment (sorted items) -> its server process
 _lock = threading.Lock()
 
 
@@ -117,13 +119,21 @@ def _child(args: list[str], env: dict, cwd: str, out: str, err: str) -> None:
 
 
 # -- the client (the test's process) ---------------------------------------------------------------------------
-def _start() -> dict:
-    if not _server:
+def _key(env) -> tuple:
+    return tuple(sorted(_import_time_env(env).items()))
+
+
+def _server_for(env: dict):
+    """The server started with ``env``'s import-time variables (started now if fewer than MAX_SERVERS run), or None."""
+    key = _key(env)
+    if key not in _servers:
+        if len(_servers) >= MAX_SERVERS:
+            return None
         proc = subprocess.Popen([sys.executable, "-c", "from tests.stage_runner import serve; serve()"], cwd=REPO,
-                                stdin=subprocess.PIPE, stdout=subprocess.PIPE)
-        _server.update(proc=proc, env=_import_time_env(os.environ))
+                                env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+        _servers[key] = proc
         atexit.register(proc.kill)
-    return _server
+    return _servers[key]
 
 
 def _forkable(cmd: list[str], env: dict) -> bool:
@@ -131,7 +141,7 @@ def _forkable(cmd: list[str], env: dict) -> bool:
         return False
     if len(cmd) < 3 or cmd[0] != sys.executable or list(cmd[1:3]) != ["-m", "topocut.run"]:
         return False
-    return _import_time_env(env) == _start()["env"]
+    return _key(env) in _servers or len(_servers) < MAX_SERVERS
 
 
 def _reply(proc, deadline: float | None) -> dict | None:
@@ -155,9 +165,9 @@ def run(cmd: list[str], cwd=None, env: dict | None = None, timeout: float | None
     cmd = [str(c) for c in cmd]
     env = dict(os.environ) if env is None else dict(env)
     cwd = str(Path(cwd or os.getcwd()).resolve())
-    if not _forkable(cmd, env):
+    proc = _server_for(env) if _forkable(cmd, env) else None
+    if proc is None:
         return subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout, check=check)
-    proc = _server["proc"]
     with _lock, tempfile.TemporaryDirectory(prefix="stage-run-") as tmp:
         out, err = Path(tmp, "stdout"), Path(tmp, "stderr")
         out.touch()

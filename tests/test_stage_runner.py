@@ -33,12 +33,15 @@ def test_a_forked_run_exits_and_prints_as_a_real_process(tmp_path, overrides):
     assert _lines(forked.stdout) == _lines(real.stdout)  # but for Taichi's banner, printed where it was imported
 
 
-def test_what_is_not_forked(tmp_path):
+def test_what_is_not_forked(tmp_path, monkeypatch):
     env = dict(os.environ)
     cmd = _cmd(tmp_path, "stage=simulate")
     assert stage_runner._forkable(cmd, env)
-    assert stage_runner._forkable(cmd, dict(env, PYTHONPATH=str(tmp_path)))  # put on sys.path by the child
-    assert not stage_runner._forkable(cmd, dict(env, OMP_NUM_THREADS="7"))  # read as torch loads OpenMP
+    assert stage_runner._key(dict(env, PYTHONPATH=str(tmp_path))) == stage_runner._key(env)  # on the child's sys.path
+    assert stage_runner._key(dict(env, OMP_NUM_THREADS="7")) != stage_runner._key(env)  # read as torch loads OpenMP
+    monkeypatch.setattr(stage_runner, "_servers", {stage_runner._key(env): None, ("other",): None})
+    assert stage_runner._forkable(cmd, env)  # served
+    assert not stage_runner._forkable(cmd, dict(env, OMP_NUM_THREADS="7"))  # past MAX_SERVERS: a real process
     assert not stage_runner._forkable(["python3", "-m", "topocut.run"], env)  # another interpreter
     assert not stage_runner._forkable([sys.executable, "-c", "pass"], env)
 
