@@ -1,14 +1,16 @@
-"""A cut's split on the host (pieces.split: scipy) against the device (pieces_device.split_batch: Taichi kernels).
+"""A cut's split on the host (pieces.split: scipy) against the device (pieces_device + fields_device: Taichi kernels).
 
-One particle set (the cake at the grid's particle spacing: ~70k particles at 128³), cut by B different planes
-after an earlier cut (the previous labels), timed in the same process both ways:
+One particle set (the cake at the grid's particle spacing: ~53k particles at 128³), cut by B different planes
+after an earlier cut (the previous labels), timed in the same process both ways, the pieces and their velocity
+fields as CuttingEnv._split finds them:
 
-- host, as CuttingEnv._split runs it: one neighbour search (P.bonds) shared by the scenes holding the same
-  particles (MPPI's rollouts from one state), then P.split per scene in threads;
-- device: split_batch of all B scenes in one pass (no sharing: every scene its own cell list), including the
-  uploads and the download of the labels.
+- host: one neighbour search (P.bonds) shared by the scenes holding the same particles (MPPI's rollouts from one
+  state), then per scene in threads P.split, P.colour, P.cut_off_side and P.field_sides;
+- device: the split of all B scenes in one pass (no sharing: every scene its own cell list), then
+  fields_device.colour_batch (per-piece summaries, the colouring on the host, each particle's field written
+  on the device), including the uploads and the download of the labels.
 
-Checks that both give the same labels, then prints the median wall time of ``--repeats`` runs (after a warm-up
+Checks that both give the same labels and fields, then prints the median wall time of ``--repeats`` runs (after a warm-up
 that compiles the kernels, printed apart) and the ratio host / device, for B = 1 and B = ``--batch``.
 
     python benchmarks/split_device.py --device cpu --n-grid 64      # a smoke run
@@ -28,18 +30,43 @@ from topocut.sim.runtime import init_taichi
 from topocut.utils.runtime import host_threads
 
 
-def host(x, piece, sweeps, spacing):
-    pairs = P.bonds(x, spacing)  # shared: every scene holds the same particles
+def host(x, piece, sweeps, cfg):
+    pairs = P.bonds(x, cfg.spacing)  # shared: every scene holds the same particles
+    reach = _reach(cfg)
+
+    def one(sw):
+        after = P.split(x, piece, sw, cfg.spacing, pairs)
+        field = P.colour(x, after, cfg.n_grid, cfg.fields, sw, reach)[0]
+        P.cut_off_side(x, piece, after, sw), P.field_sides(x, field, cfg.fields, sw, reach)
+        return after, field
+
     with ThreadPoolExecutor(max_workers=max(1, min(len(sweeps), host_threads()))) as pool:
-        return np.stack(list(pool.map(lambda sw: P.split(x, piece, sw, spacing, pairs), sweeps)))
+        return tuple(np.stack(a) for a in zip(*pool.map(one, sweeps)))
 
 
-def device(x, piece, sweeps, spacing):
-    from topocut.sim.pieces_device import split_batch
+def _reach(cfg):
+    return cfg.knife_half_thickness + cfg.margin + 2 * cfg.dx  # CuttingEnv._split's
 
-    B = len(sweeps)
-    xs = np.broadcast_to(x, (B, *x.shape))  # what CuttingEnv hands over: a (B,n,3) array
-    return split_batch(xs, [len(x)] * B, np.broadcast_to(piece, (B, len(piece))), sweeps, spacing)
+
+_BODY = {}
+
+
+def device(x, piece, sweeps, cfg):
+    import taichi as ti
+
+    from topocut.sim.fields_device import colour_batch
+    from topocut.sim.pieces_device import device_split
+
+    B, n = len(sweeps), len(x)
+    ds = device_split(B, n)
+    if B not in _BODY:  # the solver's body field (B, rows)
+        _BODY[B] = ti.field(ti.i32, shape=(B, ds.n))
+    xs, ps = np.zeros((B, ds.n, 3)), np.zeros((B, ds.n), np.int32)
+    xs[:, :n], ps[:, :n] = x, piece  # what the solver holds: (B, rows, 3) particles
+    labels = ds.run(xs, [n] * B, ps, sweeps, cfg.spacing)[:, :n]
+    if colour_batch(ds, _BODY[B], labels, ps[:, :n], cfg.n_grid, cfg.fields, _reach(cfg)) is None:
+        raise SystemExit("a label past 64: the host colours this batch")
+    return labels, _BODY[B].to_numpy()[:, :n]
 
 
 def timed(fn, repeats):
@@ -73,16 +100,17 @@ def main():
     for B in sorted({1, args.batch}):
         sw = sweeps[:B]
         t = time.perf_counter()
-        device(x, piece, sw, cfg.spacing)
+        device(x, piece, sw, cfg)
         warm = time.perf_counter() - t
-        want, th, th_lo, th_hi = timed(lambda sw=sw: host(x, piece, sw, cfg.spacing), args.repeats)
-        got, td, td_lo, td_hi = timed(lambda sw=sw: device(x, piece, sw, cfg.spacing), args.repeats)
-        same = bool(np.array_equal(got, want))
+        want, th, th_lo, th_hi = timed(lambda sw=sw: host(x, piece, sw, cfg), args.repeats)
+        got, td, td_lo, td_hi = timed(lambda sw=sw: device(x, piece, sw, cfg), args.repeats)
+        same = all(np.array_equal(g, w) for g, w in zip(got, want))
         print(f"B={B:3d}  host {1e3 * th:8.1f} ms [{1e3 * th_lo:.1f}, {1e3 * th_hi:.1f}]  device {1e3 * td:8.1f} ms "
               f"[{1e3 * td_lo:.1f}, {1e3 * td_hi:.1f}] (first call {1e3 * warm:.0f} ms)  host/device {th / td:5.2f}x  "
-              f"pieces {int(want.max()) + 1}  labels equal: {same}")
+              f"pieces {int(want[0].max()) + 1}  labels and fields equal: {same}")
         if not same:
-            raise SystemExit(f"B={B}: device labels differ from the host's at {int((got != want).sum())} particles")
+            raise SystemExit(f"B={B}: the device's labels / fields differ from the host's at "
+                             f"{[int((g != w).sum()) for g, w in zip(got, want)]} particles")
 
 
 if __name__ == "__main__":

@@ -169,21 +169,17 @@ class CuttingEnv(Scenes, Primitives):
         state) share one neighbour search.  ``idle`` (B,) scenes are not cut: their pieces stay."""
         cfg, s = self.cfg, self.solver
         bonds = {}
-        body = s.body.to_numpy()
-        side = np.zeros((self.B, cfg.fields), np.int32)
         reach = cfg.knife_half_thickness + cfg.margin + 2 * cfg.dx  # where the wedge acts on a node's fields
         searched = []  # scenes whose neighbour search ran; a scene holding the same particles reuses it
         idle = np.zeros(self.B, bool) if idle is None else idle
         counts = self.counts
         on_device = cfg.tuning.device_split_enabled(cfg.arch)
         if on_device:  # sim.tuning.device_split: every scene's split in one batch of kernels, the same labels
-            from topocut.sim.pieces_device import split_batch
-
-            xs = np.zeros((self.B, self.n, 3))
-            for b in range(self.B):
-                xs[b, :counts[b]] = x[b]
-            split = split_batch(xs, counts, self.piece[:, :self.n], [None if i else sw for sw, i in zip(sweeps, idle)],
-                                cfg.spacing)
+            split = self._split_on_device(sweeps, idle, reach)
+            if split is None:
+                return
+        body = s.body.to_numpy()
+        side = np.zeros((self.B, cfg.fields), np.int32)
         for b in range(self.B):
             if idle[b] or on_device:
                 continue
@@ -214,6 +210,36 @@ class CuttingEnv(Scenes, Primitives):
         s.n_fields[None] = max(int(s.n_fields[None]), int(body[:, :self.n].max()) + 1)  # only grows (see below)
         # n_fields never shrinks while the solver lives: fields past a smaller count would keep stale nodes the
         # clear no longer visits.  Empty fields cost a mass check per node.
+
+    def _split_on_device(self, sweeps: list[KnifeSweep], idle: np.ndarray, reach: float) -> np.ndarray | None:
+        """_split's device path: the pieces from the solver's positions in place (pieces_device), their fields,
+        sides and cut-off side from per-piece summaries (fields_device), written into the solver.  Returns None
+        when done, or the labels (B,n) when a label past 64 leaves the colouring to the host."""
+        from topocut.sim.fields_device import colour_batch
+        from topocut.sim.pieces_device import device_split
+
+        cfg, s, n = self.cfg, self.solver, self.n
+        ds = device_split(self.B, n)
+        before = np.zeros((self.B, ds.n), np.int32)  # rows past n: padding the kernels skip
+        before[:, :n] = self.piece[:, :n]
+        split = ds.run(s.x, self.counts, before, [None if i else sw for sw, i in zip(sweeps, idle)],
+                       cfg.spacing)[:, :n]
+        done = colour_batch(ds, s.body, split, before[:, :n], cfg.n_grid, cfg.fields, reach)
+        if done is None:
+            return split
+        side = s.field_side.to_numpy().reshape(self.B, -1)
+        used = int(s.n_fields[None])
+        self.push_side[idle] = 0  # an idle scene cut nothing off
+        for b, res in enumerate(done):
+            if res is None:
+                continue
+            conflicts, self.push_side[b], side[b], fields = res
+            self.piece[b, :self.counts[b]] = split[b, :self.counts[b]]
+            self.field_conflicts += conflicts
+            used = max(used, fields)
+        s.field_side.from_numpy(side.reshape(-1))
+        s.n_fields[None] = used  # only grows (see _split)
+        return None
 
     def _knife_speeds(self, depth: np.ndarray) -> np.ndarray:
         """Each scene's knife speed (B,): sim.knife_speed, or (sim.cut_substeps) its own depth in that many

@@ -130,25 +130,43 @@ def colour(x: np.ndarray, piece: np.ndarray, n_grid: int, fields: int, sweep=Non
     Returns (field per particle, conflicts): a conflict is a pair of neighbouring pieces that had to share a
     field because ``fields`` ran out (they may bond where they touch; raise sim.fields)."""
     n_pieces = int(piece.max()) + 1 if len(piece) else 0
+    size = np.bincount(piece, minlength=n_pieces)
     if n_pieces <= 1 or fields == 1:
-        return np.zeros(len(piece), np.int32), 0 if fields > 1 or n_pieces <= 1 else n_pieces - 1
-    nbr = [set() for _ in range(n_pieces)]
+        of, conflicts = greedy_colour(size, set(), fields)
+        return of[piece].astype(np.int32), conflicts
     pairs = adjacency(x, piece, n_grid)
     if sweep is not None:
-        side = piece_sides(x, piece, n_pieces, sweep, reach)
-        plus, minus = np.flatnonzero(side > 0), np.flatnonzero(side < 0)
-        pairs = pairs | {(int(min(i, j)), int(max(i, j))) for i in plus for j in minus}
+        pairs = pairs | side_pairs(piece_sides(x, piece, n_pieces, sweep, reach))
+    of, conflicts = greedy_colour(size, pairs, fields)
+    return of[piece].astype(np.int32), conflicts
+
+
+def side_pairs(side: np.ndarray) -> set[tuple[int, int]]:
+    """Pairs (i < j) of pieces by the blade on opposite sides of it (``piece_sides``: +1 and -1)."""
+    plus, minus = np.flatnonzero(side > 0), np.flatnonzero(side < 0)
+    return {(int(min(i, j)), int(max(i, j))) for i in plus for j in minus}
+
+
+def greedy_colour(size: np.ndarray, pairs: set[tuple[int, int]], fields: int) -> tuple[np.ndarray, int]:
+    """(field per piece (n_pieces,) int64, conflicts) of pieces of ``size`` (n_pieces,) particles whose ``pairs``
+    must differ: largest piece first, each the lowest field none of its coloured neighbours holds, or the least
+    held one when none is free (each neighbour on it a conflict).  ``colour`` and the device's summaries
+    (fields_device) both colour with this."""
+    n_pieces = len(size)
+    if n_pieces <= 1 or fields == 1:
+        return np.zeros(n_pieces, np.int64), 0 if fields > 1 or n_pieces <= 1 else n_pieces - 1
+    nbr = [set() for _ in range(n_pieces)]
     for i, j in pairs:
         nbr[i].add(j)
         nbr[j].add(i)
     of = np.full(n_pieces, -1, np.int64)
     conflicts = 0
-    for p in np.argsort(-np.bincount(piece, minlength=n_pieces), kind="stable"):
+    for p in np.argsort(-np.asarray(size), kind="stable"):
         used = np.bincount([of[q] for q in nbr[p] if of[q] >= 0], minlength=fields)
         free = np.flatnonzero(used == 0)
         of[p] = free[0] if len(free) else int(np.argmin(used))
         conflicts += 0 if len(free) else int(used.min())
-    return of[piece].astype(np.int32), conflicts
+    return of, conflicts
 
 
 def _near_blade(x: np.ndarray, sweep, reach: float) -> tuple[np.ndarray, np.ndarray]:
@@ -161,25 +179,24 @@ def _near_blade(x: np.ndarray, sweep, reach: float) -> tuple[np.ndarray, np.ndar
     return near, dn
 
 
+def sides_from_counts(plus: np.ndarray, minus: np.ndarray) -> np.ndarray:
+    """+1 where only ``plus`` counts particles near the blade, -1 where only ``minus`` does, 0 where both or none."""
+    return np.where((plus > 0) & (minus == 0), 1, np.where((minus > 0) & (plus == 0), -1, 0)).astype(np.int32)
+
+
 def piece_sides(x: np.ndarray, piece: np.ndarray, n_pieces: int, sweep, reach: float) -> np.ndarray:
     """(n_pieces,) int: +1 / -1 where every particle of the piece near the blade is on the +n / -n side; 0 where
     it has particles on both (an uncut piece) or none near it."""
     near, dn = _near_blade(x, sweep, reach)
     plus = np.bincount(piece[near & (dn >= 0)], minlength=n_pieces)
     minus = np.bincount(piece[near & (dn < 0)], minlength=n_pieces)
-    return np.where((plus > 0) & (minus == 0), 1, np.where((minus > 0) & (plus == 0), -1, 0)).astype(np.int32)
+    return sides_from_counts(plus, minus)
 
 
 def field_sides(x: np.ndarray, field: np.ndarray, fields: int, sweep, reach: float) -> np.ndarray:
     """(fields,) int: +1 / -1 where every particle of that field near the blade (within ``reach`` of its
     plane, inside the swept rectangle grown by ``reach``) is on the +n / -n side; 0 where mixed or absent."""
-    near, dn = _near_blade(x, sweep, reach)
-    out = np.zeros(fields, np.int32)
-    for f in range(fields):
-        s = dn[near & (field == f)]
-        if len(s):
-            out[f] = 1 if (s >= 0).all() else (-1 if (s < 0).all() else 0)
-    return out
+    return piece_sides(x, field, fields, sweep, reach)
 
 
 def cut_off_side(x: np.ndarray, before: np.ndarray, after: np.ndarray, sweep) -> int:
@@ -188,9 +205,17 @@ def cut_off_side(x: np.ndarray, before: np.ndarray, after: np.ndarray, sweep) ->
     Of every piece the cut split, the pieces on the side with fewer particles are the ones cut off (a slice
     off the loaf), which the push slides away."""
     o, _, _, n = sweep.as_arrays()
-    split_parents = [p for p in np.unique(before) if len(np.unique(after[before == p])) > 1]
-    if not split_parents:
+    if not len(before):
         return 0
-    sel = np.isin(before, split_parents)
-    plus = int(((x[sel] - o) @ n >= 0).sum())
-    return 1 if plus <= sel.sum() - plus else -1
+    m = int(before.max()) + 1
+    pairs = np.unique(np.stack([before, after], 1), axis=0)  # (label before, label after) that occur
+    split = np.bincount(pairs[:, 0], minlength=m) > 1  # labels before the cut it split
+    return cut_off_from_counts(split, np.bincount(before[(x - o) @ n >= 0], minlength=m), np.bincount(before, minlength=m))
+
+
+def cut_off_from_counts(split: np.ndarray, plus: np.ndarray, total: np.ndarray) -> int:
+    """``cut_off_side`` from, per label before the cut: whether the cut split it, its particles on +n, in all."""
+    if not split.any():
+        return 0
+    up, n = int(plus[split].sum()), int(total[split].sum())
+    return 1 if up <= n - up else -1

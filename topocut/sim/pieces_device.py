@@ -247,7 +247,14 @@ class DeviceSplit:
             else:
                 self.out[b, i] = self.piece[b, i]  # idle scene or padding: unchanged
 
-    def run(self, x: np.ndarray, counts, piece: np.ndarray, sweeps, spacing: float) -> np.ndarray:
+    @ti.kernel
+    def _load(self, src: ti.template()):
+        for b, i in self.x:
+            if i < self.count[b]:
+                self.x[b, i] = ti.cast(src[b, i], ti.f64)  # exact: the host's to_numpy().astype(np.float64)
+
+    def run(self, x, counts, piece: np.ndarray, sweeps, spacing: float) -> np.ndarray:
+        """Labels (B,n) after the cut of ``x``: (B,n,3) positions, or the solver's particle field (B,N) itself."""
         B = self.B
         on = np.array([sw is not None for sw in sweeps], np.int32)
         geo = np.zeros((4, B, 3))  # o, u, w, n per scene (zeros for idle scenes)
@@ -256,13 +263,16 @@ class DeviceSplit:
             if sw is not None:
                 geo[:, b] = sw.as_arrays()
                 half[b], depth[b] = sw.half_length, sw.depth
-        self.x.from_numpy(np.ascontiguousarray(x, np.float64))
+        self.count.from_numpy(np.asarray(counts, np.int32))
+        if isinstance(x, np.ndarray):
+            self.x.from_numpy(np.ascontiguousarray(x, np.float64))
+        else:  # the solver's own positions (B,N) f32, on the device: no round trip through the host
+            self._load(x)
         self.piece.from_numpy(np.ascontiguousarray(piece, np.int32))
         for fld, val in zip((self.o, self.u, self.w, self.nrm), geo):
             fld.from_numpy(val)
         self.half.from_numpy(half)
         self.depth.from_numpy(depth)
-        self.count.from_numpy(np.asarray(counts, np.int32))
         self.on.from_numpy(on)
         r = LINK * spacing
         r2, h = r * r, r * CELL_MARGIN  # r2 = r * r in f64: cKDTree compares squared distances with it
@@ -293,6 +303,18 @@ def _capacity(n: int) -> int:
     return int(np.ceil(1.25 * max(n, 1) / 4096.0)) * 4096
 
 
+def device_split(B: int, n: int) -> DeviceSplit:
+    """The DeviceSplit for B scenes of up to n particles, kept between calls (``_capacity``)."""
+    ds = _CACHE.get(B)
+    if ds is None or ds.n < n:
+        # a tree per batch size (a process may hold several envs, e.g. MPPI's rollouts beside an evaluation's
+        # scenes: alternating between them must not recompile); a grown one frees its predecessor
+        if ds is not None:
+            ds.destroy()
+        ds = _CACHE[B] = DeviceSplit(B, _capacity(n))
+    return ds
+
+
 def split_batch(x: np.ndarray, counts, piece: np.ndarray, sweeps, spacing: float) -> np.ndarray:
     """New piece labels (B,n) i32 of B scenes (x (B,n,3), counts (B,), piece (B,n) their labels before the cut,
     sweeps: KnifeSweep per scene, None for an idle one), equal to ``pieces.split`` scene by scene."""
@@ -302,13 +324,7 @@ def split_batch(x: np.ndarray, counts, piece: np.ndarray, sweeps, spacing: float
         raise ValueError(f"split_batch: x {x.shape}, counts {len(counts)}, sweeps {len(sweeps)} for piece {piece.shape}")
     if n == 0 or all(sw is None for sw in sweeps):
         return piece.astype(np.int32, copy=True)
-    ds = _CACHE.get(B)
-    if ds is None or ds.n < n:
-        # a tree per batch size (a process may hold several envs, e.g. MPPI's rollouts beside an evaluation's
-        # scenes: alternating between them must not recompile); a grown one frees its predecessor
-        if ds is not None:
-            ds.destroy()
-        ds = _CACHE[B] = DeviceSplit(B, _capacity(n))
+    ds = device_split(B, n)
     if ds.n > n:  # rows past counts[b] are padding the kernels skip
         xp, pp = np.zeros((B, ds.n, 3)), np.zeros((B, ds.n), np.int32)
         xp[:, :n], pp[:, :n] = x, piece
