@@ -37,7 +37,7 @@ class TuningConfig:
     grid_layout: str = "auto"  # grid nodes: aos (one struct each) | soa (an array per component) | auto = soa on cuda
     scatter_block_dim: int = 0  # CUDA threads per block of the scatter (caps its registers); 0 = auto
     gather_block_dim: int = 0  # likewise for the gather (g2p); 0 = auto
-    device_split: str = "auto"  # a cut's pieces found by kernels (pieces_device.py): on | off | auto = on with cuda
+    device_split: str = "auto"  # a cut's pieces and fields by kernels (pieces_, fields_device.py): on | off | auto = cuda
 
     def core_rotation_method(self, arch: str) -> str:
         """'svd' on a GPU: skin and core particles share warps, which would otherwise run both the SVD
@@ -96,11 +96,12 @@ class TuningConfig:
         return 64 if self.warp_scatter_enabled(arch) else 0
 
     def device_split_enabled(self, arch: str) -> bool:
-        """Find a cut's pieces in Taichi kernels (topocut/sim/pieces_device.py: the same labels as the host's
-        pieces.split) rather than with scipy on the host, where the split is 40% of a cut's simulation time at 128^3
-        on a GPU.  auto: on with cuda (one H200 at 128^3 spacing: 27x for one scene, 16.5x for 16, the same labels;
-        benchmarks/split_device.py), off on a CPU, where it wins for one scene and loses for a batch whose scenes
-        hold the same particles (MPPI's rollouts): the host shares one neighbour search between them."""
+        """Find a cut's pieces and their velocity fields in Taichi kernels (pieces_device.py, fields_device.py: the
+        same labels and fields as the host's pieces.split and pieces.colour) rather than with scipy on the host,
+        where they were 40% of a cut's simulation time at 128^3 on a GPU.  auto: on with cuda (one H200 at 128^3
+        spacing: 21.8x for one scene, 23.6x for 16; benchmarks/split_device.py), off on a CPU.  There the kernels
+        win too since the fields moved (2 cores, 128^3 spacing: 3.1x for one scene, 2.1x for 16), but they compile
+        for ~6 s in a process without a warm kernel cache, and a smoke run's few small cuts save less than that."""
         if self.device_split != "auto":
             return self.device_split == "on"
         return arch == "cuda"

@@ -1,7 +1,8 @@
 """Pieces: which particles the knife has separated, and which velocity field each piece moves in.
 
-Pure numpy/scipy, run on the host once per cut (not per substep); ``pieces_device.split_batch`` gives ``split``'s
-labels from Taichi kernels (sim.tuning.device_split).  docs/sim.md, "Pieces and contact":
+Pure numpy/scipy, run on the host once per cut (not per substep); with sim.tuning.device_split
+``pieces_device`` gives ``split``'s labels from Taichi kernels and ``fields_device`` the fields, sides and cut-off
+side from per-piece summaries, coloured by this module's ``greedy_colour``.  docs/sim.md, "Pieces and contact":
 
 - ``split``: a piece's particles stay connected where two neighbours (within ``LINK`` particle spacings)
   are joined by a segment that does not cross the knife's swept surface.  The swept surface is the blade
