@@ -172,18 +172,24 @@ def test_labels_past_a_mask_leave_the_colouring_to_the_host():
     assert (_BODY["f"].to_numpy() == -7).all()  # nothing written
 
 
-def test_env_cuts_with_the_device_fields_equal_the_host_path(_one_thread):
+def test_env_cuts_with_the_device_fields_equal_the_host_path(_one_thread, monkeypatch):
     """Three scenes, three rounds of cuts (one scene idle in one round): pieces, every particle's field, the
-    fields' sides, the push's side, the field count and the conflicts are the host path's."""
+    fields' sides, the push's side, the field count and the conflicts are the host path's; so they are where
+    labels outgrow the masks (MAX_PIECES lowered to 3 here) and the env falls back to colouring on the host."""
+    from topocut.sim import fields_device
     from topocut.sim.env import CuttingEnv
 
     rounds = ([KnifeAction(x=0.5, y=0.5), KnifeAction(x=0.47, y=0.5, yaw=0.3), KnifeAction(x=0.45, y=0.5)],
               [None, KnifeAction(x=0.5, y=0.52, yaw=np.pi / 2), KnifeAction(x=0.55, y=0.5)],
               [KnifeAction(x=0.5, y=0.45, yaw=np.pi / 2), KnifeAction(x=0.5, y=0.47, yaw=np.pi / 2),
                KnifeAction(x=0.5, y=0.5, yaw=np.pi / 2)])
-    seen = {}
-    for mode in ("off", "on"):
-        env = CuttingEnv(SimConfig(n_grid=32, tuning=TuningConfig(device_split=mode)), batch_size=3)
+    seen, summaries = {}, {}
+    for mode in ("off", "on", "on, masks of 3"):
+        monkeypatch.setattr(fields_device, "MAX_PIECES", 3 if mode.endswith("3") else 64)
+        calls = []
+        monkeypatch.setattr(fields_device.DeviceFields, "summarise",
+                            lambda self, *a, _f=fields_device.DeviceFields.summarise, _c=calls: _c.append(1) or _f(self, *a))
+        env = CuttingEnv(SimConfig(n_grid=32, tuning=TuningConfig(device_split=mode.split(",")[0])), batch_size=3)
         env.reset("cube", POSE)
         seen[mode] = []
         for acts in rounds:
@@ -192,7 +198,11 @@ def test_env_cuts_with_the_device_fields_equal_the_host_path(_one_thread):
             seen[mode].append((env.piece.copy(), s.body.to_numpy()[:, :env.n].copy(), s.field_side.to_numpy().copy(),
                                env.push_side.copy(), int(s.n_fields[None]), env.field_conflicts))
         env.solver.destroy()
+        summaries[mode] = len(calls)
     assert [r[0].max(1).tolist() for r in seen["off"]] == [[1, 1, 1], [1, 3, 2], [3, 5, 5]]
-    for k, (host, dev) in enumerate(zip(seen["off"], seen["on"])):
-        for name, h, d in zip(("piece", "body", "field_side", "push_side", "n_fields", "conflicts"), host, dev):
-            np.testing.assert_array_equal(d, h, err_msg=f"round {k}: {name}")
+    # on the device every round; with masks of 3 only the first (labels before and after below 3)
+    assert summaries == {"off": 0, "on": 3, "on, masks of 3": 1}, summaries
+    for mode in ("on", "on, masks of 3"):
+        for k, (host, dev) in enumerate(zip(seen["off"], seen[mode])):
+            for name, h, d in zip(("piece", "body", "field_side", "push_side", "n_fields", "conflicts"), host, dev):
+                np.testing.assert_array_equal(d, h, err_msg=f"{mode}, round {k}: {name}")

@@ -182,7 +182,7 @@ def colour_batch(ds, body, labels: np.ndarray, before: np.ndarray, n_grid: int, 
         df = _CACHE[(B, n_grid)] = DeviceFields(B, n_grid)
     s = df.summarise(ds, reach)
     on = ds.on.to_numpy()
-    of = np.zeros((B, MAX_PIECES), np.int32)
+    of = np.zeros(df.of.shape, np.int32)  # B,64
     out = []
     for b in range(B):
         if not on[b]:
