@@ -38,3 +38,29 @@ def one_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(n)
+
+
+def taichi_threads(threads: int) -> None:
+    """A fresh Taichi CPU runtime with ``threads`` threads (the fields held before are freed)."""
+    from topocut.sim.runtime import init_taichi, reset_taichi
+
+    reset_taichi()
+    init_taichi("cpu", cpu_threads=threads)
+
+
+@pytest.fixture(scope="module")
+def taichi_two_threads():
+    """Two Taichi threads for a file: the device split's and fields' atomics race as on a GPU (their results must
+    not change).  Modules opt in with ``pytestmark = pytest.mark.usefixtures("taichi_two_threads")``."""
+    taichi_threads(2)
+    yield
+    taichi_threads(1)
+
+
+@pytest.fixture
+def taichi_one_thread():
+    """One Taichi thread for a test in a two-thread file: the simulator's own atomic adds in a fixed order, so
+    two envs' cuts agree bit for bit."""
+    taichi_threads(1)
+    yield
+    taichi_threads(2)

@@ -16,36 +16,23 @@ from topocut.sim import pieces as P
 from topocut.sim.action import KnifeAction
 from topocut.sim.config import SimConfig, TuningConfig
 from topocut.sim.objects import ObjectPose, sample_object
-from topocut.sim.runtime import init_taichi, reset_taichi
+from topocut.sim.runtime import _ON_RESET
 
 POSE = ObjectPose(x=0.5, y=0.5, yaw=0.0, scale=1.0)
 CAP = 24000  # rows of every call: one set of split fields, compiled once
-_BODY = {}
+pytestmark = pytest.mark.usefixtures("taichi_two_threads")  # the masks' atomic ORs race as on a GPU
+_BODY = {}  # the solver's body field stand-in (1, CAP), made once per Taichi runtime
 
 
-def _runtime(threads: int):
-    reset_taichi()
-    init_taichi("cpu", cpu_threads=threads)
-    fb = ti.FieldsBuilder()
-    _BODY["f"] = ti.field(ti.i32)  # the solver's body field stand-in: (1, CAP)
-    fb.dense(ti.ij, (1, CAP)).place(_BODY["f"])
-    _BODY["tree"] = fb.finalize()
-
-
-@pytest.fixture(scope="module", autouse=True)
-def _taichi():
-    _runtime(2)  # two threads: the masks' atomic ORs race as on a GPU
-    yield
-    _BODY.clear()
-    _runtime(1)
-
-
-@pytest.fixture
-def _one_thread():
-    """The simulator's own adds in a fixed order: two envs' cuts then agree bit for bit."""
-    _runtime(1)
-    yield
-    _runtime(2)
+def body_field():
+    if "f" not in _BODY:
+        fb = ti.FieldsBuilder()
+        _BODY["f"] = ti.field(ti.i32)
+        fb.dense(ti.ij, (1, CAP)).place(_BODY["f"])
+        _BODY["tree"] = fb.finalize()
+        if _BODY.clear not in _ON_RESET:
+            _ON_RESET.append(_BODY.clear)  # reset_taichi frees it
+    return _BODY["f"]
 
 
 def reach_of(cfg):
@@ -57,7 +44,7 @@ def on_device(x, before, sweep, cfg, fields):
     from topocut.sim.fields_device import colour_batch
     from topocut.sim.pieces_device import device_split
 
-    n, body = len(x), _BODY["f"]
+    n, body = len(x), body_field()
     ds = device_split(1, CAP)
     xs, ps = np.zeros((1, ds.n, 3)), np.zeros((1, ds.n), np.int32)
     xs[0, :n], ps[0, :n] = x, before
@@ -167,12 +154,13 @@ def test_labels_past_a_mask_leave_the_colouring_to_the_host():
     ps[0, :len(x)] = np.arange(len(x)) % (MAX_PIECES + 1)  # 65 labels before the cut (every one a flake)
     sweep = P.blade_sweep(KnifeAction(x=0.5, y=0.5), x, cfg)[0]
     labels = ds.run(xs, [len(x)], ps, [sweep], cfg.spacing)[:, :len(x)]
-    _BODY["f"].fill(-7)
-    assert colour_batch(ds, _BODY["f"], labels, ps[:, :len(x)], cfg.n_grid, cfg.fields, reach_of(cfg)) is None
-    assert (_BODY["f"].to_numpy() == -7).all()  # nothing written
+    body = body_field()
+    body.fill(-7)
+    assert colour_batch(ds, body, labels, ps[:, :len(x)], cfg.n_grid, cfg.fields, reach_of(cfg)) is None
+    assert (body.to_numpy() == -7).all()  # nothing written
 
 
-def test_env_cuts_with_the_device_fields_equal_the_host_path(_one_thread, monkeypatch):
+def test_env_cuts_with_the_device_fields_equal_the_host_path(taichi_one_thread, monkeypatch):
     """Three scenes, three rounds of cuts (one scene idle in one round): pieces, every particle's field, the
     fields' sides, the push's side, the field count and the conflicts are the host path's; so they are where
     labels outgrow the masks (MAX_PIECES lowered to 3 here) and the env falls back to colouring on the host."""

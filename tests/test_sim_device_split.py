@@ -13,30 +13,12 @@ from topocut.sim import pieces as P
 from topocut.sim.action import KnifeAction
 from topocut.sim.config import SimConfig, TuningConfig
 from topocut.sim.objects import ObjectPose, sample_object
-from topocut.sim.runtime import init_taichi, reset_taichi
 
 POSE = ObjectPose(x=0.5, y=0.5, yaw=0.0, scale=1.0)
 CAP = 24000  # rows of every call (counts below it): one set of device fields, compiled once
 
 
-def _runtime(threads: int):
-    reset_taichi()
-    init_taichi("cpu", cpu_threads=threads)
-
-
-@pytest.fixture(scope="module", autouse=True)
-def _taichi():
-    _runtime(2)  # two threads: the union-find's atomics race as on a GPU (labels do not change)
-    yield
-    _runtime(1)
-
-
-@pytest.fixture
-def _one_thread():
-    """The simulator's own atomic adds in a fixed order: two envs' cuts then agree bit for bit."""
-    _runtime(1)
-    yield
-    _runtime(2)
+pytestmark = pytest.mark.usefixtures("taichi_two_threads")  # the union-find's atomics race as on a GPU
 
 
 def device(x, piece, sweep, spacing):
@@ -154,7 +136,7 @@ def test_a_batch_equals_each_scene_alone():
             np.testing.assert_array_equal(device(x, ps[b, :len(x)], sweeps[b], cfg.spacing), alone[b])
 
 
-def test_env_cut_with_the_device_split_equals_the_host_split(_one_thread):
+def test_env_cut_with_the_device_split_equals_the_host_split(taichi_one_thread):
     from topocut.sim.env import CuttingEnv
 
     pieces = {}
