@@ -4,7 +4,8 @@ gives exactly the labels of the host's pieces.split for every particle, on the C
 Scenes: the separation tests' cuts (cube and cake, vertical planes spread over a cell at 48³ and 64³ spacings),
 random planes (yaw, tilt, offset; some stop short) after an earlier cut (so bonds between pieces are refused),
 flakes and far debris (the nearest-large-piece rule, and its whole-scene search), a batch of different scenes with
-an idle one against each alone, and CuttingEnv with the switch on against off.
+an idle one against each alone.  CuttingEnv with the switch on against off (its pieces, and their fields):
+tests/test_sim_device_fields.py.
 """
 import numpy as np
 import pytest
@@ -134,23 +135,6 @@ def test_a_batch_equals_each_scene_alone():
         np.testing.assert_array_equal(out[b, len(x):], 7)
         if sweeps[b] is not None:  # the same scene alone through the single-scene path
             np.testing.assert_array_equal(device(x, ps[b, :len(x)], sweeps[b], cfg.spacing), alone[b])
-
-
-def test_env_cut_with_the_device_split_equals_the_host_split(taichi_one_thread):
-    from topocut.sim.env import CuttingEnv
-
-    pieces = {}
-    for mode in ("off", "on"):
-        env = CuttingEnv(SimConfig(n_grid=32, tuning=TuningConfig(device_split=mode)), batch_size=2)
-        env.reset("cube", POSE)
-        env.cut([KnifeAction(x=0.5, y=0.5), KnifeAction(x=0.47, y=0.5, yaw=0.3)])
-        first = env.piece.copy()
-        env.cut([None, KnifeAction(x=0.5, y=0.52, yaw=np.pi / 2)])  # scene 0 idle: its pieces stay
-        pieces[mode] = first, env.piece.copy()
-        env.solver.destroy()
-    assert pieces["off"][0].max() == 1 and pieces["off"][1][1].max() == 3
-    np.testing.assert_array_equal(pieces["on"][0], pieces["off"][0])
-    np.testing.assert_array_equal(pieces["on"][1], pieces["off"][1])
 
 
 def test_switch_values_are_checked():
