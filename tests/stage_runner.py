@@ -41,14 +41,22 @@ PRELOAD = ("torch", "taichi", "warp", "hydra", "omegaconf", "lightning", "zarr",
 # theirs at import), so a run that sets them differently gets an interpreter of its own
 IMPORT_TIME_ENV = ("OMP_", "MKL_", "KMP_", "GOMP_", "TI_", "CUDA_", "PYTHON", "TORCH", "LD_", "WARP_", "OPENBLAS_",
                    "NVIDIA_", "MALLOC_")
+# set by libraries as they load, in every process that imports them (the server's and the run's too), so they say
+# nothing about how a run's modules load: joblib's KMP_INIT_AT_FORK, threadpoolctl's KMP_DUPLICATE_LIB_OK, torch's
+# inductor cache directory and NVML check.  A test process gains them whenever a test first imports those libraries,
+# and its next runs looked like a new environment (CI on 2026-11-30: a worker's third key, its runs unforked and
+# test_stage_runner failing); test_stage_runner checks the list against a fresh interpreter's imports.
+SET_ON_IMPORT = ("KMP_INIT_AT_FORK", "KMP_DUPLICATE_LIB_OK", "TORCHINDUCTOR_CACHE_DIR", "PYTORCH_NVML_BASED_CUDA_CHECK")
 MAX_SERVERS = 2  # import-time environments served at once (a test may change one, e.g. pop a variable)
 _servers: dict = {}  # the import-time environment (sorted items) -> its server process
 _lock = threading.Lock()
 
 
 def _import_time_env(env) -> dict:
-    """The variables a run must share with the server; PYTHONPATH is not one (the child puts it on sys.path)."""
-    return {k: v for k, v in env.items() if k.startswith(IMPORT_TIME_ENV) and k != "PYTHONPATH"}
+    """The variables a run must share with the server; PYTHONPATH is not one (the child puts it on sys.path), nor
+    those the libraries set as they load (SET_ON_IMPORT)."""
+    return {k: v for k, v in env.items()
+            if k.startswith(IMPORT_TIME_ENV) and k != "PYTHONPATH" and k not in SET_ON_IMPORT}
 
 
 # -- the server (its own process) ------------------------------------------------------------------------------

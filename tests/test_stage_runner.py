@@ -1,8 +1,10 @@
 """tests/stage_runner.py: a stage run forked from the preloaded server gives what `python -m topocut.run` gives."""
+import json
 import os
 import re
 import subprocess
 import sys
+import textwrap
 from pathlib import Path
 
 import pytest
@@ -21,6 +23,19 @@ def _lines(text: str) -> list[str]:
     return [STAMP.sub("[time]", ln) for ln in text.splitlines() if not ln.startswith("[Taichi] version")]
 
 
+@pytest.fixture(scope="module", autouse=True)
+def own_servers():
+    """This file's servers, not its worker's: whatever environments the worker's earlier files started servers
+    for, these tests start their own (and kill them after)."""
+    servers: dict = {}
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(stage_runner, "_servers", servers)
+        yield servers
+    for proc in servers.values():
+        proc.kill()
+        proc.wait()
+
+
 @pytest.mark.parametrize("overrides", [("stage=simulate", "sim.n_grid=-3"), ("stage=pretrain", "data.version=v999")])
 def test_a_forked_run_exits_and_prints_as_a_real_process(tmp_path, overrides):
     env = dict(os.environ, WANDB_MODE="disabled", HYDRA_FULL_ERROR="0")
@@ -31,6 +46,28 @@ def test_a_forked_run_exits_and_prints_as_a_real_process(tmp_path, overrides):
     assert forked.returncode == real.returncode == 2, forked.stderr + real.stderr
     assert _lines(forked.stderr) == _lines(real.stderr)
     assert _lines(forked.stdout) == _lines(real.stdout)  # but for Taichi's banner, printed where it was imported
+
+
+def test_the_variables_libraries_set_as_they_load_are_the_ones_the_key_ignores():
+    """A fresh interpreter without them imports what the server preloads, and joblib and threadpoolctl (which the
+    evaluation's launchers and scipy's users import): every import-time variable that appears is in SET_ON_IMPORT,
+    so a test process that loads these libraries after its first stage run keeps its server."""
+    env = {k: v for k, v in os.environ.items() if k not in stage_runner.SET_ON_IMPORT}
+    code = textwrap.dedent("""
+        import importlib, json, os
+        from tests.stage_runner import IMPORT_TIME_ENV, PRELOAD
+        seen = lambda: {k for k in os.environ if k.startswith(("PYTORCH", *IMPORT_TIME_ENV))}
+        before = seen()
+        for name in (*PRELOAD, "joblib", "threadpoolctl"):
+            importlib.import_module(name)
+        print(json.dumps(sorted(seen() - before)))
+    """)
+    out = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-3000:]
+    appeared = set(json.loads(out.stdout.strip().splitlines()[-1]))
+    assert {"KMP_INIT_AT_FORK", "KMP_DUPLICATE_LIB_OK"} <= appeared  # joblib's and threadpoolctl's, as they load
+    assert appeared <= set(stage_runner.SET_ON_IMPORT), appeared - set(stage_runner.SET_ON_IMPORT)
+    assert stage_runner._key(dict(env, **dict.fromkeys(appeared, "1"))) == stage_runner._key(env)
 
 
 def test_what_is_not_forked(tmp_path, monkeypatch):
