@@ -36,7 +36,7 @@ PRELOAD = ("torch", "taichi", "warp", "hydra", "omegaconf", "lightning", "zarr",
            "pipelines.simulate", "pipelines.mppi", "pipelines.merge", "pipelines.pretrain", "pipelines.bc",
            "pipelines.eval", "pipelines.teleop", "topocut.sim.env", "topocut.episode", "topocut.reward",
            "topocut.topology", "topocut.eval.protocol", "topocut.eval.report", "topocut.models.module",
-           "topocut.policies", "topocut.planning.mppi", "topocut.data.episodes")
+           "topocut.policies", "topocut.planning.mppi", "topocut.data.episodes", "joblib", "threadpoolctl")
 # read by the preloaded modules as they load (OpenMP sizes its pool when torch loads it; Taichi and CUDA read
 # theirs at import), so a run that sets them differently gets an interpreter of its own
 IMPORT_TIME_ENV = ("OMP_", "MKL_", "KMP_", "GOMP_", "TI_", "CUDA_", "PYTHON", "TORCH", "LD_", "WARP_", "OPENBLAS_",
@@ -45,7 +45,8 @@ IMPORT_TIME_ENV = ("OMP_", "MKL_", "KMP_", "GOMP_", "TI_", "CUDA_", "PYTHON", "T
 # nothing about how a run's modules load: joblib's KMP_INIT_AT_FORK, threadpoolctl's KMP_DUPLICATE_LIB_OK, torch's
 # inductor cache directory and NVML check.  A test process gains them whenever a test first imports those libraries,
 # and its next runs looked like a new environment (CI on 2026-11-30: a worker's third key, its runs unforked and
-# test_stage_runner failing); test_stage_runner checks the list against a fresh interpreter's imports.
+# test_stage_runner failing).  Each server reports what its preloading set (``Popen.set_on_import``), and
+# test_stage_runner checks the report against this list.
 SET_ON_IMPORT = ("KMP_INIT_AT_FORK", "KMP_DUPLICATE_LIB_OK", "TORCHINDUCTOR_CACHE_DIR", "PYTORCH_NVML_BASED_CUDA_CHECK")
 MAX_SERVERS = 2  # import-time environments served at once (a test may change one, e.g. pop a variable)
 _servers: dict = {}  # the import-time environment (sorted items) -> its server process
@@ -61,16 +62,21 @@ def _import_time_env(env) -> dict:
 
 # -- the server (its own process) ------------------------------------------------------------------------------
 def serve() -> None:
-    """Preload, then per request line {args, env, cwd, out, err}: fork, reply {"pid"}, wait, reply {"code"}."""
+    """Preload, reply {"set_on_import": the import-time variables the preloading set}, then per request line
+    {args, env, cwd, out, err}: fork, reply {"pid"}, wait, reply {"code"}."""
     import importlib
 
     replies = os.fdopen(os.dup(1), "wb")  # the reply channel; what the modules print goes to stderr instead
     os.dup2(2, 1)
+    before = dict(os.environ)
     for name in PRELOAD:
         try:
             importlib.import_module(name)
         except Exception:  # noqa: BLE001 - a module that does not load here loads in the run, as it would
             pass
+    new = sorted(k for k in os.environ if k not in before and k.startswith(("PYTORCH", *IMPORT_TIME_ENV)))
+    replies.write(json.dumps({"set_on_import": new}).encode() + b"\n")
+    replies.flush()
     for line in sys.stdin.buffer:
         req = json.loads(line)
         pid = os.fork()
@@ -141,6 +147,7 @@ def _server_for(env: dict):
                                 env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE)
         _servers[key] = proc
         atexit.register(proc.kill)
+        proc.set_on_import = _reply(proc, None)["set_on_import"]  # once its preloading is done
     return _servers[key]
 
 

@@ -4,7 +4,6 @@ import os
 import re
 import subprocess
 import sys
-import textwrap
 from pathlib import Path
 
 import pytest
@@ -25,15 +24,18 @@ def _lines(text: str) -> list[str]:
 
 @pytest.fixture(scope="module", autouse=True)
 def own_servers():
-    """This file's servers, not its worker's: whatever environments the worker's earlier files started servers
-    for, these tests start their own (and kill them after)."""
-    servers: dict = {}
+    """Room for this file's servers whatever environments the worker's earlier files started servers for: only
+    the worker's server for this process's own environment (if it has one) is kept in view, and the servers these
+    tests start are killed after them."""
+    shared = {k: p for k, p in stage_runner._servers.items() if k == stage_runner._key(os.environ)}
+    servers = dict(shared)
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(stage_runner, "_servers", servers)
         yield servers
-    for proc in servers.values():
-        proc.kill()
-        proc.wait()
+    for key, proc in servers.items():
+        if key not in shared:
+            proc.kill()
+            proc.wait()
 
 
 @pytest.mark.parametrize("overrides", [("stage=simulate", "sim.n_grid=-3"), ("stage=pretrain", "data.version=v999")])
@@ -49,25 +51,18 @@ def test_a_forked_run_exits_and_prints_as_a_real_process(tmp_path, overrides):
 
 
 def test_the_variables_libraries_set_as_they_load_are_the_ones_the_key_ignores():
-    """A fresh interpreter without them imports what the server preloads, and joblib and threadpoolctl (which the
-    evaluation's launchers and scipy's users import): every import-time variable that appears is in SET_ON_IMPORT,
-    so a test process that loads these libraries after its first stage run keeps its server."""
-    env = {k: v for k, v in os.environ.items() if k not in stage_runner.SET_ON_IMPORT}
-    code = textwrap.dedent("""
-        import importlib, json, os
-        from tests.stage_runner import IMPORT_TIME_ENV, PRELOAD
-        seen = lambda: {k for k in os.environ if k.startswith(("PYTORCH", *IMPORT_TIME_ENV))}
-        before = seen()
-        for name in (*PRELOAD, "joblib", "threadpoolctl"):
-            importlib.import_module(name)
-        print(json.dumps(sorted(seen() - before)))
-    """)
-    out = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
-    assert out.returncode == 0, out.stderr[-3000:]
-    appeared = set(json.loads(out.stdout.strip().splitlines()[-1]))
-    assert {"KMP_INIT_AT_FORK", "KMP_DUPLICATE_LIB_OK"} <= appeared  # joblib's and threadpoolctl's, as they load
+    """The server's preloading (the stages' modules, joblib and threadpoolctl) starts from the test process's
+    environment; every import-time variable it sets is in SET_ON_IMPORT, so a test process that loads those
+    libraries after its first stage run keeps its server."""
+    env = dict(os.environ)
+    appeared = set(stage_runner._server_for(env).set_on_import)
     assert appeared <= set(stage_runner.SET_ON_IMPORT), appeared - set(stage_runner.SET_ON_IMPORT)
-    assert stage_runner._key(dict(env, **dict.fromkeys(appeared, "1"))) == stage_runner._key(env)
+    assert stage_runner._key(dict(env, **dict.fromkeys(stage_runner.SET_ON_IMPORT, "1"))) == stage_runner._key(env)
+    # where the test process had not loaded them yet, their loading sets joblib's and threadpoolctl's variables
+    fresh = {k: v for k, v in env.items() if k not in stage_runner.SET_ON_IMPORT}
+    out = subprocess.run([sys.executable, "-c", "import json, os, joblib, threadpoolctl; print(json.dumps(list(os.environ)))"],
+                         env=fresh, capture_output=True, text=True, timeout=60)
+    assert {"KMP_INIT_AT_FORK", "KMP_DUPLICATE_LIB_OK"} <= set(json.loads(out.stdout)) - set(fresh), out.stderr
 
 
 def test_what_is_not_forked(tmp_path, monkeypatch):
