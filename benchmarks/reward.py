@@ -6,6 +6,8 @@ Targets: <= 50 ms per 512-point fragment on CPU (scipy); <= 5 ms per fragment ba
 from __future__ import annotations
 
 import argparse
+import contextlib
+import functools
 import time
 
 import numpy as np
@@ -62,16 +64,20 @@ def main():
     if args.device == "cuda":
         bench_fps(args)
     w0, _ = descriptor(resample(cloud(0), cfg), sigma, cfg)
-    solvers = ["device", "subspace", "host"] if args.device == "cuda" else ["host", "subspace", "device"]
+    # subspace-a2: the subspace solver with A^-2 steps (its design before 2026-11-30), against today's A^-4
+    solvers = ["device", "subspace-a2", "subspace", "host"] if args.device == "cuda" else \
+        ["host", "subspace-a2", "subspace", "device"]
     print(f"batched torch ({args.device}): the reward's eigensolvers (reward.eig_solver), the first the reference")
     for B in args.batches:
         batch = torch.tensor(np.stack([resample(cloud(s), cfg) for s in range(B)]), device=args.device)
         ref = None
         for solver in solvers:
-            c = dataclasses.replace(cfg, eig_solver=solver)
+            c = dataclasses.replace(cfg, eig_solver=solver.split("-")[0])
+            power = 2 if solver == "subspace-a2" else 4
 
-            def batched(c=c, batch=batch):
-                w, s = spectral_descriptors(batch, c, sigma=sigma)
+            def batched(c=c, batch=batch, power=power):
+                with steps_of(power):
+                    w, s = spectral_descriptors(batch, c, sigma=sigma)
                 if args.device == "cuda":
                     torch.cuda.synchronize()
                 return w
@@ -82,6 +88,19 @@ def main():
             print(f"  B={B:4d} {solver:9s}: {1e3 * t_b:8.1f} ms total, {1e3 * t_b / B:6.2f} ms/fragment, "
                   f"{ref / t_b:5.2f}x the {solvers[0]} solver; vs scipy per fragment {t_fast * B / t_b:6.2f}x; "
                   f"max |dlambda| vs scipy = {np.abs(wb - w0).max():.1e}")
+
+
+@contextlib.contextmanager
+def steps_of(power: int):
+    """The reward's subspace solver with A^-power steps for the duration (spectral imports it at each call)."""
+    from topocut.reward import eigen
+
+    solver = eigen.smallest_eigenpairs_subspace
+    eigen.smallest_eigenpairs_subspace = functools.partial(solver, power=power)
+    try:
+        yield
+    finally:
+        eigen.smallest_eigenpairs_subspace = solver
 
 
 def bench_fps(args) -> None:

@@ -68,12 +68,14 @@ def test_path_and_cycle_spectra_in_closed_form(cycle):
     assert res.max() < 1e-8
 
 
-def test_fragment_laplacians_match_lapack():
+@pytest.mark.parametrize("power", [2, 4])
+def test_fragment_laplacians_match_lapack(power):
     """The reward's 512-point Laplacians: the 21 smallest values equal LAPACK's subset solver to 1e-9 of the
-    largest kept value, vectors span the same eigenspaces (projector onto the first 20), residuals tiny."""
+    largest kept value, vectors span the same eigenspaces (projector onto the first 20), residuals tiny; with A^-2
+    steps and with A^-4 steps (the default)."""
     m = 21
     L = knn_laplacians(fragment_clouds())
-    w, v = smallest_eigenpairs_subspace(L, m)
+    w, v = smallest_eigenpairs_subspace(L, m, power=power)
     assert w.shape == (4, m) and v.shape == (4, 512, m)
     for b, A in enumerate(L.numpy()):
         wr, vr = scipy.linalg.eigh(A, subset_by_index=[0, m - 1])
@@ -86,6 +88,36 @@ def test_fragment_laplacians_match_lapack():
         assert np.abs(P - Pr).max() < 1e-7
         res = np.linalg.norm(A @ v[b].numpy() - v[b].numpy() * w[b].numpy(), axis=0)
         assert res.max() <= 1e-9 * np.abs(np.diag(A)).max()
+
+
+def test_a_inverse_fourth_power_step_halves_the_steps(monkeypatch):
+    """Convergence goes like ((lambda_j + s) / (lambda_33 + s))^power a step: A^-4 steps take about half the
+    orthonormalisations of A^-2 steps on the fragments (counted here), and four Rayleigh-Ritz checks or fewer
+    where A^-2 needs more; an unknown power is refused."""
+    from topocut.reward import eigen
+
+    calls = {"orth": 0, "ritz": 0}
+
+    def counted(fn, key):
+        def wrapper(*args):
+            calls[key] += 1
+            return fn(*args)
+        return wrapper
+
+    monkeypatch.setattr(eigen, "_orthonormalise", counted(eigen._orthonormalise, "orth"))
+    monkeypatch.setattr(eigen, "_small_eigh", counted(eigen._small_eigh, "ritz"))
+    L = knn_laplacians(fragment_clouds())
+    counts = {}
+    for power in (2, 4):
+        calls.update(orth=0, ritz=0)
+        smallest_eigenpairs_subspace(L, 21, power=power)
+        counts[power] = dict(calls)
+    steps2 = counts[2]["orth"]  # a step's Cholesky QR (A^-2: no second one at the checks)
+    steps4 = counts[4]["orth"] - counts[4]["ritz"]  # less the checks' second Cholesky QR
+    assert steps4 <= 0.6 * steps2, counts
+    assert counts[4]["ritz"] < counts[2]["ritz"], counts
+    with pytest.raises(ValueError, match="power=3; valid: 2, 4"):
+        smallest_eigenpairs_subspace(L, 21, power=3)
 
 
 def test_disconnected_graph_has_one_zero_per_component():

@@ -6,15 +6,21 @@ runs a batch one matrix after another (4.7 ms each on an H100, launch-bound); LA
 holds the GIL.  ``smallest_eigenpairs_subspace`` finds only the pairs asked for, with operations that batch:
 
   A = L + s I (s > 0: L is PSD with a null space)     Cholesky, one explicit inverse A^-1 per matrix
-  V <- A^-2 V, orthonormalised (Cholesky QR)           block shift-invert subspace iteration, p = 32 columns
-  every few steps: Rayleigh-Ritz with L itself         Ritz pairs (theta, V U) of V^T L V, residuals checked;
-                                                       finished matrices leave the batch
+  V <- A^-4 V, orthonormalised (Cholesky QR)           block shift-invert subspace iteration, p = 32 columns
+  every few steps: Rayleigh-Ritz with L itself         V orthonormalised once more (Cholesky QR2), Ritz pairs
+                                                       (theta, V U) of V^T L V, residuals checked; finished
+                                                       matrices leave the batch
 
-Eigenvector j converges like ((lambda_j + s) / (lambda_{p+1} + s))^(2 steps): ~40 steps to residual 1e-9 on
-512-point fragments (tested against closed forms and LAPACK in tests/test_reward_eigen.py).  Every step is a
-batched matmul or a small batched factorisation, so the cost is a few hundred kernel launches for the whole
-batch, not per matrix; p = 32 keeps the Ritz step's p x p eigh on cuSOLVER's batched solver (above 32 torch runs
-one matrix after another: 97 ms for 128 matrices of 63 on an H100).
+Eigenvector j converges like ((lambda_j + s) / (lambda_{p+1} + s))^(4 steps): 26-28 steps to residual 1e-9 on
+512-point fragments (52 with A^-2 steps; tested against closed forms and LAPACK in tests/test_reward_eigen.py).
+Every step is a batched matmul or a small batched factorisation, so the cost is kernel launches for the whole
+batch, not per matrix, and the launches go with the steps; p = 32 keeps the Ritz step's p x p eigh on cuSOLVER's
+batched solver (above 32 torch runs one matrix after another: 97 ms for 128 matrices of 63 on an H100).
+
+Why the second Cholesky QR before Rayleigh-Ritz: Cholesky QR loses ~eps x cond(V^T V) of orthogonality, and after
+A^-4 the block's Gram has cond ~((lambda_p + s) / s)^8 (~3e8 on the reward's fragments, where lambda_32 ~ 10 s):
+~1e-7, which floored the residuals above the tolerance when the Ritz step took V as orthonormal.  Once more on the
+orthonormalised block (cond ~1) it is ~1e-15; the iteration itself only needs V's span.
 """
 from __future__ import annotations
 
@@ -34,12 +40,12 @@ def _orthonormalise(V: torch.Tensor) -> torch.Tensor:
 
 def smallest_eigenpairs_subspace(L: torch.Tensor, m: int, block: int | None = None, tol: float = 1e-9,
                                  max_iter: int = 200, min_iter: int = 16, check_every: int = 4,
-                                 shift: float = 0.05):
+                                 shift: float = 0.05, power: int = 4):
     """The m smallest eigenpairs of each symmetric positive semi-definite matrix of L (B,n,n): values (B,m)
     ascending, vectors (B,n,m) orthonormal, in L's dtype and on its device.
 
-    Each step applies A^-2 = (L + s I)^-2 (precomputed: one batched product) and orthonormalises.  A matrix is
-    done when every kept pair's residual ||L v - theta v|| is at most ``tol`` x its largest diagonal entry (a
+    Each step applies A^-power = (L + s I)^-power (A^-2 precomputed, applied power / 2 times) and orthonormalises.
+    A matrix is done when every kept pair's residual ||L v - theta v|| is at most ``tol`` x its largest diagonal entry (a
     bound on ||L|| / 2 for a Laplacian); checks (a Rayleigh-Ritz step and one host sync each) come after
     ``min_iter`` steps and then every ``check_every``, and finished matrices leave the batch.  At most
     ``max_iter`` steps: a matrix not converged by then keeps its last Ritz pairs and a RuntimeWarning says so.
@@ -47,9 +53,12 @@ def smallest_eigenpairs_subspace(L: torch.Tensor, m: int, block: int | None = No
     stays on cuSOLVER's batched Jacobi solver); when twice that reaches n the dense ``torch.linalg.eigh`` is used
     instead.  ``shift``: s = shift x the mean diagonal entry (a Laplacian's null space makes L itself singular;
     a smaller shift converges a little faster but the explicit inverse then limits the eigenvalues' accuracy:
-    with A^-1 steps, 1e-3 left 1.6e-9 of lambda_K, 0.05 ~2e-12; A^-2 steps at 0.05 ~1e-10).  The start block is
-    fixed (seed 0), so results do not depend on the global random state.
+    with A^-1 steps, 1e-3 left 1.6e-9 of lambda_K, 0.05 ~2e-12; A^-2 steps at 0.05 ~1e-10).  ``power``: 2 or 4
+    inverse steps per orthonormalisation (the module docstring; 4 halves the steps, so the launches).  The start
+    block is fixed (seed 0), so results do not depend on the global random state.
     """
+    if power not in (2, 4):
+        raise ValueError(f"smallest_eigenpairs_subspace: power={power}; valid: 2, 4")
     B, n, _ = L.shape
     m = min(m, n)
     p = min(n, block or max(m + 11, 32))
@@ -60,7 +69,7 @@ def smallest_eigenpairs_subspace(L: torch.Tensor, m: int, block: int | None = No
     s = (shift * diag.mean(-1)).clamp_min(torch.finfo(L.dtype).tiny)[:, None, None]  # B,1,1
     eye = torch.eye(n, dtype=L.dtype, device=L.device)
     Ainv = torch.cholesky_inverse(torch.linalg.cholesky(L + s * eye))  # B,n,n
-    Op = Ainv @ Ainv  # B,n,n: two inverse steps per orthonormalisation (the Gram stays well conditioned)
+    Op = Ainv @ Ainv  # B,n,n: A^-2, applied power / 2 times a step (A^-4 is not formed: a B x n^3 product)
     g = torch.Generator().manual_seed(0)
     V = torch.randn(n, p, generator=g, dtype=L.dtype).to(L.device).expand(B, n, p).contiguous()  # B,n,p
     bound = tol * diag.amax(-1)  # B,
@@ -69,9 +78,13 @@ def smallest_eigenpairs_subspace(L: torch.Tensor, m: int, block: int | None = No
     todo = torch.arange(B, device=L.device)  # the matrices still iterating
     Lt, Opt = L, Op
     for it in range(1, max_iter + 1):
-        V = _orthonormalise(Opt @ V)
+        for _ in range(power // 2):
+            V = Opt @ V  # b,n,p
+        V = _orthonormalise(V)
         if (it < min_iter or (it - min_iter) % check_every) and it != max_iter:
             continue
+        if power > 2:  # Cholesky QR2: the Ritz step takes V as orthonormal to round-off
+            V = _orthonormalise(V)
         theta, U = _small_eigh(V.transpose(1, 2) @ Lt @ V)  # b,p / b,p,p: Ritz pairs, ascending
         V = V @ U
         Vm = V[:, :, :m]
