@@ -47,6 +47,7 @@ if ls "$W"/warp.part0{0,1,2} >/dev/null 2>&1 && [ ! -f "$W/warp_lang-1.19.0-py3-
   cat "$W"/warp.part00 "$W"/warp.part01 "$W"/warp.part02 > "$W/warp_lang-1.19.0-py3-none-manylinux_2_28_x86_64.whl"
 fi
 for whl in "$W"/*.whl; do
+  [ -f "$whl" ] || continue  # no wheels carried (the torch-only recipes: reward, train)
   stamp="$W/.done-$(basename "$whl")"
   [ -f "$stamp" ] && continue
   python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site "$whl" && touch "$stamp"
