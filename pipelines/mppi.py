@@ -117,7 +117,7 @@ def run_knife(ctx: RunContext, sim, object, task, topology, reward, planner, dat
     done = ew.committed_keys()
     env = cached_env(sim, max(1, sim.batch_size))  # a worker's later parts reuse its simulator
     factory = sim_rollout_factory(env, reward, topology, board_z=sim.board_z, push=task.push,
-                                  push_last=planner.push_last)
+                                  push_last=planner.push_last, success=success)
     log_path = writer.path / "episodes.jsonl"
     read_records(log_path, repair=True)  # a run killed while logging left a torn last line: drop it
     one = functools.partial(_demo_episode, env=env, expert=MPPIPolicy(planner, factory, seed=ctx.seed), ew=ew,
@@ -161,6 +161,7 @@ def _demo_episode(e: int, seed: int, advance, *, env, expert, ew, log_path, sim,
             "final_reward": summary["final_reward"], "success": summary["success"]}
     record.update({k: summary[k] for k in ("status", "num_cuts", "final_reward", "success", "rewards",
                                            "turns", "time_s")})
+    record["mppi_iterations"] = list(getattr(expert, "iterations_done", []))  # per cut (planner.stop_at_success)
     if summary["status"] != "ok":  # why it failed, in the episode log and the dataset's episode entry
         meta["error"] = record["error"] = summary.get("error", "unknown")
         log.warning("mppi episode %d (seed %d) failed after %d cuts: %s", e, seed, summary["num_cuts"],

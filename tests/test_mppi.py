@@ -49,6 +49,67 @@ def test_converges_to_quadratic_minimum():
     assert info["num_rollouts"] == 40 * 64
 
 
+def test_planning_stops_after_the_first_iteration_in_which_a_rollout_succeeds():
+    """stop_at_success: the iteration in which some finite-cost sequence succeeds is the last (its best sequence
+    and mean update kept); a success only on a diverged (+inf) sequence, a rollout that reports no success, or
+    stop_at_success=false run every iteration."""
+    target = np.array([[0.6, 0.42, 0.5, 0.0]])
+    scale = np.array([0.03, 0.03, 0.1, 1.0])
+    cost = quadratic(target, scale)
+    calls = []
+
+    def succeeds_from(iteration, inf_only=False):
+        def rollout(seqs):
+            calls.append(len(seqs))
+            c = cost(seqs)
+            ok = np.zeros(len(seqs), bool)
+            if len(calls) >= iteration:
+                ok[0] = True  # sample 0 (the mean) succeeds from this iteration on
+                if inf_only:
+                    c[0] = np.inf
+            return c, ok
+        return rollout
+
+    cfg = MPPIConfig(num_samples=6, horizon=1, iterations=4, control_penalty=0.0)
+    start = np.array([[0.5, 0.5, 0.0, 0.0]])
+    for iteration, expected in ((1, 1), (3, 3), (9, 4)):
+        calls.clear()
+        mean, info = MPPI(cfg, succeeds_from(iteration), np.random.default_rng(0)).plan(start)
+        assert len(info["iterations"]) == len(calls) == expected, (iteration, info["stopped_at_success"])
+        assert info["stopped_at_success"] == (iteration <= 4)
+        assert info["num_rollouts"] == expected * 6
+        best = min(it["costs"].min() for it in info["iterations"])
+        assert info["best_cost"] == best  # the best of the iterations run
+    # the same rollouts without the rule: every iteration
+    calls.clear()
+    off = MPPIConfig(num_samples=6, horizon=1, iterations=4, control_penalty=0.0, stop_at_success=False)
+    _, info = MPPI(off, succeeds_from(1), np.random.default_rng(0)).plan(start)
+    assert len(calls) == 4 and not info["stopped_at_success"]
+    calls.clear()
+    _, info = MPPI(cfg, succeeds_from(1, inf_only=True), np.random.default_rng(0)).plan(start)
+    assert len(calls) == 4 and not info["stopped_at_success"]  # a diverged sequence's success does not count
+    _, info = MPPI(cfg, cost, np.random.default_rng(0)).plan(start)  # costs only
+    assert len(info["iterations"]) == 4 and not info["stopped_at_success"]
+
+
+def test_mppi_policy_records_the_iterations_of_each_cut():
+    """MPPIPolicy.iterations_done: per executed cut, the iterations planned (the demonstrations' episode log
+    records them as mppi_iterations); reset starts a new list."""
+    goal = Goal([KnifeAction(0.4, 0.5, 0.0), KnifeAction(0.6, 0.5, 0.0)])
+    rounds = iter([False, True])
+
+    def factory(obs, goal):
+        done = next(rounds)  # the first cut's rollouts never succeed, the second's do
+        return lambda seqs: (np.zeros(len(seqs)), np.full(len(seqs), done))
+
+    policy = MPPIPolicy(MPPIConfig(num_samples=4, horizon=1, iterations=3), factory, seed=0, goal=goal)
+    policy.act({})
+    policy.act({})
+    assert policy.iterations_done == [3, 1]
+    policy.reset(goal)
+    assert policy.iterations_done == []
+
+
 def test_mean_update_is_weighted_average_and_lambda_zero_picks_best():
     seen = []
 
@@ -164,17 +225,20 @@ def test_mppi_policy_reset_seed_makes_an_episode_independent_of_earlier_ones():
 def test_sim_rollout_factory_pushes_per_goal_task(monkeypatch):
     import topocut.planning.rollout as rollout
 
-    seen = []
-    monkeypatch.setattr(rollout, "make_sim_rollout", lambda *a, push, **k: seen.append(push) or push)
+    seen, succ = [], []
+    monkeypatch.setattr(rollout, "make_sim_rollout",
+                        lambda *a, push, success_fn, **k: seen.append(push) or succ.append(success_fn) or push)
     obs = {"sim_state": None, "particle_labels": None}
-    factory = rollout.sim_rollout_factory(None, push={"slice": False, "dice": True})
+    factory = rollout.sim_rollout_factory(None, push={"slice": False, "dice": True},
+                                          success={"slice": "slice's", "dice": "dice's"})
     for task in ("slice", "dice", "slice"):
         factory(obs, type("G", (), {"task": task})())
     assert seen == [False, True, False]
+    assert succ == ["slice's", "dice's", "slice's"]  # the goal's task's success, as its push
     with pytest.raises(KeyError, match="no push setting for task 'stick'; known: slice, dice"):
         factory(obs, type("G", (), {"task": "stick"})())
     rollout.sim_rollout_factory(None, push=True)(obs, type("G", (), {"task": "slice"})())
-    assert seen[-1] is True
+    assert seen[-1] is True and succ[-1] is None  # no success given: the rollouts report none
 
 
 def test_planner_push_last_reaches_the_rollouts_of_demonstrations_and_evaluation(monkeypatch):
@@ -185,8 +249,9 @@ def test_planner_push_last_reaches_the_rollouts_of_demonstrations_and_evaluation
     from topocut.planning import MPPIConfig
     from topocut.policies import scripted
 
-    seen = []
-    monkeypatch.setattr(rollout, "make_sim_rollout", lambda *a, push_last, **k: seen.append(push_last))
+    seen, succ = [], []
+    monkeypatch.setattr(rollout, "make_sim_rollout",
+                        lambda *a, push_last, success_fn, **k: seen.append(push_last) or succ.append(success_fn))
     obs = {"sim_state": None, "particle_labels": None}
     for value in (True, False):
         setup = scripted.ScriptedSetup(env=None, task_cfgs={"dice": type("T", (), {"push": True})()},
@@ -195,8 +260,13 @@ def test_planner_push_last_reaches_the_rollouts_of_demonstrations_and_evaluation
     no_planner = scripted.ScriptedSetup(task_cfgs={"dice": type("T", (), {"push": True})()})  # the planner's defaults
     scripted.mppi(no_planner).rollout_factory(obs, type("G", (), {"task": "dice"})())
     assert seen == [True, False, MPPIConfig().push_last]
+    # the evaluation's rollouts report the task's own success (stop_at_success): dice's rule with its config
+    from topocut.tasks import get_task
+
+    assert all(f.func == get_task("dice").success and f.keywords["cfg"] is not None for f in succ)
     src = (Path(planning.__file__).parents[2] / "pipelines" / "mppi.py").read_text()
     assert "push_last=planner.push_last" in src  # the stage passes the planner's key (the stage itself: test_stages)
+    assert "success=success" in src  # and the task's success (the stage's episode log: test_stages)
 
 
 # ---- the simulator rollout: needs topocut.sim, topocut.topology, topocut.reward, topocut.tasks -----------
@@ -254,6 +324,12 @@ def test_sim_rollout_batched_matches_sequential_and_restores_state():
     np.testing.assert_allclose(rollout2(seqs), costs2, rtol=2e-3, atol=1e-4)  # state restored before every chunk
     assert np.isfinite(costs1).all()
     assert costs1[0] < costs1[1]  # the goal's own plane beats a cut that misses the object (x = 0.95)
+    # with a success rule the rollout reports each sequence's success beside the same costs
+    bar = -0.5 * (costs1[0] + costs1[1])  # between the goal plane's reward and the miss's
+    costs3, ok = make_sim_rollout(env2, state, goal, board_z=sim1.board_z, success_fn=lambda r: r.total >= bar)(seqs)
+    np.testing.assert_allclose(costs3, costs2, rtol=2e-3, atol=1e-4)
+    np.testing.assert_array_equal(ok, -costs3 >= bar)
+    assert ok[0] and not ok[1]
 
 
 def test_a_rollout_pushes_after_each_cut_but_the_horizons_last_unless_push_last(monkeypatch):

@@ -168,6 +168,9 @@ def test_killed_mppi_resumes_without_redoing_episodes(resumed):
     assert starts == sorted(starts) and 1 <= resumed["committed_at_kill"] < RESUME_EPISODES
     assert sum(s < resumed["second_launched"] for s in starts) == resumed["committed_at_kill"]
     assert all(r["time_s"] > 0 for r in records)
+    # the iterations planned for each executed cut (planner.stop_at_success): one number per cut, none past the
+    # planner's iterations (smoke: 1)
+    assert all(len(r["mppi_iterations"]) == r["num_cuts"] and set(r["mppi_iterations"]) <= {1} for r in records)
 
 
 def test_rerun_with_same_config_reuses_the_version(resumed):

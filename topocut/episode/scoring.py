@@ -138,18 +138,23 @@ class Scorer:
 
         res = spectral_reward(self.fragments(x, labels), list(self.goal.fragments), self.reward_cfg,
                               offcuts=list(getattr(self.goal, "offcuts", None) or []))
-        total = float(res.total)
-        if self.success_fn is not None:
-            return total, bool(self.success_fn(res))
-        ok = self.success_threshold is not None and total >= self.success_threshold
-        return total, bool(ok)
+        return float(res.total), self.success(res)
 
-    def rewards(self, xs, labels) -> np.ndarray:  # K, the rewards of K scenes in one batched reward call
+    def success(self, result) -> bool:
+        """A RewardResult's success: ``success_fn``'s, else the total at ``success_threshold`` (None: never)."""
+        if self.success_fn is not None:
+            return bool(self.success_fn(result))
+        return bool(self.success_threshold is not None and float(result.total) >= self.success_threshold)
+
+    def results(self, xs, labels) -> list:  # K RewardResults of K scenes in one batched reward call
         from topocut.reward import spectral_rewards
 
         sets = [self.fragments(x, lab) for x, lab in zip(xs, labels)]
         off = list(getattr(self.goal, "offcuts", None) or [])
-        return np.array([r.total for r in spectral_rewards(sets, list(self.goal.fragments), self.reward_cfg, off)])
+        return spectral_rewards(sets, list(self.goal.fragments), self.reward_cfg, off)
+
+    def rewards(self, xs, labels) -> np.ndarray:  # K, the rewards of K scenes in one batched reward call
+        return np.array([r.total for r in self.results(xs, labels)])
 
 
 def takes_start_positions(fn) -> bool:

@@ -27,6 +27,11 @@ class MPPIConfig:
     # That push moves apart what the last cut made, which the reward then scores (docs/data.md, "The rollout's last
     # push"); at 128^3 a push and its settling are two thirds of a cut's substeps
     push_last: bool = False
+    # an iteration in which a rollout succeeds (the task's success after the rollout's cuts: every goal piece made
+    # and the reward at task.success_threshold) ends the cut's planning, the paper's threshold that "terminates
+    # MPPI-based trajectory planning"; the executed cut is still the best evaluated sequence's.  false: always
+    # `iterations` (docs/data.md, "Stopping at success")
+    stop_at_success: bool = True
 
     def validate(self) -> None:
         if self.num_samples < 1:

@@ -11,6 +11,9 @@ An action is one cut, the knife start pose vector a = [x, y, yaw, tilt]
 ``rollout`` maps a batch of sequences (K,H,4) to task costs (K,) — in data
 generation minus the spectral reward of the fragments the simulator produces
 (topocut.planning.rollout.make_sim_rollout); in tests any synthetic function.
+A rollout may also return (costs (K,), success (K,) bool): with ``stop_at_success``
+the first iteration in which a sequence succeeds is the last (the paper's success
+threshold that "terminates MPPI-based trajectory planning").
 """
 from __future__ import annotations
 
@@ -21,7 +24,7 @@ import numpy as np
 from topocut.planning.config import ACTION_DIMS, MPPIConfig
 from topocut.sim.action import KnifeAction, executed_action
 
-Rollout = Callable[[np.ndarray], np.ndarray]  # (K,H,4) -> (K,)
+Rollout = Callable[[np.ndarray], "np.ndarray | tuple[np.ndarray, np.ndarray]"]  # (K,H,4) -> (K,) [, (K,) bool]
 
 
 def mppi_weights(costs: np.ndarray, temperature: float, normalize: bool = False) -> np.ndarray:
@@ -75,14 +78,17 @@ class MPPI:
         return self.cfg.control_penalty * np.sum((eps * self.dim_mask / self.sigma) ** 2, axis=(1, 2))
 
     def plan(self, mean) -> tuple[np.ndarray, dict]:
-        """Run cfg.iterations refinement iterations from mean (H,4); returns (new mean (H,4), info)."""
+        """Run cfg.iterations refinement iterations from mean (H,4), fewer where a rollout succeeds and
+        cfg.stop_at_success; returns (new mean (H,4), info)."""
         mean = self.clip(np.asarray(mean, np.float64))
         if mean.ndim != 2 or mean.shape[1] != len(ACTION_DIMS):
             raise ValueError(f"MPPI mean must have shape (H, {len(ACTION_DIMS)}), got {mean.shape}")
-        best_seq, best_cost, history = mean.copy(), np.inf, []
+        best_seq, best_cost, history, stopped = mean.copy(), np.inf, [], False
         for _ in range(self.cfg.iterations):
             samples, eps = self.sample(mean)
-            task = np.asarray(self.rollout(samples.astype(np.float32)), np.float64).reshape(-1)  # K,
+            out = self.rollout(samples.astype(np.float32))
+            task, succeeded = out if isinstance(out, tuple) else (out, None)
+            task = np.asarray(task, np.float64).reshape(-1)  # K,
             if task.shape[0] != len(samples):
                 raise ValueError(f"rollout returned {task.shape[0]} costs for {len(samples)} sequences")
             costs = task + self.control_cost(eps)
@@ -92,8 +98,12 @@ class MPPI:
                 best_cost, best_seq = float(costs[k]), samples[k].copy()
             mean = self.clip(np.einsum("k,khd->hd", w, samples))
             history.append({"costs": costs, "task_costs": task, "weights": w, "best": k})
+            if succeeded is not None and self.cfg.stop_at_success:
+                if bool(np.any(np.asarray(succeeded, bool).reshape(-1) & np.isfinite(task))):
+                    stopped = True
+                    break
         info = {"best_sequence": best_seq, "best_cost": best_cost, "iterations": history,
-                "num_rollouts": self.cfg.iterations * self.cfg.num_samples}
+                "num_rollouts": len(history) * self.cfg.num_samples, "stopped_at_success": stopped}
         return mean, info
 
 
@@ -134,6 +144,7 @@ class MPPIPolicy:
         self.goal = goal
         self.heuristic = GoalPlanesPolicy(goal)
         self.t = 0
+        self.iterations_done: list[int] = []  # per executed cut: the iterations planned (fewer: stop_at_success)
         self.mean = self.heuristic.sequence(0, self.cfg.horizon)  # H,4
 
     def act(self, obs: dict) -> KnifeAction:
@@ -143,6 +154,7 @@ class MPPIPolicy:
         if self.cfg.execute == "best":
             self.mean = info["best_sequence"].copy()  # keep planning around the sequence that was executed
         self.last_info = info
+        self.iterations_done.append(len(info["iterations"]))
         self.t += 1
         fill = self.heuristic.sequence(self.t + self.cfg.horizon - 1, 1)[0] if self.cfg.shift_fill == "heuristic" else None
         self.mean = shift(self.mean, fill)

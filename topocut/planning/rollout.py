@@ -72,8 +72,12 @@ def execute_turns(env, turns: list, scorer: Scorer, labels: list, xs: list) -> i
 
 def make_sim_rollout(env, state_dict: dict, goal, reward_cfg=None, topo_cfg=None, board_z: float = 0.05,
                      labels=None, push: bool = False, scorer: Scorer | None = None, cuts_done: int = 0,
-                     saved=None, push_last: bool = False):
+                     saved=None, push_last: bool = False, success_fn=None):
     """A batched MPPI cost: sequences (K,H,4) -> -(spectral reward after executing them) (K,).
+
+    ``success_fn(RewardResult) -> bool`` (the task's success): the rollout then returns (costs (K,), success
+    (K,) bool), each sequence's success after its cuts, for MPPI's ``stop_at_success`` (a diverged chunk, or a
+    scorer without batched ``results``, succeeds nowhere).
 
     ``push``: the task pushes, so the rollout pushes after each cut of its horizon but the last (``push_last``:
     after the last too; planner.push_last, docs/data.md "The rollout's last push").
@@ -104,6 +108,7 @@ def make_sim_rollout(env, state_dict: dict, goal, reward_cfg=None, topo_cfg=None
         seqs = np.asarray(seqs, np.float64)  # K,H,4
         K, H = seqs.shape[:2]
         costs = np.empty(K)
+        success = np.zeros(K, bool)
         for c0 in range(0, K, B):
             chunk = seqs[c0:c0 + B]
             n = len(chunk)
@@ -143,37 +148,46 @@ def make_sim_rollout(env, state_dict: dict, goal, reward_cfg=None, topo_cfg=None
             except (Diverged, TurnFailed):
                 costs[c0:c0 + n] = np.inf
                 continue
+            if success_fn is not None and hasattr(scorer, "results"):
+                results = scorer.results(xs, labs)
+                costs[c0:c0 + n] = [-float(r.total) for r in results]
+                success[c0:c0 + n] = [bool(success_fn(r)) for r in results]
+                continue
             batched = getattr(scorer, "rewards", None)  # a scorer may offer only per-scene reward()
             costs[c0:c0 + n] = -(batched(xs, labs) if batched is not None
                                  else np.array([scorer.reward(x, lab)[0] for x, lab in zip(xs, labs)]))
-        return costs
+        return costs if success_fn is None else (costs, success)
 
     return rollout
 
 
 def sim_rollout_factory(env, reward_cfg=None, topo_cfg=None, board_z: float = 0.05,
-                        push: bool | Mapping[str, bool] = False, push_last: bool = False):
+                        push: bool | Mapping[str, bool] = False, push_last: bool = False, success=None):
     """``factory(obs, goal) -> rollout`` for MPPIPolicy: plans from obs['sim_state'] / obs['particle_labels']
     (and obs['cuts_done'], the episode's cuts so far: where the goal's turns fall in the horizon).
 
     ``push``: whether a rollout pushes after its cuts; a mapping {task: push} follows the goal's task, so
     that the rollouts of an evaluation over several tasks push where the executed episode does; ``push_last``:
-    also after the horizon's last cut (make_sim_rollout).
+    also after the horizon's last cut (make_sim_rollout).  ``success``: the task's success (RewardResult ->
+    bool), or a mapping {task: success}; the rollouts then report each sequence's success (MPPI's
+    ``stop_at_success``).  None: they report none, and MPPI runs every iteration.
     """
+
+    def for_task(setting, goal, what: str):
+        if not isinstance(setting, Mapping):
+            return setting
+        task = getattr(goal, "task", None)
+        if task not in setting:
+            raise KeyError(f"sim_rollout_factory: no {what} setting for task {task!r}; known: {', '.join(setting)}")
+        return setting[task]
 
     def factory(obs: dict, goal):
         for k in ("sim_state", "particle_labels"):
             if k not in obs:
                 raise KeyError(f"MPPI needs obs[{k!r}] (set by run_episode); obs has {', '.join(obs)}")
-        if isinstance(push, Mapping):
-            task = getattr(goal, "task", None)
-            if task not in push:
-                raise KeyError(f"sim_rollout_factory: no push setting for task {task!r}; known: {', '.join(push)}")
-            do_push = bool(push[task])
-        else:
-            do_push = bool(push)
         return make_sim_rollout(env, obs["sim_state"], goal, reward_cfg, topo_cfg, board_z,
-                                labels=obs["particle_labels"], push=do_push, cuts_done=int(obs.get("cuts_done", 0)),
-                                saved=obs.get("sim_saved"), push_last=push_last)
+                                labels=obs["particle_labels"], push=bool(for_task(push, goal, "push")),
+                                cuts_done=int(obs.get("cuts_done", 0)), saved=obs.get("sim_saved"),
+                                push_last=push_last, success_fn=for_task(success, goal, "success"))
 
     return factory

@@ -6,6 +6,7 @@ Imports happen inside the builders: the registry stays torch- and taichi-free at
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 
@@ -43,9 +44,11 @@ def heuristic(setup: ScriptedSetup):
 def mppi(setup: ScriptedSetup):
     """MPPI over knife planes, its rollouts in the evaluation's own simulator (the demonstrator)."""
     from topocut.planning import MPPIConfig, MPPIPolicy, sim_rollout_factory
+    from topocut.tasks import get_task
 
     planner = setup.planner if setup.planner is not None else MPPIConfig()
     push = {task: bool(t.push) for task, t in setup.task_cfgs.items()}  # rollouts push where the episode does
+    success = {task: functools.partial(get_task(task).success, cfg=t) for task, t in setup.task_cfgs.items()}
     factory = sim_rollout_factory(setup.env, setup.reward, setup.topology, board_z=setup.board_z, push=push,
-                                  push_last=planner.push_last)
+                                  push_last=planner.push_last, success=success)
     return MPPIPolicy(planner, factory, seed=setup.seed)
