@@ -101,6 +101,15 @@ def bench_demo(args) -> dict:
               f"-> {b['wall']:.3f} s a cut ({a['wall'] / b['wall']:.2f}x), simulation {a['sim']:.3f} -> "
               f"{b['sim']:.3f} s ({a['sim'] / max(b['sim'], 1e-9):.2f}x)")
         return out
+    if args.executed == "both":
+        m = modes[-1]
+        out = {every: demo_cuts(args, m, push_last=args.push_last == "true", size_solver=args.size_solver,
+                                every=every) for every in (True, False)}
+        a, b = out[True], out[False]
+        print(f"the executed cut in scene 0 only against in every scene, same process: wall {a['wall']:.3f} -> "
+              f"{b['wall']:.3f} s a cut ({a['wall'] / b['wall']:.2f}x), simulation {a['sim']:.3f} -> {b['sim']:.3f} s "
+              f"({a['sim'] / max(b['sim'], 1e-9):.2f}x)")
+        return out
     if args.size_solver == "both":
         m = modes[-1]
         out = {solver: demo_cuts(args, m, push_last=args.push_last == "true", size_solver=solver)
@@ -120,7 +129,21 @@ def bench_demo(args) -> dict:
     return out
 
 
-def demo_cuts(args, batch_scenes: bool, push_last: bool = False, size_solver: str = "auto") -> dict:
+def every_scene(env) -> None:
+    """The engine's executed cut, push and turn as before 2026-11-30 (the reference of ``--executed both``): one
+    episode alone (MPPI's) moved in every scene of the batch, not in scene 0 with the others idle."""
+    cut, push, turn = env.cut, env.push, env.turn
+
+    def every(acts):
+        return [acts[0]] * len(acts) if isinstance(acts, list) and all(a is None for a in acts[1:]) else acts
+
+    env.cut = lambda acts, **k: cut(every(acts), **k)
+    env.push = lambda scenes=None: push(None if scenes is not None and not np.asarray(scenes)[1:].any() else scenes)
+    env.turn = lambda t, **k: turn(t[0] if isinstance(t, list) and all(u is None for u in t[1:]) else t, **k)
+
+
+def demo_cuts(args, batch_scenes: bool, push_last: bool = False, size_solver: str = "auto",
+              every: bool = False) -> dict:
     from topocut.planning import MPPIConfig, MPPIPolicy, run_episode, sim_rollout_factory
     from topocut.reward.config import RewardConfig
     from topocut.sim.env import CuttingEnv
@@ -130,6 +153,8 @@ def demo_cuts(args, batch_scenes: bool, push_last: bool = False, size_solver: st
 
     env = CuttingEnv(sim_config(args, args.K), batch_size=args.K)
     instrument(env)
+    if every:
+        every_scene(env)
     # no push unless --push: as docs/benchmarks.md timed; --push: the task's own (stick and dice push)
     task = task_config(args.task, max_cuts=args.cuts, **({} if args.push else {"push": False})).validate()
     rcfg = RewardConfig(backend=args.reward_backend, device=args.device if args.reward_backend == "torch" else "cpu",
@@ -172,7 +197,8 @@ def demo_cuts(args, batch_scenes: bool, push_last: bool = False, size_solver: st
           f"{args.iters} iterations, reward {args.reward_backend} (sizes: {size_solver}), discovery "
           f"{args.topo_resolution}^3, "
           f"{'batched over scenes' if batch_scenes else 'scene by scene'}, "
-          f"{'push' + (', rollouts push after their last cut' if push_last else '') if task.push else 'no push'}):")
+          f"{'push' + (', rollouts push after their last cut' if push_last else '') if task.push else 'no push'}, "
+          f"the executed cut {'in every scene' if every else 'in scene 0'}):")
     print(f"{'cut':>4} {'wall s':>8} {'sim s':>8} {'(split)':>8} {'disc s':>8} {'reward s':>8} {'rest s':>8} "
           f"{'wall/sim':>9}")
     for i, r in enumerate(rows):
@@ -289,6 +315,9 @@ def main() -> None:
                    help="demo with --push: planner.push_last; both: with it (the reference), then without")
     p.add_argument("--size-solver", choices=("auto", "host", "device", "both"), default="auto",
                    help="demo: reward.size_solver; both: the host (the reference), then the device")
+    p.add_argument("--executed", choices=("scene0", "both"), default="scene0",
+                   help="demo: the executed cut (and push, turn) in scene 0 with the other scenes idle (the engine's "
+                   "way); both: first in every scene (the reference, as before 2026-11-30), then in scene 0")
     p.add_argument("--batch", type=int, default=16, help="evaluation scenes (episodes at once)")
     p.add_argument("--eval-episodes", type=int, default=32)
     p.add_argument("--ref-episodes", type=int, default=4, help="episodes of the one-at-a-time reference")

@@ -412,9 +412,22 @@ def markdown(result: dict) -> str:
                      f"{r['rate_s']:.4g} {r['rate_unit']} | {r['count']:,} {r['count_unit']} | {r['processes']} | "
                      f"{hms(r['fixed_s'])} | {ge}{hms(r['projected_s'])} | {100 * r['share']:.1f}% |")
     t, ge = result["total_s"], ">= " if any(r["detail"].get("lower_bound") for r in result["rows"]) else ""
-    lines.append(f"| **make paper** | | | | | | **{ge}{hms(t)}** | 100% |")
-    return "\n".join(lines) + f"\n\nTarget <= {TARGET_H:g} h on one GPU: {'met' if t <= TARGET_H * 3600 else 'not met'} " \
-                              f"({t / (TARGET_H * 3600):.2f}x the target).\n"
+    missing = unmeasured(result)
+    lines.append(f"| **{'the stages measured' if missing else 'make paper'}** | | | | | | **{ge}{hms(t)}** | 100% |")
+    ratio = f"{t / (TARGET_H * 3600):.2f}x the target"
+    if not missing:
+        verdict = f"{'met' if t <= TARGET_H * 3600 else 'not met'} ({ratio})"
+    elif t > TARGET_H * 3600:
+        verdict = f"not met: the stages measured alone take {ratio}"
+    else:  # a part of make paper under the target says nothing of the whole
+        verdict = f"not decided: {', '.join(missing)} not measured (the stages measured {ratio})"
+    return "\n".join(lines) + f"\n\nTarget <= {TARGET_H:g} h on one GPU: {verdict}.\n"
+
+
+def unmeasured(result: dict) -> list[str]:
+    """The stages of make paper with no row in ``result`` (stage mppi's rows: demonstrations, merge)."""
+    have = {r["stage"] for r in result["rows"]}
+    return [s for s in STAGES if ("demonstrations" if s == "mppi" else s) not in have]
 
 
 def main(argv=None) -> dict:

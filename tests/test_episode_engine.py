@@ -65,6 +65,41 @@ def test_batched_episodes_equal_episodes_run_alone(logs):
         assert np.array_equal(a.labels, b.labels)
 
 
+def test_an_episode_alone_moves_only_scene_0_and_equals_batch_size_1(logs):
+    """One episode alone in a 2-scene batch (a planner's way: run_episodes(batch=False)) cuts, pushes and turns
+    scene 0 only: scene 1, its planner's scratch (restored from scene 0 before each step's rollouts), idles
+    through each of them, and the episode's log equals the same episode at batch size 1 (the stick: a push
+    after each cut and a turn after the first)."""
+    from topocut.sim.env import CuttingEnv
+
+    env = CuttingEnv(SimConfig(**SIM, batch_size=2))
+    calls = []
+    def rows(x):  # scene 1's particles as a set: a turn re-sorts every scene's particles by cell
+        return x[np.lexsort(x.T)]
+
+    def spy(name, fn):  # what each primitive was asked to move, and what it did to scene 1
+        def call(*a, **k):
+            before = rows(np.asarray(env.state().x[1]).copy())
+            out = fn(*a, **k)
+            after = rows(np.asarray(env.state().x[1]))
+            calls.append((name, a[0] if a else k.get("scenes"), np.array_equal(before, after)))
+            return out
+        return call
+
+    for name in ("cut", "push", "turn"):
+        setattr(env, name, spy(name, getattr(env, name)))
+    sc = make_scoring(RewardConfig(), TopologyConfig(resolution=48))
+    [log] = run_episodes(env, EPISODES[:1], Stopping(), sc, max_cuts=3, batch=False)
+    [ref] = logs[1][0][:1]  # the same episode at batch size 1 (the fixture)
+    assert log.status == ref.status == "ok", log.error
+    assert log.actions == ref.actions and log.turns == ref.turns == [1] and log.num_pieces == ref.num_pieces
+    assert np.allclose(log.rewards, ref.rewards, atol=1e-6, rtol=0) and np.array_equal(log.labels, ref.labels)
+    assert [c[0] for c in calls] == ["cut", "push", "turn", "cut", "push", "cut", "push"]
+    for what, arg, scene_1_kept in calls:
+        moved = [a is not None for a in arg] if what in ("cut", "turn") else list(arg)
+        assert moved == [True, False] and scene_1_kept, (what, arg)
+
+
 def test_each_episode_follows_its_own_task(logs):
     stick, short, thick = logs[2][0]
     assert stick.turns == [1] and len(stick.actions) == 3  # the slab laid flat after the first cut

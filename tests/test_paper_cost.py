@@ -39,6 +39,27 @@ def test_epoch_cost_splits_an_epoch_into_a_fixed_part_and_a_part_per_episode():
     assert pc.epoch_cost([(64, 2.0), (256, 1.9)]) == (0.0, 1.9 / 256)  # no positive slope: the larger size alone
 
 
+def test_the_target_is_judged_on_make_paper_whole_only():
+    def result(*stages_hours):
+        rows = [{"stage": st, "measured": "", "rate_s": 1.0, "rate_unit": "s", "count": 1, "count_unit": "",
+                 "processes": 1, "fixed_s": 0.0, "projected_s": h * 3600, "complete": True, "detail": {},
+                 "share": 0.0} for st, h in stages_hours]
+        return {"rows": rows, "total_s": sum(h for _, h in stages_hours) * 3600}
+
+    whole = [("simulate", 0.1), ("demonstrations", 1.0), ("merge", 0.1), ("pretrain", 0.2), ("bc", 0.5),
+             ("eval", 0.9)]
+    assert pc.unmeasured(result(*whole)) == []
+    assert "Target <= 3 h on one GPU: met (0.93x the target)" in pc.markdown(result(*whole))
+    assert "**make paper**" in pc.markdown(result(*whole))
+    assert "not met (1.27x the target)" in pc.markdown(result(*whole[:-1], ("eval", 1.0 + 0.9)))
+    part = result(*whole[:3])  # the demonstrations alone under 3 h decide nothing
+    assert pc.unmeasured(part) == ["pretrain", "bc", "eval"]
+    md = pc.markdown(part)
+    assert "not decided: pretrain, bc, eval not measured (the stages measured 0.40x the target)" in md
+    assert "**the stages measured**" in md and "**make paper**" not in md
+    assert "not met: the stages measured alone take 1.33x the target" in pc.markdown(result(("eval", 4.0)))
+
+
 @pytest.mark.parametrize("sizes", [["64", "128", "256"], ["64", "64"], ["1"]])
 def test_train_episodes_takes_one_or_two_different_sizes(sizes, tmp_path, capsys):
     with pytest.raises(SystemExit) as e:

@@ -87,7 +87,7 @@ class EpisodeBatch:
             raise ValueError(f"EpisodeBatch.start: {n} episodes for batch_size={B}")
         self.t0, self.eps, self.alone, self.n, self.k = time.perf_counter(), list(episodes), alone, n, 0
         self.logs = [EpisodeLog() for _ in episodes]
-        if alone:  # the episode in every scene (a planner's rollouts restore them from obs["sim_state"])
+        if alone:  # the episode in every scene; it moves on in scene 0 (a planner's rollouts restore the rest)
             if episodes[0].object is not None:
                 env.reset(episodes[0].object, episodes[0].pose, seed=episodes[0].seed)
         else:  # scene b holds episode b; the scenes past them repeat the last episode and stay frozen
@@ -161,8 +161,10 @@ class EpisodeBatch:
         freezing its diverged scenes) fails the moving episodes."""
         env, B, n = self.env, self.B, self.n
         try:
-            info = env.cut([acts[0]] * B if B > 1 else acts[0], **record) if self.alone else \
-                env.cut(acts + [None] * (B - n), **record)
+            # scenes past the episodes idle (frozen: no phase touches them).  One episode alone (a planner's) runs
+            # in scene 0 only: the other scenes are its planner's scratch, restored before its rollouts cut, so
+            # cutting them too (as before 2026-11-30) cost a whole batch's cut for nothing
+            info = env.cut(acts + [None] * (B - n), **record)
         except self.Diverged as e:
             for b in moving:
                 self.end(b, "failed", f"cut {self.k + 1}: {type(e).__name__}: {e}")
@@ -180,9 +182,9 @@ class EpisodeBatch:
         if not any(pushes) or not scored:
             return scored
         try:
-            if self.alone:
+            if B == 1:
                 env.push()
-            else:
+            else:  # scenes past the episodes (one episode alone: all but scene 0) idle, as in the cut
                 env.push(scenes=np.array(pushes + [False] * (B - n)))
         except self.Diverged as e:
             for b, _, _ in scored:
@@ -292,7 +294,7 @@ class EpisodeBatch:
         refused = [None] * B  # per scene, why a turn of its was refused (a batch's scenes are refused one by one)
         try:
             for i in range(depth):
-                if self.alone:
+                if B == 1:
                     env.turn(todo[0][i])
                 else:
                     env.turn([todo[b][i] if b in todo and i < len(todo[b]) and not refused[b] else None
