@@ -81,6 +81,10 @@ def test_frozen_scene_does_not_move_inside_a_graph_chunk(envs):
     s.frozen_at.from_numpy(np.array([2 ** 30, batched.step_count + 5], np.int32))
     try:
         batched.simulate(16)  # one ti.graph chunk: scene 1 freezes at its 6th substep, scene 0 runs on
+        # the last substep's clear and grid update left the idle scene out (MPMSolver.wrote): its grid is empty
+        assert s.wrote.to_numpy().tolist() == [1, 0]
+        m = s.grid_m.to_numpy()  # B*K,n,n,n
+        assert m[s.K:].max() == 0 and m[:s.K].max() > 0
     finally:
         s.frozen_at.fill(2 ** 30)
     moved, frozen = batched.get_state(0), batched.get_state(1)

@@ -121,10 +121,14 @@ class MPMSolver(MaterialUpdate, Knife, Scatter):
         # substep number from which scene b is frozen (2**30 = never): every phase skips it from then on,
         # so a batched cut gives scene b its own substep budget.  A field, so ti.graph runs read it live.
         self.frozen_at = ti.field(ti.i32)
+        # whether scene b scattered since its grid was last cleared: an idle scene's grid stays zero, so the clear
+        # and the grid update skip it (one episode alone, MPPI's, cuts scene 0 with 15 idle; a batch's finished
+        # episodes idle)
+        self.wrote = ti.field(ti.i32)
         fb.dense(ti.i, B).place(self.k_o, self.k_u, self.k_w, self.k_n, self.k_half, self.k_dir, self.k_depth,
                                 self.k_amp, self.k_speed, self.k_target, self.k_on, self.k_smooth, self.k_sharp, self.k_hold,
                                 self.k_imp,
-                                self.k_imp_step, self.k_work, self.k_peak, self.bad_step, self.frozen_at)
+                                self.k_imp_step, self.k_work, self.k_peak, self.bad_step, self.frozen_at, self.wrote)
         fb.dense(ti.i, 6).place(self.box)
         self.tree = fb.finalize()
         self.bad_step.fill(2 ** 30)
@@ -132,6 +136,7 @@ class MPMSolver(MaterialUpdate, Knife, Scatter):
         self.material.fill(-1)  # every slot is padding until particles are loaded into it
         self.n_fields[None] = 1
         self.box.from_numpy(np.array([0, 0, 0, n, n, n], np.int32))  # a fresh grid: clear it all once
+        self.wrote.fill(1)
         self.order.from_numpy(np.broadcast_to(np.arange(self.lanes, dtype=np.int32), (B, self.lanes)).copy())
         self.p2g, self.grid_op, self.g2p = self._phase_kernels()
         self._graphs = {}  # k -> compiled ti.graph of k substeps
@@ -171,18 +176,26 @@ class MPMSolver(MaterialUpdate, Knife, Scatter):
         return self.material[b, p] >= 0
 
     @ti.func
-    def clear_grid(self):
+    def clear_grid(self, step):
+        """Zero what the last scatter wrote, then note the scenes that scatter in substep ``step``.
+
+        Only the scenes that scattered since their last clear (``wrote``): nothing else writes a node without
+        mass (grid_op, the knife, the tools act where m > 0), so an idle scene's grid is still zero."""
         if ti.static(self.use_box):  # only what the last scatter wrote; then the box is empty
             for b, f, i, j, k in ti.ndrange(self.B, self.n_fields[None], (self.box[0], self.box[3]),
                                             (self.box[1], self.box[4]), (self.box[2], self.box[5])):
-                self.grid_v[b * self.K + f, i, j, k] = ti.Vector.zero(ti.f32, 3)
-                self.grid_m[b * self.K + f, i, j, k] = 0.0
+                if self.wrote[b]:
+                    self.grid_v[b * self.K + f, i, j, k] = ti.Vector.zero(ti.f32, 3)
+                    self.grid_m[b * self.K + f, i, j, k] = 0.0
             for d in ti.static(range(3)):
                 self.box[d], self.box[d + 3] = self.n_grid, 0
         else:
             for I in ti.grouped(self.grid_m):
-                self.grid_v[I] = ti.Vector.zero(ti.f32, 3)
-                self.grid_m[I] = 0.0
+                if self.wrote[I[0] // self.K]:
+                    self.grid_v[I] = ti.Vector.zero(ti.f32, 3)
+                    self.grid_m[I] = 0.0
+        for b in range(self.B):
+            self.wrote[b] = 1 if self.active(b, step) else 0
 
     @ti.func
     def grow_box(self, base):
@@ -200,10 +213,12 @@ class MPMSolver(MaterialUpdate, Knife, Scatter):
         if ti.static(self.use_box):
             for b, i, j, k in ti.ndrange(self.B, (self.box[0], self.box[3]), (self.box[1], self.box[4]),
                                          (self.box[2], self.box[5])):
-                self.update_node(b, ti.Vector([i, j, k]), t, contact)
+                if self.wrote[b]:  # an idle scene's nodes are empty
+                    self.update_node(b, ti.Vector([i, j, k]), t, contact)
         else:
             for b, i, j, k in ti.ndrange(self.B, self.n_grid, self.n_grid, self.n_grid):
-                self.update_node(b, ti.Vector([i, j, k]), t, contact)
+                if self.wrote[b]:
+                    self.update_node(b, ti.Vector([i, j, k]), t, contact)
 
     @ti.func
     def update_node(self, b, I, t, contact: ti.template()):
@@ -283,7 +298,7 @@ class MPMSolver(MaterialUpdate, Knife, Scatter):
 
         @ti.kernel
         def p2g(n: ti.i32, step: ti.i32):
-            s.clear_grid()
+            s.clear_grid(step)
             s.scatter(n, step)
 
         @ti.kernel

@@ -180,7 +180,7 @@ class ToolColliders:
     def p2g_sided(self, n: ti.i32, step: ti.i32):
         """The solver's p2g (clear + scatter; MPMSolver.particle_update for the material), sided."""
         s = self.s
-        s.clear_grid()  # the solver's clear (its grid box, sim.tuning.grid_box, when on)
+        s.clear_grid(step)  # the solver's clear (its grid box, sim.tuning.grid_box, when on)
         ti.loop_config(serialize=s.serial_scatter)  # one CPU thread: plain adds (Scatter.scatter)
         for b, p in ti.ndrange(s.B, s.capacity):
             if p < n and s.active(b, step) and s.live(b, p):
