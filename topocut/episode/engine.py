@@ -164,7 +164,7 @@ class EpisodeBatch:
             # scenes past the episodes idle (frozen: no phase touches them).  One episode alone (a planner's) runs
             # in scene 0 only: the other scenes are its planner's scratch, restored before its rollouts cut, so
             # cutting them too (as before 2026-11-30) cost a whole batch's cut for nothing
-            info = env.cut(acts + [None] * (B - n), **record)
+            info = env.cut(acts + [None] * (B - n) if B > 1 else acts[0], **record)  # B = 1: the action itself
         except self.Diverged as e:
             for b in moving:
                 self.end(b, "failed", f"cut {self.k + 1}: {type(e).__name__}: {e}")
