@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Runs on the lent GPU machine (see docs/benchmarks.md for how the figures were made).
 # The machine has torch/lightning/scipy but not taichi, warp, hydra, trimesh, zarr (zarr 3.4 needs msgspec): they travel as
-# wheels under .whl/ (warp split in three parts, one per call; hydra-joblib-launcher in .whl/b for multiruns).
+# wheels under .whl/ (warp split in three parts, one per call; hydra-joblib-launcher in .whl/b for multiruns), made
+# here by benchmarks/fetch_wheels.sh.
 # Usage: bash benchmarks/gpu.sh <phase>
 set -uo pipefail
 phase=${1:-wheels}
