@@ -95,38 +95,49 @@ def bench_demo(args) -> dict:
     modes = {"both": (False, True), "batched": (True,), "per-scene": (False,)}[args.discovery]
     if args.push and args.push_last == "both":
         m = modes[-1]
-        out = {last: demo_cuts(args, m, push_last=last) for last in (True, False)}
+        out = {last: demo_cuts(args, m, push_last=last, executed=EXECUTED[args.executed][0]) for last in (True, False)}
         a, b = out[True], out[False]
         print(f"rollouts without the push after their last cut against with it, same process: wall {a['wall']:.3f} "
               f"-> {b['wall']:.3f} s a cut ({a['wall'] / b['wall']:.2f}x), simulation {a['sim']:.3f} -> "
               f"{b['sim']:.3f} s ({a['sim'] / max(b['sim'], 1e-9):.2f}x)")
         return out
-    if args.executed == "both":
+    executed = EXECUTED[args.executed]
+    if len(executed) > 1:
         m = modes[-1]
-        out = {every: demo_cuts(args, m, push_last=args.push_last == "true", size_solver=args.size_solver,
-                                every=every) for every in (True, False)}
-        a, b = out[True], out[False]
-        print(f"the executed cut in scene 0 only against in every scene, same process: wall {a['wall']:.3f} -> "
-              f"{b['wall']:.3f} s a cut ({a['wall'] / b['wall']:.2f}x), simulation {a['sim']:.3f} -> {b['sim']:.3f} s "
-              f"({a['sim'] / max(b['sim'], 1e-9):.2f}x)")
+        out = {how: demo_cuts(args, m, push_last=args.push_last == "true", size_solver=args.size_solver,
+                              executed=how) for how in executed}
+        a = out[executed[0]]
+        for how in executed[1:]:
+            b = out[how]
+            print(f"the executed cut {HOW[how]} against {HOW[executed[0]]}, same process: wall {a['wall']:.3f} -> "
+                  f"{b['wall']:.3f} s a cut ({a['wall'] / b['wall']:.2f}x), simulation {a['sim']:.3f} -> "
+                  f"{b['sim']:.3f} s ({a['sim'] / max(b['sim'], 1e-9):.2f}x)")
         return out
     if args.size_solver == "both":
         m = modes[-1]
-        out = {solver: demo_cuts(args, m, push_last=args.push_last == "true", size_solver=solver)
-               for solver in ("host", "device")}
+        out = {solver: demo_cuts(args, m, push_last=args.push_last == "true", size_solver=solver,
+                                 executed=EXECUTED[args.executed][0]) for solver in ("host", "device")}
         a, b = out["host"], out["device"]
         print(f"fragment sizes on the device against the host, same process: wall {a['wall']:.3f} -> {b['wall']:.3f} "
               f"s a cut ({a['wall'] / b['wall']:.2f}x), reward {a['reward']:.3f} -> {b['reward']:.3f} s "
               f"({a['reward'] / max(b['reward'], 1e-9):.2f}x)")
         return out
     out = {("batched" if m else "per-scene"): demo_cuts(args, m, push_last=args.push_last == "true",
-                                                        size_solver=args.size_solver) for m in modes}
+                                                        size_solver=args.size_solver, executed=executed[0])
+           for m in modes}
     if len(out) == 2:
         a, b = out["per-scene"], out["batched"]
         print(f"batched discovery against per scene, same process: wall {a['wall']:.3f} -> {b['wall']:.3f} s a cut "
               f"({a['wall'] / b['wall']:.2f}x), discovery {a['discovery']:.3f} -> {b['discovery']:.3f} s "
               f"({a['discovery'] / max(b['discovery'], 1e-9):.2f}x)")
     return out
+
+
+# --executed: how the demonstration's executed cut is made, and the runs each choice makes (the first the reference)
+HOW = {"rollout": "restored from its best rollout", "scene0": "cut again in scene 0",
+       "every": "cut again in every scene"}
+EXECUTED = {"rollout": ("rollout",), "scene0": ("scene0",), "every": ("every",), "both": ("every", "scene0"),
+            "all": ("every", "scene0", "rollout"), "again": ("scene0", "rollout")}
 
 
 def every_scene(env) -> None:
@@ -143,7 +154,7 @@ def every_scene(env) -> None:
 
 
 def demo_cuts(args, batch_scenes: bool, push_last: bool = False, size_solver: str = "auto",
-              every: bool = False) -> dict:
+              executed: str = "rollout") -> dict:
     from topocut.planning import MPPIConfig, MPPIPolicy, run_episode, sim_rollout_factory
     from topocut.reward.config import RewardConfig
     from topocut.sim.env import CuttingEnv
@@ -153,7 +164,7 @@ def demo_cuts(args, batch_scenes: bool, push_last: bool = False, size_solver: st
 
     env = CuttingEnv(sim_config(args, args.K), batch_size=args.K)
     instrument(env)
-    if every:
+    if executed == "every":
         every_scene(env)
     # no push unless --push: as docs/benchmarks.md timed; --push: the task's own (stick and dice push)
     task = task_config(args.task, max_cuts=args.cuts, **({} if args.push else {"push": False})).validate()
@@ -162,7 +173,7 @@ def demo_cuts(args, batch_scenes: bool, push_last: bool = False, size_solver: st
     topo = TopologyConfig(resolution=args.topo_resolution, batch_scenes=batch_scenes)
     pose = ObjectPose()
     goal = get_task(task.name).make_goal(task, args.object, pose, env.cfg.spacing, board_z=env.cfg.board_z)
-    planner = MPPIConfig(num_samples=args.K, iterations=args.iters, horizon=1)
+    planner = MPPIConfig(num_samples=args.K, iterations=args.iters, horizon=1, reuse_rollout_cut=executed == "rollout")
     factory = sim_rollout_factory(env, rcfg, topo, board_z=env.cfg.board_z, push=task.push, push_last=push_last)
     rows = []
     for rep in range(2):  # the first episode compiles kernels and fills caches: the second is measured
@@ -198,7 +209,7 @@ def demo_cuts(args, batch_scenes: bool, push_last: bool = False, size_solver: st
           f"{args.topo_resolution}^3, "
           f"{'batched over scenes' if batch_scenes else 'scene by scene'}, "
           f"{'push' + (', rollouts push after their last cut' if push_last else '') if task.push else 'no push'}, "
-          f"the executed cut {'in every scene' if every else 'in scene 0'}):")
+          f"the executed cut: {HOW[executed]}):")
     print(f"{'cut':>4} {'wall s':>8} {'sim s':>8} {'(split)':>8} {'disc s':>8} {'reward s':>8} {'rest s':>8} "
           f"{'wall/sim':>9}")
     for i, r in enumerate(rows):
@@ -315,9 +326,11 @@ def main() -> None:
                    help="demo with --push: planner.push_last; both: with it (the reference), then without")
     p.add_argument("--size-solver", choices=("auto", "host", "device", "both"), default="auto",
                    help="demo: reward.size_solver; both: the host (the reference), then the device")
-    p.add_argument("--executed", choices=("scene0", "both"), default="scene0",
-                   help="demo: the executed cut (and push, turn) in scene 0 with the other scenes idle (the engine's "
-                   "way); both: first in every scene (the reference, as before 2026-11-30), then in scene 0")
+    p.add_argument("--executed", choices=tuple(EXECUTED), default="rollout",
+                   help="demo: the executed cut restored from its best rollout (rollout: the engine's way), cut again "
+                   "in scene 0 with the other scenes idle (scene0: the way before), or in every scene (every: the way "
+                   "before that); both: every, then scene0; again: scene0, then rollout; all: the three (the first "
+                   "the reference)")
     p.add_argument("--batch", type=int, default=16, help="evaluation scenes (episodes at once)")
     p.add_argument("--eval-episodes", type=int, default=32)
     p.add_argument("--ref-episodes", type=int, default=4, help="episodes of the one-at-a-time reference")

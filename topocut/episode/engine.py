@@ -20,6 +20,7 @@ import inspect
 import time
 import warnings
 from collections.abc import Callable
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -123,21 +124,39 @@ class EpisodeBatch:
                 "particle_labels": self.labels[b], "cuts_done": self.k}
 
     # -- one cut of every live episode -----------------------------------------------------------------
-    def step(self, actions: list) -> list[Score | None]:
+    def simulated(self, cut, actions: list):
+        """``cut`` (a SimulatedCut: the state a planner's rollout made with episode 0's action) where ``step``
+        may take it as that action's cut: one episode alone, its action the cut's to the bit, not pushed unless
+        its task pushes (one not pushed yet is pushed by ``step``), no frames of the cut asked for; else None."""
+        if cut is None or not self.alone or self.n != 1 or self.cut_frames or not self.live[0]:
+            return None
+        a = actions[0]
+        if a is None or not cut.is_of(executed_action(a)) or cut.pushed and not getattr(self.tasks[0], "push", False):
+            return None
+        return cut
+
+    def step(self, actions: list, simulated=None) -> list[Score | None]:
         """Execute ``actions`` (per episode: a KnifeAction, run through ``executed_action``, or None: no cut) and
-        score them; returns each episode's Score (None where it did not cut or failed)."""
+        score them; returns each episode's Score (None where it did not cut or failed).  ``simulated``: the
+        env already holds episode 0's cut (``simulated(...)``'s SimulatedCut, restored): it is not cut again."""
         acts = [None if a is None or not self.live[b] else executed_action(a) for b, a in enumerate(actions)]
         moving = [b for b in range(self.n) if acts[b] is not None]
         out: list[Score | None] = [None] * self.n
         if not moving:
             return out
-        record, damage_before = self._record_args(acts, moving)
-        done, info = self._cut(acts, moving, record)
-        if not done:
-            return out
-        # discovery where the blade left the pieces (its sweep is where the kerf is), then the push moves them
-        # and the labels ride on the particles (docs/topology.md#discovery-before-the-push)
-        scored = self._push(acts, self._discover(moving))
+        if simulated is not None:  # the env holds the state after the cut (and its push, or the push is to come)
+            record, damage_before, info = {}, None, None
+            before = None if simulated.before_push is None else SimpleNamespace(
+                x=[simulated.before_push[0]], damage=[simulated.before_push[1]], sweeps=[simulated.before_push[2]])
+            scored = self._push(acts, self._discover(moving, before), done=simulated.pushed)
+        else:
+            record, damage_before = self._record_args(acts, moving)
+            done, info = self._cut(acts, moving, record)
+            if not done:
+                return out
+            # discovery where the blade left the pieces (its sweep is where the kerf is), then the push moves them
+            # and the labels ride on the particles (docs/topology.md#discovery-before-the-push)
+            scored = self._push(acts, self._discover(moving))
         for (b, x1, lab1), res in zip(scored, self._score(scored)):
             self._log_cut(b, acts[b], x1, lab1, res, info, record, damage_before)
             out[b] = res
@@ -172,17 +191,20 @@ class EpisodeBatch:
             return False, None
         return True, info
 
-    def _push(self, acts: list, scored: list) -> list[tuple]:
+    def _push(self, acts: list, scored: list, done: bool = False) -> list[tuple]:
         """The pushes of the scenes whose task pushes, after their cut's discovery: ``scored`` with each pushed
         scene's positions and labels after the push (discovery again, as after a turn: the cut's labels as the
         previous ones and no sweep, so what the push moved apart is found apart and the kerf's particles keep
-        the side the cut's discovery gave them); a divergence fails the pushed episodes."""
+        the side the cut's discovery gave them); a divergence fails the pushed episodes.  ``done``: the env
+        has pushed already (a SimulatedCut's state)."""
         env, B, n = self.env, self.B, self.n
         pushes = [acts[b] is not None and bool(getattr(self.tasks[b], "push", False)) for b in range(n)]
         if not any(pushes) or not scored:
             return scored
         try:
-            if B == 1:
+            if done:  # a SimulatedCut's state: pushed in its rollout
+                pass
+            elif B == 1:
                 env.push()
             else:  # scenes past the episodes (one episode alone: all but scene 0) idle, as in the cut
                 env.push(scenes=np.array(pushes + [False] * (B - n)))
@@ -197,9 +219,10 @@ class EpisodeBatch:
                 out.append((b, *found))
         return out
 
-    def _discover(self, moving: list) -> list[tuple]:
-        """(b, x after the cut, its labels) of each moving scene that neither diverged nor failed discovery."""
-        dead, st, scored = self._dead(), self.env.state(), []
+    def _discover(self, moving: list, st=None) -> list[tuple]:
+        """(b, x after the cut, its labels) of each moving scene that neither diverged nor failed discovery;
+        ``st``: the state after the cut where the env holds a later one (default: the env's)."""
+        dead, st, scored = self._dead(), self.env.state() if st is None else st, []
         for b in moving:
             start = {"start_positions": self.xs[b]} if self.starts else {}  # where the blade started
             found = self._labelled(st, b, dead, st.sweeps[b], self.labels[b], f"cut {self.k + 1}", **start)

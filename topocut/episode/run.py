@@ -4,7 +4,8 @@ renders all run it) and ``run_episode`` (one demonstration, its dataset records)
 Each episode gets its own copy of the policy (torch modules shared), reset with the episode's seed, so an
 episode's actions do not depend on its batch-mates.  A policy that plans with the simulator itself
 (``uses_simulator``: MPPI, whose rollouts are the batch's scenes) runs its episodes one at a time, the episode
-in every scene and the rollouts restoring them (``obs["sim_state"]``).  An env of batch size 1 or one without
+in every scene and the rollouts restoring them (``obs["sim_state"]``); where its best rollout made the cut it
+executes, the episode restores that rollout's state instead of cutting again (topocut.episode.simulated).  An env of batch size 1 or one without
 ``reset_scenes`` (test doubles) runs one episode at a time the same way.  The policy's observations hold the
 pose features of its last ``history_len`` cuts (its own ``history_len`` where it declares one, else
 HISTORY_LEN).
@@ -66,12 +67,17 @@ def run_episodes(env, episodes: list[Episode], policy, scoring: Scoring, max_cut
                 if saved is not None:  # the same state kept on the device: rollouts in this env start from it
                     obs[0]["sim_saved"] = saved
             acts = _act(pols, obs, batched, engine)
+            simulated = None
             if "sim_state" in obs.get(0, {}) and hasattr(env, "set_state"):  # the rollouts moved the scenes:
-                if saved is None or not env.restore_scene(saved):  # restore them (on the device where kept)
-                    env.set_state(obs[0]["sim_state"], b=None)
+                # the state the executed cut makes where a rollout made it already (MPPI's best), else the start
+                simulated = engine.simulated(getattr(pols[0], "simulated_cut", None), acts)
+                if simulated is None or not env.restore_scene(simulated.after):
+                    simulated = None
+                    if saved is None or not env.restore_scene(saved):  # on the device where kept
+                        env.set_state(obs[0]["sim_state"], b=None)
             if not any(a is not None for a in acts):
                 break
-            engine.step(acts)
+            engine.step(acts, simulated)
         for j, log in enumerate(engine.finish()):
             logs.append(log)
             if on_done is not None:

@@ -32,6 +32,10 @@ class MPPIConfig:
     # MPPI-based trajectory planning"; the executed cut is still the best evaluated sequence's.  false: always
     # `iterations` (docs/data.md, "Stopping at success")
     stop_at_success: bool = True
+    # the executed cut (execute: best) is its best rollout's own first cut: that scene's state after the cut (and its
+    # push), kept on the device, is restored instead of simulating the same cut again (docs/data.md, "The executed
+    # cut").  Needs num_samples <= the env's batch size (one chunk of rollouts); false: the cut is simulated again
+    reuse_rollout_cut: bool = True
 
     def validate(self) -> None:
         if self.num_samples < 1:

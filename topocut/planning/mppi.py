@@ -96,6 +96,9 @@ class MPPI:
             k = int(np.nanargmin(np.where(np.isfinite(costs), costs, np.nan))) if np.isfinite(costs).any() else 0
             if costs[k] < best_cost:
                 best_cost, best_seq = float(costs[k]), samples[k].copy()
+                keep = getattr(self.rollout, "keep", None)  # a simulator rollout keeps its state after the cut
+                if keep is not None:
+                    keep(k)
             mean = self.clip(np.einsum("k,khd->hd", w, samples))
             history.append({"costs": costs, "task_costs": task, "weights": w, "best": k})
             if succeeded is not None and self.cfg.stop_at_success:
@@ -132,6 +135,7 @@ class MPPIPolicy:
         self.seed = int(seed)
         self.rng = np.random.default_rng(seed)
         self.last_info: dict = {}
+        self.simulated_cut = None  # the last act's cut as its best rollout simulated it (SimulatedCut), or None
         if goal is not None:
             self.reset(goal)
 
@@ -148,8 +152,14 @@ class MPPIPolicy:
         self.mean = self.heuristic.sequence(0, self.cfg.horizon)  # H,4
 
     def act(self, obs: dict) -> KnifeAction:
-        mppi = MPPI(self.cfg, self.rollout_factory(obs, self.goal), self.rng)
+        self.simulated_cut = None
+        rollout = self.rollout_factory(obs, self.goal)
+        mppi = MPPI(self.cfg, rollout, self.rng)
         self.mean, info = mppi.plan(self.mean)
+        if self.cfg.execute == "best" and self.cfg.reuse_rollout_cut and hasattr(rollout, "kept"):
+            # the best sequence's rollout already made its first cut: the episode restores that state
+            # (topocut.episode.simulated) where it is the cut executed below
+            self.simulated_cut = rollout.kept()
         first = info["best_sequence"][0] if self.cfg.execute == "best" else self.mean[0]
         if self.cfg.execute == "best":
             self.mean = info["best_sequence"].copy()  # keep planning around the sequence that was executed

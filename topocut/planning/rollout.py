@@ -15,6 +15,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from topocut.episode import Scorer, simulation_diverged_error, topology_device
+from topocut.episode.scene import scene_of
 from topocut.episode.scoring import takes_start_positions
 from topocut.sim.action import KnifeAction, cut_mask, executed_action
 from topocut.sim.primitives import TurnRefused
@@ -95,6 +96,11 @@ def make_sim_rollout(env, state_dict: dict, goal, reward_cfg=None, topo_cfg=None
     labels0 = None if labels is None else np.asarray(labels, np.int32)
     x0 = np.asarray(state_dict["x"], np.float32).reshape(-1, 3)  # N,3 what set_state loads
     saved = [] if saved is None else [saved]  # the start kept on the device (CuttingEnv.save_scene)
+    # every scene after the first cut of its sequence (and its push), kept on the device where the env can
+    # (CuttingEnv.snapshot_scenes) and the sequences fit one chunk: ``keep(k)`` then keeps sequence k's, which the
+    # episode restores as its executed cut instead of simulating it again (docs/data.md, "The executed cut")
+    first: list = []  # [Snapshot, the host state after the cut before the push, pushed, actions]
+    kept: list = []  # [SimulatedCut]
 
     def start() -> None:
         """Every scene at ``state_dict``: restored on the device where it was saved, else loaded and saved."""
@@ -115,6 +121,7 @@ def make_sim_rollout(env, state_dict: dict, goal, reward_cfg=None, topo_cfg=None
             if n < B:  # pad the last chunk by repeating its final sequence; padded scenes are ignored
                 chunk = np.concatenate([chunk, np.repeat(chunk[-1:], B - n, axis=0)])
             start()
+            first.clear()
             lab0 = np.zeros(len(x0), np.int32) if labels0 is None else labels0
             labs = [lab0.copy() for _ in range(n)]
             xs = [x0] * n
@@ -134,7 +141,8 @@ def make_sim_rollout(env, state_dict: dict, goal, reward_cfg=None, topo_cfg=None
                     found = discover_scenes(scorer, [st.x[b] for b in todo], [st.damage[b] for b in todo],
                                             [st.sweeps[b] for b in todo], [labs[b] for b in todo],
                                             [xs[b] for b in todo])
-                    if push and (push_last or h + 1 < H):
+                    cut_state, pushed = st, push and (push_last or h + 1 < H)
+                    if pushed:
                         env.push()
                         st = env.state()
                         found = discover_scenes(scorer, [st.x[b] for b in todo], [st.damage[b] for b in todo],
@@ -143,6 +151,8 @@ def make_sim_rollout(env, state_dict: dict, goal, reward_cfg=None, topo_cfg=None
                         labs[b] = lab
                     for b in range(n):
                         xs[b] = np.asarray(st.x[b])
+                    if h == 0 and K <= B and hasattr(env, "snapshot_scenes"):  # before the goal's turn
+                        first[:] = [env.snapshot_scenes("first cuts"), cut_state, pushed, acts[:n]]
                     if h + 1 < H:  # the goal's turn between this cut and the next
                         execute_turns(env, turns_after(goal, cuts_done + h + 1), scorer, labs, xs)
             except (Diverged, TurnFailed):
@@ -158,6 +168,24 @@ def make_sim_rollout(env, state_dict: dict, goal, reward_cfg=None, topo_cfg=None
                                  else np.array([scorer.reward(x, lab)[0] for x, lab in zip(xs, labs)]))
         return costs if success_fn is None else (costs, success)
 
+    def keep(k: int) -> None:
+        """Keep sequence k's state after its first cut (MPPI calls this for each new best sequence)."""
+        from topocut.episode.simulated import SimulatedCut
+
+        if not first or not 0 <= k < len(first[3]):
+            return
+        snap, cut_state, pushed, acts = first
+        after = env.save_scene_from(snap, k, "executed cut")
+        if after is None:
+            return
+        before = None
+        if pushed:  # what the episode's discovery before the push needs: the scene where the blade left it
+            x, damage = scene_of(cut_state, k)
+            before = (np.array(x), np.array(damage), list(cut_state.sweeps[k]))
+        kept[:] = [SimulatedCut(acts[k], after, before, k)]
+
+    rollout.keep = keep
+    rollout.kept = lambda: kept[0] if kept else None  # the last kept sequence's first cut, or None
     return rollout
 
 

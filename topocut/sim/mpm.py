@@ -146,14 +146,14 @@ class MPMSolver(MaterialUpdate, Knife, Scatter):
             slot.destroy()
         self.tree.destroy()
 
-    def slot(self, name: str):
-        """The SceneSlot ``name`` (topocut.sim.slots: one scene's particle fields on the device), made on first
-        use and freed with the solver."""
-        from topocut.sim.slots import SceneSlot
+    def slot(self, name: str, every_scene: bool = False):
+        """The SceneSlot ``name`` (topocut.sim.slots: one scene's particle fields on the device; ``every_scene``:
+        the BatchSlot, all B scenes), made on first use and freed with the solver."""
+        from topocut.sim.slots import BatchSlot, SceneSlot
 
         slots = self.__dict__.setdefault("_slots", {})
         if name not in slots:
-            slots[name] = SceneSlot(self)
+            slots[name] = (BatchSlot if every_scene else SceneSlot)(self)
         return slots[name]
 
     @ti.func

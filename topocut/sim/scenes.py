@@ -47,6 +47,7 @@ class SavedScene:
     sweeps: list
     object: object
     n_fields: int
+    push_side: int = 0  # the side the scene's last cut left for a push (save_scene_from; save_scene: none)
 
 
 def cell_order(x: np.ndarray, n_grid: int) -> np.ndarray:
@@ -56,6 +57,20 @@ def cell_order(x: np.ndarray, n_grid: int) -> np.ndarray:
     (MPMSolver.scatter_warp adds them before the atomics) and their grid reads hit the same lines."""
     cell = np.floor(np.asarray(x) * n_grid - 0.5).astype(np.int64)  # N,3: the solver's base node
     return np.lexsort((cell[:, 2], cell[:, 1], cell[:, 0]))
+
+
+@dataclass
+class Snapshot:
+    """Every scene kept on the device by ``Scenes.snapshot_scenes`` (a BatchSlot), and the host's part."""
+
+    name: str
+    token: object
+    counts: np.ndarray  # B,
+    piece: np.ndarray  # B,n i32
+    sweeps: list
+    object: object
+    n_fields: int
+    push_side: np.ndarray  # B,
 
 
 class Scenes:
@@ -157,6 +172,34 @@ class Scenes:
         return SavedScene(name, token, n, self.piece[b, :n].copy(), list(self.sweeps[b]), obj,
                           int(s.n_fields[None]))
 
+    def snapshot_scenes(self, name: str = "snapshot") -> Snapshot:
+        """Keep every scene on the device (the solver's BatchSlot ``name``) with its host-side labels:
+        ``save_scene_from`` then keeps one of them as a SavedScene, as ``save_scene`` would have then."""
+        s = self._need()
+        slot = s.slot(name, every_scene=True)
+        slot.save()
+        slot.token = token = object()
+        return Snapshot(name, token, self.counts, self.piece.copy(), [list(w) for w in self.sweeps], self.object,
+                        int(s.n_fields[None]), self.push_side.copy())
+
+    def save_scene_from(self, snap: Snapshot, b: int, name: str = "saved") -> SavedScene | None:
+        """Scene b of ``snap`` (snapshot_scenes) as a SavedScene under ``name``, for ``restore_scene``, with the side
+        its last cut left for a push (a restored cut may still be pushed); None where the snapshot's slot no longer
+        holds it (a later snapshot under its name, or a new solver)."""
+        s = self.solver
+        src = None if s is None else getattr(s, "_slots", {}).get(snap.name)
+        if src is None or getattr(src, "token", None) is not snap.token:
+            return None
+        if not 0 <= b < len(snap.counts):
+            raise ValueError(f"scene b={b} out of range [0, {len(snap.counts)})")
+        slot = s.slot(name)
+        slot.save_from(src, b)
+        slot.token = token = object()
+        n = int(snap.counts[b])
+        obj = snap.object[b] if isinstance(snap.object, list) else snap.object
+        return SavedScene(name, token, n, snap.piece[b, :n].copy(), list(snap.sweeps[b]), obj, snap.n_fields,
+                          int(snap.push_side[b]))
+
     def restore_scene(self, saved: SavedScene) -> bool:
         """Load ``saved`` (save_scene) into every scene, as ``set_state(get_state(b), b=None)`` would, but J_p
         stays the solver's own; False (nothing changed) where the slot no longer holds it (a later save under
@@ -172,6 +215,7 @@ class Scenes:
         self.object = saved.object
         self.dead[:] = False
         self._loaded(slice(None), saved.n_fields)
+        self.push_side[:] = saved.push_side  # a cut's outcome may still be pushed (save_scene_from)
         return True
 
     def set_state(self, state: dict, b: int | None = None) -> None:

@@ -6,6 +6,10 @@ scenes (``Scenes._write``: at 128³ with 16 scenes some 200 MB each way, and det
 A ``SceneSlot`` holds one scene's fields (x, v, C, F, J_p, sigma_y, damage, body, material) in device memory:
 ``save(b)`` copies scene b into it and ``load()`` copies it into every scene, one kernel each, nothing through the
 host.  ``to_numpy`` brings back only the slot's one scene (``get_state(b)`` no longer copies all B).
+
+A ``BatchSlot`` holds every scene at once (``save()``, one kernel): MPPI keeps its rollouts' states after their
+first cut there, and ``SceneSlot.save_from(batch, b)`` keeps the chosen one's scene, which the episode then
+restores as its executed cut instead of simulating that cut again (docs/data.md, "The executed cut").
 """
 
 import taichi as ti
@@ -14,7 +18,7 @@ FIELDS = ("x", "v", "C", "F", "Jp", "sigma_y", "damage", "body", "material")
 
 
 def _like(src):
-    """A 1-D field (one scene's rows) of ``src``'s element type."""
+    """A field of ``src``'s element type (its shape comes from where it is placed)."""
     n, m = getattr(src, "n", None), getattr(src, "m", 1)
     if n is None:
         return ti.field(src.dtype)
@@ -56,6 +60,42 @@ class SceneSlot:
             self.sJp[b, p], self.ssigma_y[b, p], self.sdamage[b, p] = self.Jp[p], self.sigma_y[p], self.damage[p]
             self.sbody[b, p], self.smaterial[b, p] = self.body[p], self.material[p]
 
+    @ti.kernel
+    def save_from(self, src: ti.template(), b: ti.i32):
+        """Scene b of a BatchSlot -> the slot."""
+        for p in range(self.capacity):
+            self.x[p], self.v[p], self.C[p], self.F[p] = src.x[b, p], src.v[b, p], src.C[b, p], src.F[b, p]
+            self.Jp[p], self.sigma_y[p], self.damage[p] = src.Jp[b, p], src.sigma_y[b, p], src.damage[b, p]
+            self.body[p], self.material[p] = src.body[b, p], src.material[b, p]
+
     def to_numpy(self, n: int) -> dict:
         """The slot's first n rows as numpy arrays, by field name."""
         return {name: fld.to_numpy()[:n] for name, fld in self.f.items()}
+
+
+@ti.data_oriented
+class BatchSlot:
+    """Room for every scene of ``solver`` at once (B x capacity rows)."""
+
+    def __init__(self, solver):
+        self.B, self.capacity = solver.B, solver.capacity
+        self.sx, self.sv, self.sC, self.sF, self.sJp = (getattr(solver, k) for k in FIELDS[:5])
+        self.ssigma_y, self.sdamage, self.sbody, self.smaterial = (getattr(solver, k) for k in FIELDS[5:])
+        fb = ti.FieldsBuilder()
+        self.f = {name: _like(getattr(solver, name)) for name in FIELDS}
+        fb.dense(ti.ij, (self.B, self.capacity)).place(*self.f.values())
+        self.tree = fb.finalize()
+        self.x, self.v, self.C, self.F, self.Jp = (self.f[k] for k in FIELDS[:5])
+        self.sigma_y, self.damage, self.body, self.material = (self.f[k] for k in FIELDS[5:])
+
+    def destroy(self) -> None:
+        self.tree.destroy()
+
+    @ti.kernel
+    def save(self):
+        """Every scene of the solver -> the slot."""
+        for b, p in ti.ndrange(self.B, self.capacity):
+            self.x[b, p], self.v[b, p], self.C[b, p], self.F[b, p] = (self.sx[b, p], self.sv[b, p], self.sC[b, p],
+                                                                      self.sF[b, p])
+            self.Jp[b, p], self.sigma_y[b, p], self.damage[b, p] = self.sJp[b, p], self.ssigma_y[b, p], self.sdamage[b, p]
+            self.body[b, p], self.material[b, p] = self.sbody[b, p], self.smaterial[b, p]
