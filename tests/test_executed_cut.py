@@ -121,3 +121,64 @@ def test_the_engine_takes_a_simulated_cut_only_for_the_action_and_push_it_was_ma
     assert engine.simulated(unpushed, [a]) is None
     engine.cut_frames, engine.alone = 0, False  # batched episodes have no planner
     assert engine.simulated(unpushed, [a]) is None
+
+
+class _Env:
+    """Two scenes of 50 particles; scene 1 diverges (frozen, ``dead``) in every cut; the snapshot and the kept
+    scene are tokens."""
+
+    batch_size = 2
+
+    def __init__(self):
+        rng = np.random.default_rng(0)
+        self.x = np.repeat((rng.random((1, 50, 3)) * [0.1, 0.1, 0.05] + [0.45, 0.45, 0.05]).astype(np.float32), 2, 0)
+        self.dead, self.snapshots = np.zeros(2, bool), 0
+
+    def set_state(self, state, b=None):
+        self.dead[:] = False
+
+    def cut(self, acts):
+        self.dead[1] = True
+
+    def state(self):
+        return SimpleNamespace(x=self.x, damage=np.zeros((2, 50), bool), sweeps=[["sweep 0"], ["sweep 1"]])
+
+    def snapshot_scenes(self, name):
+        self.snapshots += 1
+        return f"snapshot {self.snapshots}"
+
+    def save_scene_from(self, snap, b, name):
+        return (snap, b)
+
+
+class _Scorer:
+    topo_cfg = None
+
+    def labels(self, x, damage, sweeps, previous=None):
+        return np.zeros(len(x), np.int32)
+
+    def rewards(self, xs, labels):
+        return np.array([0.5, 0.9][:len(xs)])  # scene 1 scores best: what is kept must still not be a diverged scene
+
+
+def test_a_rollout_keeps_no_diverged_scene_and_nothing_when_its_sequences_take_two_chunks():
+    from topocut.planning.rollout import make_sim_rollout
+
+    env = _Env()
+    goal = SimpleNamespace(steps=[])
+    seqs = np.array([[[0.5, 0.5, 0.0, 0.0]], [[0.48, 0.5, 0.3, 0.0]]], np.float32)  # K=2,H=1,4
+    rollout = make_sim_rollout(env, {"x": env.x[0]}, goal, scorer=_Scorer(), board_z=0.05)
+    np.testing.assert_allclose(rollout(seqs), [-0.5, -0.9])
+    assert env.snapshots == 1
+    rollout.keep(1)
+    assert rollout.kept() is None  # scene 1 diverged in its cut: the episode cuts again
+    rollout.keep(0)
+    cut = rollout.kept()
+    assert cut.scene == 0 and cut.after == ("snapshot 1", 0) and not cut.pushed
+    assert cut.is_of(KnifeAction.from_vector(seqs[0, 0])) and not cut.is_of(KnifeAction.from_vector(seqs[1, 0]))
+    rollout.keep(1)
+    assert rollout.kept() is None  # not the earlier best's either
+    three = np.concatenate([seqs, seqs[:1]])  # K=3 > B=2: two chunks, the first one's snapshot overwritten
+    rollout(three)
+    rollout.keep(0)
+    assert env.snapshots == 1 and rollout.kept() is None

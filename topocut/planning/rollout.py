@@ -99,7 +99,7 @@ def make_sim_rollout(env, state_dict: dict, goal, reward_cfg=None, topo_cfg=None
     # every scene after the first cut of its sequence (and its push), kept on the device where the env can
     # (CuttingEnv.snapshot_scenes) and the sequences fit one chunk: ``keep(k)`` then keeps sequence k's, which the
     # episode restores as its executed cut instead of simulating it again (docs/data.md, "The executed cut")
-    first: list = []  # [Snapshot, the host state after the cut before the push, pushed, actions]
+    first: list = []  # [Snapshot, the host state after the cut before the push, pushed, actions (None: diverged)]
     kept: list = []  # [SimulatedCut]
 
     def start() -> None:
@@ -152,7 +152,9 @@ def make_sim_rollout(env, state_dict: dict, goal, reward_cfg=None, topo_cfg=None
                     for b in range(n):
                         xs[b] = np.asarray(st.x[b])
                     if h == 0 and K <= B and hasattr(env, "snapshot_scenes"):  # before the goal's turn
-                        first[:] = [env.snapshot_scenes("first cuts"), cut_state, pushed, acts[:n]]
+                        dead = np.asarray(getattr(env, "dead", np.zeros(B, bool)))  # frozen where they diverged
+                        first[:] = [env.snapshot_scenes("first cuts"), cut_state, pushed,
+                                    [None if dead[b] else a for b, a in enumerate(acts[:n])]]
                     if h + 1 < H:  # the goal's turn between this cut and the next
                         execute_turns(env, turns_after(goal, cuts_done + h + 1), scorer, labs, xs)
             except (Diverged, TurnFailed):
@@ -172,7 +174,8 @@ def make_sim_rollout(env, state_dict: dict, goal, reward_cfg=None, topo_cfg=None
         """Keep sequence k's state after its first cut (MPPI calls this for each new best sequence)."""
         from topocut.episode.simulated import SimulatedCut
 
-        if not first or not 0 <= k < len(first[3]):
+        kept.clear()  # an earlier best's cut is not this sequence's
+        if not first or not 0 <= k < len(first[3]) or first[3][k] is None:  # none kept, or its scene diverged
             return
         snap, cut_state, pushed, acts = first
         after = env.save_scene_from(snap, k, "executed cut")
