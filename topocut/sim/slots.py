@@ -25,24 +25,31 @@ def _like(src):
     return ti.Matrix.field(n, m, src.dtype) if m > 1 else ti.Vector.field(n, src.dtype)
 
 
-@ti.data_oriented
-class SceneSlot:
-    """Room for one scene of ``solver`` (its capacity of rows, padding included)."""
+class _Slot:
+    """The solver's fields (B, capacity) as attributes ``s<name>``, so that a slot's kernels reach them, and the
+    slot's own fields of the same types, placed ``dense(axes, shape)``."""
 
-    def __init__(self, solver):
+    def __init__(self, solver, axes, shape):
         self.B, self.capacity = solver.B, solver.capacity
-        # the solver's fields (B, capacity): attributes of this class, so that its kernels reach them
         self.sx, self.sv, self.sC, self.sF, self.sJp = (getattr(solver, k) for k in FIELDS[:5])
         self.ssigma_y, self.sdamage, self.sbody, self.smaterial = (getattr(solver, k) for k in FIELDS[5:])
         fb = ti.FieldsBuilder()
         self.f = {name: _like(getattr(solver, name)) for name in FIELDS}
-        fb.dense(ti.i, self.capacity).place(*self.f.values())
+        fb.dense(axes, shape).place(*self.f.values())
         self.tree = fb.finalize()
         self.x, self.v, self.C, self.F, self.Jp = (self.f[k] for k in FIELDS[:5])
         self.sigma_y, self.damage, self.body, self.material = (self.f[k] for k in FIELDS[5:])
 
     def destroy(self) -> None:
         self.tree.destroy()
+
+
+@ti.data_oriented
+class SceneSlot(_Slot):
+    """Room for one scene of ``solver`` (its capacity of rows, padding included)."""
+
+    def __init__(self, solver):
+        super().__init__(solver, ti.i, solver.capacity)
 
     @ti.kernel
     def save(self, b: ti.i32):
@@ -74,22 +81,11 @@ class SceneSlot:
 
 
 @ti.data_oriented
-class BatchSlot:
+class BatchSlot(_Slot):
     """Room for every scene of ``solver`` at once (B x capacity rows)."""
 
     def __init__(self, solver):
-        self.B, self.capacity = solver.B, solver.capacity
-        self.sx, self.sv, self.sC, self.sF, self.sJp = (getattr(solver, k) for k in FIELDS[:5])
-        self.ssigma_y, self.sdamage, self.sbody, self.smaterial = (getattr(solver, k) for k in FIELDS[5:])
-        fb = ti.FieldsBuilder()
-        self.f = {name: _like(getattr(solver, name)) for name in FIELDS}
-        fb.dense(ti.ij, (self.B, self.capacity)).place(*self.f.values())
-        self.tree = fb.finalize()
-        self.x, self.v, self.C, self.F, self.Jp = (self.f[k] for k in FIELDS[:5])
-        self.sigma_y, self.damage, self.body, self.material = (self.f[k] for k in FIELDS[5:])
-
-    def destroy(self) -> None:
-        self.tree.destroy()
+        super().__init__(solver, ti.ij, (solver.B, solver.capacity))
 
     @ti.kernel
     def save(self):
