@@ -5,8 +5,8 @@ Each episode gets its own copy of the policy (torch modules shared), reset with 
 episode's actions do not depend on its batch-mates.  A policy that plans with the simulator itself
 (``uses_simulator``: MPPI, whose rollouts are the batch's scenes) runs its episodes one at a time, the episode
 in every scene and the rollouts restoring them (``obs["sim_state"]``); where its best rollout made the cut it
-executes, the episode restores that rollout's state instead of cutting again (topocut.episode.simulated).  An env of batch size 1 or one without
-``reset_scenes`` (test doubles) runs one episode at a time the same way.  The policy's observations hold the
+executes, the episode restores that rollout's state instead of cutting again (topocut.episode.simulated).  An env
+of batch size 1 or one without ``reset_scenes`` (test doubles) runs one episode at a time the same way.  The policy's observations hold the
 pose features of its last ``history_len`` cuts (its own ``history_len`` where it declares one, else
 HISTORY_LEN).
 """
