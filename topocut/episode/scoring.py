@@ -31,7 +31,10 @@ class Scoring:
 def fragments(x, labels, min_points: int) -> list[np.ndarray]:
     """The pieces (n_i,3) of labelled particles; -1 (unassigned) is no piece, pieces below min_points dropped."""
     x, labels = np.asarray(x), np.asarray(labels).reshape(-1)
-    order = np.argsort(labels, kind="stable")  # one sort, not a mask per label: each piece keeps its particles' order
+    key = labels
+    if len(labels) and labels.dtype.kind == "i" and -2 ** 15 <= labels.min() and labels.max() < 2 ** 15:
+        key = labels.astype(np.int16)  # 16-bit keys: numpy's stable sort is a radix sort, ~5x faster, same order
+    order = np.argsort(key, kind="stable")  # one sort, not a mask per label: each piece keeps its particles' order
     ids, start = np.unique(labels[order], return_index=True)
     pieces = np.split(x[order], start[1:])
     return [f for c, f in zip(ids, pieces) if c >= 0 and len(f) >= min_points]

@@ -17,7 +17,7 @@ import numpy as np
 from topocut.episode import Scorer, simulation_diverged_error, topology_device
 from topocut.episode.scene import scene_of
 from topocut.episode.scoring import takes_start_positions
-from topocut.sim.action import KnifeAction, cut_mask, executed_action
+from topocut.sim.action import KnifeAction, executed_action, plane_splits
 from topocut.sim.primitives import TurnRefused
 from topocut.tasks.base import turns_after
 
@@ -133,8 +133,7 @@ def make_sim_rollout(env, state_dict: dict, goal, reward_cfg=None, topo_cfg=None
                     todo = []  # the scenes to discover, all in one call where the scorer batches them
                     for b in range(n):
                         # a plane that misses every particle cannot change the topology: skip discovery
-                        m = cut_mask(xs[b], acts[b], board_z)
-                        if 0 < m.sum() < len(m):
+                        if plane_splits(xs[b], acts[b], board_z):
                             todo.append(b)
                     # discovery where the blade left the pieces, then the push and discovery again without the
                     # sweep (as the episode engine: docs/topology.md#discovery-and-the-push)

@@ -155,6 +155,28 @@ def cut_mask(points, action: KnifeAction, board_z: float = 0.05) -> np.ndarray:
     return (signed_distance_to_plane(points, a, board_z) > 0).astype(np.uint8)
 
 
+PLANE_CLEAR = 1e-5  # a float32 signed distance beyond this is on its float64 side (rounding < 1e-6 in the unit box)
+
+
+def plane_splits(points, action: KnifeAction, board_z: float = 0.05) -> bool:
+    """Whether ``cut_mask`` of ``points`` (N,3) is neither all 0 nor all 1 (the plane has points on both sides).
+
+    A float32 pass decides where the points' extremes are clear of the plane by PLANE_CLEAR (every cut through the
+    object: no float64 copy of N points); otherwise ``cut_mask`` itself decides, so the answer is always its."""
+    pts = np.asarray(points)
+    if pts.dtype == np.float32 and len(pts):
+        a = action.canonical()
+        normal = np.asarray(a.normal, np.float64)
+        d = pts @ normal.astype(np.float32) - np.float32(np.dot(a.plane_point(board_z), normal))  # N,
+        lo, hi = float(d.min()), float(d.max())
+        if lo < -PLANE_CLEAR and hi > PLANE_CLEAR:
+            return True
+        if hi < -PLANE_CLEAR or lo > PLANE_CLEAR:
+            return False
+    m = cut_mask(pts, action, board_z)
+    return bool(0 < m.sum() < len(m))
+
+
 @dataclass(frozen=True)
 class KnifeSweep:
     """The volume the blade swept during one cut: an oriented box.
