@@ -172,6 +172,12 @@ class Scenes:
         return SavedScene(name, token, n, self.piece[b, :n].copy(), list(self.sweeps[b]), obj,
                           int(s.n_fields[None]))
 
+    def _holding(self, kept):
+        """The solver's slot that still holds ``kept`` (a SavedScene or Snapshot: its name and token), or None (a
+        later save under that name, or a new solver)."""
+        slot = None if self.solver is None else getattr(self.solver, "_slots", {}).get(kept.name)
+        return slot if slot is not None and getattr(slot, "token", None) is kept.token else None
+
     def snapshot_scenes(self, name: str = "snapshot") -> Snapshot:
         """Keep every scene on the device (the solver's BatchSlot ``name``) with its host-side labels:
         ``save_scene_from`` then keeps one of them as a SavedScene, as ``save_scene`` would have then."""
@@ -186,10 +192,10 @@ class Scenes:
         """Scene b of ``snap`` (snapshot_scenes) as a SavedScene under ``name``, for ``restore_scene``, with the side
         its last cut left for a push (a restored cut may still be pushed); None where the snapshot's slot no longer
         holds it (a later snapshot under its name, or a new solver)."""
-        s = self.solver
-        src = None if s is None else getattr(s, "_slots", {}).get(snap.name)
-        if src is None or getattr(src, "token", None) is not snap.token:
+        src = self._holding(snap)
+        if src is None:
             return None
+        s = self.solver
         if not 0 <= b < len(snap.counts):
             raise ValueError(f"scene b={b} out of range [0, {len(snap.counts)})")
         slot = s.slot(name)
@@ -204,9 +210,8 @@ class Scenes:
         """Load ``saved`` (save_scene) into every scene, as ``set_state(get_state(b), b=None)`` would, but J_p
         stays the solver's own; False (nothing changed) where the slot no longer holds it (a later save under
         the same name, or a new solver): then load the state through ``set_state``."""
-        s = self.solver
-        slot = None if s is None else getattr(s, "_slots", {}).get(saved.name)
-        if slot is None or getattr(slot, "token", None) is not saved.token:
+        slot = self._holding(saved)
+        if slot is None:
             return False
         slot.load()
         self.n, self.scene_n = saved.n, None
