@@ -1,12 +1,14 @@
-"""Two host shortcuts on every cut of MPPI's rollouts and every score give exactly what they replace:
-``plane_splits`` (a float32 test of the plane's sides, falling back to ``cut_mask``) and ``fragments`` (one stable
-sort of 16-bit labels)."""
+"""Host shortcuts on every cut of MPPI's rollouts and every score give exactly what they replace:
+``plane_splits`` (a float32 test of the plane's sides, falling back to ``cut_mask``), ``fragments`` (one stable
+sort of 16-bit labels), the blade's centring band (``pieces._within_band``: candidates first) and the engine's
+``piece_agreement`` (one table of (label, piece) overlaps)."""
 import numpy as np
 import pytest
 
 import topocut.sim.action as action_mod
-from topocut.episode.scoring import fragments
+from topocut.episode.scoring import fragments, piece_agreement
 from topocut.sim.action import KnifeAction, cut_mask, plane_splits
+from topocut.sim.pieces import _within_band
 
 
 def _rule(x, a, board_z=0.05):
@@ -53,3 +55,52 @@ def test_fragments_are_each_labels_points_in_their_order(top):
     assert len(got) == len(want) and len(want) >= 3
     for g, w in zip(got, want):
         np.testing.assert_array_equal(g, w)
+
+
+def test_within_band_is_the_term_by_term_rule_on_every_particle_and_at_its_edges():
+    rng = np.random.default_rng(2)
+    for trial in range(30):
+        nrm = rng.normal(size=3)
+        nrm /= np.linalg.norm(nrm)
+        p0 = rng.uniform(0.2, 0.8, 3)
+        x = rng.uniform(0.0, 1.0, (4000, 3))
+        # particles on the band's edges and a rounding step either side of them (on the plane's normal through p0)
+        t = np.concatenate([[-0.01, 0.01], np.nextafter(0.01, [0, 1]), -np.nextafter(0.01, [0, 1]), [0.0]])
+        x[:len(t)] = p0 + t[:, None] * nrm
+        r = x - p0
+        want = np.flatnonzero(np.abs(r[:, 0] * nrm[0] + r[:, 1] * nrm[1] + r[:, 2] * nrm[2]) <= 0.01)
+        np.testing.assert_array_equal(_within_band(x, p0, nrm, 0.01), want)
+        assert 1 <= len(want) < len(x)
+    far = np.array([[5.0, 5.0, 5.0]])  # nothing within the band: empty
+    assert _within_band(far, np.zeros(3), np.array([0.0, 0.0, 1.0]), 0.01).size == 0
+
+
+def _agreement_by_masks(labels, piece, min_points=4):
+    """The IoU rule worked out label by label with boolean masks."""
+    n_sim = sum(int((piece == p).sum() >= min_points) for p in np.unique(piece))
+    worst = 1.0
+    if not (labels >= 0).any():
+        return n_sim, float("nan")
+    for lab in np.unique(labels[labels >= 0]):
+        m = labels == lab
+        if m.sum() < min_points:
+            continue
+        over = [(int((m & (piece == p)).sum()), -p) for p in np.unique(piece)]
+        i, p = max(over)  # the most overlapped piece, the lowest id of equals
+        worst = min(worst, i / int((m | (piece == -p)).sum()))
+    return n_sim, worst
+
+
+@pytest.mark.parametrize("ids", ["dense", "sparse"])
+def test_piece_agreement_is_the_worst_iou_by_masks(ids):
+    rng = np.random.default_rng(3)
+    for trial in range(20):
+        piece = rng.integers(0, rng.integers(1, 7), 2000)
+        labels = np.where(rng.random(2000) < 0.95, piece + (rng.random(2000) < 0.1), -1)
+        labels[rng.random(2000) < 0.002] = 9  # a tiny label: below min_points, not judged
+        if ids == "sparse":
+            labels = np.where(labels >= 0, labels * 1_000_003, -1)  # cluster ids past the dense table
+        got = piece_agreement(labels, piece)
+        want = _agreement_by_masks(labels, piece)
+        assert got[0] == want[0] and got[1] == pytest.approx(want[1], rel=1e-12)
+    assert np.isnan(piece_agreement(np.full(10, -1), np.zeros(10, int))[1])

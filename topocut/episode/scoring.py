@@ -35,8 +35,12 @@ def fragments(x, labels, min_points: int) -> list[np.ndarray]:
     if len(labels) and labels.dtype.kind == "i" and -2 ** 15 <= labels.min() and labels.max() < 2 ** 15:
         key = labels.astype(np.int16)  # 16-bit keys: numpy's stable sort is a radix sort, ~5x faster, same order
     order = np.argsort(key, kind="stable")  # one sort, not a mask per label: each piece keeps its particles' order
-    ids, start = np.unique(labels[order], return_index=True)
-    pieces = np.split(x[order], start[1:])
+    ordered = labels[order]
+    # np.unique(ordered, return_index=True) without its second sort: the labels are sorted, so each id starts where
+    # its predecessor differs
+    start = np.flatnonzero(ordered[1:] != ordered[:-1]) + 1
+    ids = ordered[np.concatenate([[0], start])] if len(ordered) else ordered
+    pieces = np.split(x[order], start)
     return [f for c, f in zip(ids, pieces) if c >= 0 and len(f) >= min_points]
 
 
@@ -177,15 +181,26 @@ def piece_agreement(labels, piece, min_points: int = 4) -> tuple[int, float]:
     ok = labels >= 0
     if not ok.any():
         return n_sim, float("nan")
-    pairs, inter = np.unique(np.stack([labels[ok], piece[ok]]), axis=1, return_counts=True)
+    # the overlap of every (label, piece) pair: one bincount over label * P + piece (np.unique over the stacked
+    # pairs, axis=1, sorted them as structured rows: ~40 ms a 128^3 cut), in the same (label, piece) order
+    P = int(piece.max()) + 1
+    key = labels[ok] * P + piece[ok]
+    size_p, worst = np.bincount(piece), 1.0
+    if (int(labels.max()) + 1) * P <= 1 << 22:  # cluster ids and pieces are small: a dense table
+        inter = np.bincount(key, minlength=(int(labels.max()) + 1) * P).reshape(-1, P)  # labels, P
+        size_l = inter.sum(1)
+        for lab in np.flatnonzero(size_l >= min_points):
+            j = int(np.argmax(inter[lab]))  # the piece it overlaps most (the lowest of equals)
+            worst = min(worst, float(inter[lab, j] / (size_l[lab] + size_p[j] - inter[lab, j])))
+        return n_sim, worst
+    pairs, inter = np.unique(key, return_counts=True)  # sparse ids: the pairs present, in the same order
+    lab_of, piece_of = pairs // P, pairs % P
     size_l = np.bincount(labels[ok])
-    size_p = np.bincount(piece)
-    worst = 1.0
-    for lab in np.unique(pairs[0]):
+    for lab in np.unique(lab_of):
         if size_l[lab] < min_points:
             continue
-        m = pairs[0] == lab
+        m = lab_of == lab
         j = np.argmax(inter[m])
         i = inter[m][j]
-        worst = min(worst, float(i / (size_l[lab] + size_p[pairs[1][m][j]] - i)))
+        worst = min(worst, float(i / (size_l[lab] + size_p[piece_of[m][j]] - i)))
     return n_sim, worst

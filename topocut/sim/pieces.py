@@ -41,8 +41,8 @@ def blade_sweep(action, x: np.ndarray, cfg):
     a = action.canonical()
     u, w, nrm = a.blade_axis, a.travel, a.normal
     p0 = a.plane_point(cfg.board_z)
-    near = np.abs((x - p0) @ nrm) <= CENTRE_BAND
-    mid = x[near].mean(0) if near.any() else x.mean(0)
+    near = x[_within_band(x, p0, nrm, CENTRE_BAND)]
+    mid = near.mean(0) if len(near) else x.mean(0)
     p0 = p0 + u * float(u @ (mid - p0))  # centre the blade on what it cuts: a slab set far aside is cut whole
     z_start = a.z_start if a.z_start is not None else x[:, 2].max() + cfg.knife_clearance + cfg.margin
     t_board = max(z_start - cfg.board_z, 0.0) / -w[2]  # travel until the edge reaches the board
@@ -52,6 +52,21 @@ def blade_sweep(action, x: np.ndarray, cfg):
                        n=tuple(map(float, nrm)), half_length=cfg.knife_half_length + cfg.osc_amplitude,
                        depth=float(depth), half_thickness=cfg.knife_half_thickness + cfg.margin)
     return sweep, float(depth), o0
+
+
+def _within_band(x: np.ndarray, p0: np.ndarray, nrm: np.ndarray, band: float) -> np.ndarray:
+    """Indices (ascending) of the particles x (N,3) with |(x - p0) . nrm| <= band, the dot product taken term by term
+    (elementwise, so a particle's value does not depend on which others are evaluated with it).
+
+    Only the candidates of a cheap pass (x @ nrm against p0 . nrm, within rounding of the band) are evaluated: a
+    demonstration cut centres 48 blades on 69k particles each at 128^3, and the full (N,3) difference was ~1 ms a
+    blade on the host."""
+    d = x @ nrm  # N: one pass, no (N,3) temporary
+    reach = max(float(x.max(initial=0.0)), -float(x.min(initial=0.0)), float(np.abs(p0).max()))  # largest |coordinate|
+    c, slack = float(p0 @ nrm), 1e-9 * (1.0 + 2.0 * reach)
+    cand = np.flatnonzero((d >= c - band - slack) & (d <= c + band + slack))  # a superset: the sums differ by rounding
+    r = x[cand] - p0  # n,3
+    return cand[np.abs(r[:, 0] * nrm[0] + r[:, 1] * nrm[1] + r[:, 2] * nrm[2]) <= band]
 
 
 def bonds(x: np.ndarray, spacing: float) -> np.ndarray:
