@@ -101,6 +101,17 @@ def bench_demo(args) -> dict:
               f"-> {b['wall']:.3f} s a cut ({a['wall'] / b['wall']:.2f}x), simulation {a['sim']:.3f} -> "
               f"{b['sim']:.3f} s ({a['sim'] / max(b['sim'], 1e-9):.2f}x)")
         return out
+    if args.host == "both":
+        m = modes[-1]
+        out = {}
+        for how in ("before", "current"):
+            with host_functions(how):
+                out[how] = demo_cuts(args, m, push_last=args.push_last == "true", size_solver=args.size_solver,
+                                     executed=EXECUTED[args.executed][-1])
+        a, b = out["before"], out["current"]
+        print(f"this session's host shortcuts against the functions they replace, same process: wall {a['wall']:.3f} "
+              f"-> {b['wall']:.3f} s a cut ({a['wall'] / b['wall']:.2f}x), rest {a['rest']:.3f} -> {b['rest']:.3f} s")
+        return out
     executed = EXECUTED[args.executed]
     if len(executed) > 1:
         m = modes[-1]
@@ -131,6 +142,51 @@ def bench_demo(args) -> dict:
               f"({a['wall'] / b['wall']:.2f}x), discovery {a['discovery']:.3f} -> {b['discovery']:.3f} s "
               f"({a['discovery'] / max(b['discovery'], 1e-9):.2f}x)")
     return out
+
+
+@contextlib.contextmanager
+def host_functions(how: str):
+    """--host before: the host functions of every demonstration cut as they were before 2026-12-01 (the reference):
+    piece_agreement by np.unique over stacked (label, piece) rows, the blade's centring band over every particle,
+    fragments' ids by a second sort.  current: as they are."""
+    if how == "current":
+        yield
+        return
+    import topocut.episode.engine as engine
+    import topocut.episode.scoring as scoring
+    import topocut.sim.pieces as pieces
+
+    def agreement(labels, piece, min_points: int = 4):
+        labels, piece = np.asarray(labels, np.int64), np.asarray(piece, np.int64)
+        n_sim = int((np.bincount(piece) >= min_points).sum()) if len(piece) else 0
+        ok = labels >= 0
+        if not ok.any():
+            return n_sim, float("nan")
+        pairs, inter = np.unique(np.stack([labels[ok], piece[ok]]), axis=1, return_counts=True)
+        size_l, size_p, worst = np.bincount(labels[ok]), np.bincount(piece), 1.0
+        for lab in np.unique(pairs[0]):
+            if size_l[lab] >= min_points:
+                m = pairs[0] == lab
+                j = np.argmax(inter[m])
+                worst = min(worst, float(inter[m][j] / (size_l[lab] + size_p[pairs[1][m][j]] - inter[m][j])))
+        return n_sim, worst
+
+    def band(x, p0, nrm, width):
+        return np.flatnonzero(np.abs((x - p0) @ nrm) <= width)
+
+    def fragments(x, labels, min_points):
+        x, labels = np.asarray(x), np.asarray(labels).reshape(-1)
+        key = labels.astype(np.int16) if len(labels) and -2 ** 15 <= labels.min() and labels.max() < 2 ** 15 else labels
+        order = np.argsort(key, kind="stable")
+        ids, start = np.unique(labels[order], return_index=True)
+        return [f for c, f in zip(ids, np.split(x[order], start[1:])) if c >= 0 and len(f) >= min_points]
+
+    saved = engine.piece_agreement, pieces._within_band, scoring.fragments
+    engine.piece_agreement, pieces._within_band, scoring.fragments = agreement, band, fragments
+    try:
+        yield
+    finally:
+        engine.piece_agreement, pieces._within_band, scoring.fragments = saved
 
 
 # --executed: how the demonstration's executed cut is made, and the runs each choice makes (the first the reference)
@@ -222,7 +278,7 @@ def demo_cuts(args, batch_scenes: bool, push_last: bool = False, size_solver: st
     print(f"mean: {wall:.3f} s per cut, of which simulation {sim:.3f} s: wall/sim = {wall / sim:.2f}; "
           f"1,000 episodes x 5 cuts projected: {1000 * 5 * wall / 60:.1f} min")
     reward = float(np.mean([r["reward"] for r in rows]))
-    return {"wall": wall, "sim": sim, "discovery": disc, "reward": reward}
+    return {"wall": wall, "sim": sim, "discovery": disc, "reward": reward, "rest": wall - sim - disc - reward}
 
 
 def bench_eval(args) -> dict:
@@ -331,6 +387,8 @@ def main() -> None:
                    "in scene 0 with the other scenes idle (scene0: the way before), or in every scene (every: the way "
                    "before that); both: every, then scene0; again: scene0, then rollout; all: the three (the first "
                    "the reference)")
+    p.add_argument("--host", choices=("current", "both"), default="current",
+                   help="demo: both: the host functions of a cut as before 2026-12-01 (the reference), then as they are")
     p.add_argument("--batch", type=int, default=16, help="evaluation scenes (episodes at once)")
     p.add_argument("--eval-episodes", type=int, default=32)
     p.add_argument("--ref-episodes", type=int, default=4, help="episodes of the one-at-a-time reference")

@@ -59,7 +59,7 @@ def test_fragments_are_each_labels_points_in_their_order(top):
 
 def test_within_band_is_the_term_by_term_rule_on_every_particle_and_at_its_edges():
     rng = np.random.default_rng(2)
-    for trial in range(30):
+    for _ in range(30):
         nrm = rng.normal(size=3)
         nrm /= np.linalg.norm(nrm)
         p0 = rng.uniform(0.2, 0.8, 3)
@@ -94,7 +94,7 @@ def _agreement_by_masks(labels, piece, min_points=4):
 @pytest.mark.parametrize("ids", ["dense", "sparse"])
 def test_piece_agreement_is_the_worst_iou_by_masks(ids):
     rng = np.random.default_rng(3)
-    for trial in range(20):
+    for _ in range(20):
         piece = rng.integers(0, rng.integers(1, 7), 2000)
         labels = np.where(rng.random(2000) < 0.95, piece + (rng.random(2000) < 0.1), -1)
         labels[rng.random(2000) < 0.002] = 9  # a tiny label: below min_points, not judged
