@@ -145,6 +145,21 @@ def bench_demo(args) -> dict:
 
 
 @contextlib.contextmanager
+def gpu_profile(args):
+    """--gpu-profile: every CUDA kernel and copy of the measured episode (torch.profiler's CUPTI trace: Taichi's and
+    Warp's kernels too), the GPU time by kernel name, the largest first, into the file named and its head printed."""
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+        yield
+    table = prof.key_averages().table(sort_by="self_cuda_time_total", row_limit=60, max_name_column_width=70)
+    with open(args.gpu_profile, "w") as f:
+        f.write(table)
+    print(f"GPU time of the measured episode by kernel ({args.gpu_profile}):")
+    print("\n".join(table.splitlines()[:45]))
+
+
+@contextlib.contextmanager
 def host_functions(how: str):
     """--host before: the host functions of every demonstration cut as they were before 2026-12-01 (the reference):
     piece_agreement by np.unique over stacked (label, piece) rows, the blade's centring band over every particle,
@@ -241,13 +256,16 @@ def demo_cuts(args, batch_scenes: bool, push_last: bool = False, size_solver: st
             cuts.append((time.perf_counter(), dict(TIMES)))
 
         prof = cProfile.Profile() if args.profile and rep == 1 else None
+        kernels = gpu_profile(args) if args.gpu_profile and rep == 1 else contextlib.nullcontext()
         t0 = time.perf_counter()
+        kernels.__enter__()
         if prof is not None:
             prof.enable()
         _, summary = run_episode(env, goal, MPPIPolicy(planner, factory, seed=0), rcfg, topo, task.max_cuts,
                                  task.push, progress=progress, seed=0, success_fn=lambda r: False)
         if summary.get("error"):  # a failed episode times nothing: say why
             print(f"the episode ended {summary['status']}: {summary['error']}")
+        kernels.__exit__(None, None, None)
         if prof is not None:
             prof.disable()
             prof.dump_stats(args.profile)
@@ -387,6 +405,8 @@ def main() -> None:
                    "in scene 0 with the other scenes idle (scene0: the way before), or in every scene (every: the way "
                    "before that); both: every, then scene0; again: scene0, then rollout; all: the three (the first "
                    "the reference)")
+    p.add_argument("--gpu-profile", default="", help="demo: the measured episode's GPU time by kernel (torch.profiler) "
+                   "into this file")
     p.add_argument("--host", choices=("current", "both"), default="current",
                    help="demo: both: the host functions of a cut as before 2026-12-01 (the reference), then as they are")
     p.add_argument("--batch", type=int, default=16, help="evaluation scenes (episodes at once)")
