@@ -3,9 +3,7 @@
 ``sim.tuning.fuse_substeps`` only changes who launches the kernels (a ti.graph from C++
 instead of three Python calls per substep): the same kernels get the same
 arguments, so with the session's single CPU thread the two paths must agree bit
-for bit, over a batched cut with the knife, a push and the settling.  A run's kernels
-(``MPMSolver.begin_run``/``run``: no arguments, the substep's number and time read from
-the device) equal the phases called with their arguments (``substep``), bit for bit.
+for bit, over a batched cut with the knife, a push and the settling.
 """
 import numpy as np
 import pytest
@@ -49,46 +47,6 @@ def test_graph_stepping_matches_per_phase_calls_bit_for_bit(env, knife_mode):
     assert fused["newly"].min() > 0 and fused["work"].min() > 0  # the knife really cut both scenes
     for k in plain:
         np.testing.assert_array_equal(fused[k], plain[k], err_msg=k)
-
-
-@pytest.mark.parametrize("contact", [0, 1])
-def test_a_run_equals_substep_calls_with_arguments_bit_for_bit(env, contact):
-    """Taichi copies a kernel's arguments to the device before each launch, so simulate() steps by runs whose
-    kernels read the substep's number, time, particle count and contact mode from fields; with the knife moving
-    (its pose is a function of the time) and frozen scenes (a function of the number) both must give what the
-    per-phase kernels give with those values as arguments."""
-    env.fuse, env.cfg.knife_mode = 16, "wedge"
-    dt = env.dt
-
-    def go(by_run: bool, first: int = 7, k: int = 37, t0: float = 0.0123):
-        env.reset("cube")
-        s = env.solver
-        env.cut(ACTIONS[:1] * env.B)  # pieces, fields and a knife armed for the steps below
-        s.k_on.fill(1)
-        env._set_frozen([first + 20, 10 ** 6])  # scene 0 stops 20 substeps into the run: the number matters
-        ts = [t0 + j * dt for j in range(k)]
-        if by_run:
-            s.begin_run(env.n, first, ts[:30], contact)
-            s.run(16)
-            s.run(1)
-            s.run(13)
-            s.begin_run(env.n, first + 30, ts[30:], contact)
-            s.run(7)
-            assert s.run_step[None] == first + k
-        else:
-            for j, t in enumerate(ts):
-                s.substep(env.n, first + j, t, contact)
-        return {b: env.get_state(b) for b in range(env.B)}, s.k_imp.to_numpy(), s.k_work.to_numpy()
-
-    (ran, imp_r, work_r), (called, imp_c, work_c) = go(True), go(False)
-    assert np.abs(work_c).max() > 0  # the knife did work in the steps compared
-    np.testing.assert_array_equal(imp_r, imp_c)
-    np.testing.assert_array_equal(work_r, work_c)
-    for b in range(env.B):
-        for key in ("x", "v", "C", "F", "damage"):
-            np.testing.assert_array_equal(ran[b][key], called[b][key], err_msg=f"{key}{b}")
-    with pytest.raises(ValueError, match="a run holds 1 .. 4096"):
-        env.solver.begin_run(env.n, 0, [], 0)
 
 
 def test_divergence_inside_a_graph_chunk_names_the_step(env):

@@ -24,7 +24,7 @@ import numpy as np
 from topocut.sim import pieces as P
 from topocut.sim.action import KnifeAction, KnifeSweep
 from topocut.sim.config import SimConfig
-from topocut.sim.mpm import RUN_TIMES, MPMSolver
+from topocut.sim.mpm import MPMSolver
 from topocut.sim.primitives import Primitives
 from topocut.sim.runtime import init_taichi
 from topocut.sim.scenes import NO_STEP, Scenes, SimState, cell_order  # noqa: F401 - SimState, cell_order: re-exported
@@ -124,13 +124,14 @@ class CuttingEnv(Scenes, Primitives):
         """
         s = self._need()
         k, every = self.fuse, self.cfg.tuning.check_every
-        i = end = 0
+        i = 0
         while i < substeps:
-            if i == end:  # the next RUN_TIMES substeps' numbers and times on the device (MPMSolver.begin_run)
-                end = min(substeps, i + RUN_TIMES)
-                s.begin_run(self.n, self.step_count, [t0 + j * self.dt for j in range(i, end)], contact)
-            m = k if end - i >= k > 1 else 1
-            s.run(m)
+            m = k if substeps - i >= k > 1 else 1
+            if m > 1:
+                ts = [t0 + (i + j) * self.dt for j in range(m)]  # the same float64 times substep() gets
+                s.advance(self.n, self.step_count, ts, contact)
+            else:
+                s.substep(self.n, self.step_count, t0 + i * self.dt, contact)
             i += m
             self.step_count += m
             if self.resort and self.step_count // self.resort > (self.step_count - m) // self.resort:

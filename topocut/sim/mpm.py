@@ -36,8 +36,6 @@ from topocut.sim.materials import FixedCorotated, MaterialUpdate, make_materials
 from topocut.sim.runtime import cpu_threads
 from topocut.sim.scatter import Scatter
 
-RUN_TIMES = 4096  # substeps a run holds (MPMSolver.begin_run): a cut's are ~1,000 at 128^3
-
 
 @ti.func
 def apic_gather(grid_v: ti.template(), g, base, fx, dx: ti.template(), inv_dx: ti.template()):
@@ -132,14 +130,6 @@ class MPMSolver(MaterialUpdate, Knife, Scatter):
                                 self.k_imp,
                                 self.k_imp_step, self.k_work, self.k_peak, self.bad_step, self.frozen_at, self.wrote)
         fb.dense(ti.i, 6).place(self.box)
-        # a run of substeps (``begin_run``, ``run``): its particle count, contact mode, the substep being run and
-        # the run's first, and the times of its substeps, on the device.  The run's kernels take no arguments:
-        # Taichi copies a kernel's arguments to the device before each launch, a copy between every two kernels
-        # of a substep (3 a substep, ~5 us each on an H200, the SMs idle behind them)
-        self.run_n, self.run_contact, self.run_step, self.run_first = (ti.field(ti.i32) for _ in range(4))
-        self.run_t = ti.field(f32)
-        fb.place(self.run_n, self.run_contact, self.run_step, self.run_first)
-        fb.dense(ti.i, RUN_TIMES).place(self.run_t)
         self.tree = fb.finalize()
         self.bad_step.fill(2 ** 30)
         self.frozen_at.fill(2 ** 30)
@@ -149,8 +139,7 @@ class MPMSolver(MaterialUpdate, Knife, Scatter):
         self.wrote.fill(1)
         self.order.from_numpy(np.broadcast_to(np.arange(self.lanes, dtype=np.int32), (B, self.lanes)).copy())
         self.p2g, self.grid_op, self.g2p = self._phase_kernels()
-        self._run_kernels = self._phase_kernels(run=True)
-        self._graphs = {}  # k -> compiled ti.graph of k substeps of a run
+        self._graphs = {}  # k -> compiled ti.graph of k substeps
 
     def destroy(self) -> None:
         for slot in getattr(self, "_slots", {}).values():
@@ -303,30 +292,9 @@ class MPMSolver(MaterialUpdate, Knife, Scatter):
         self.x[b, p] = xn
 
     # -- kernels: one per phase (tools may act on the grid between grid_op and g2p) -------------------
-    def _phase_kernels(self, run: bool = False):
-        """p2g, grid_op, g2p of this solver.  Free kernels, not methods: ti.graph dispatches only those.
-
-        ``run``: the same phases with no arguments, reading the run's fields (``begin_run``); g2p then advances
-        ``run_step``.  The values are the arguments' own, so a run equals ``substep`` calls bit for bit."""
+    def _phase_kernels(self):
+        """p2g, grid_op, g2p of this solver.  Free kernels, not methods: ti.graph dispatches only those."""
         s = self
-        if run:
-            # the arguments are expressions (template parameters): each is read where a phase uses it, inside its
-            # loops, so no serial task stores it first
-            @ti.kernel
-            def p2g_run():
-                s.clear_grid(s.run_step[None])
-                s.scatter(s.run_n[None], s.run_step[None])
-
-            @ti.kernel
-            def grid_op_run():
-                s.update_grid(s.run_t[s.run_step[None] - s.run_first[None]], s.run_contact[None])
-
-            @ti.kernel
-            def g2p_run():
-                s.gather(s.run_n[None], s.run_step[None], s.run_t[s.run_step[None] - s.run_first[None]])
-                s.run_step[None] += 1
-
-            return p2g_run, grid_op_run, g2p_run
 
         @ti.kernel
         def p2g(n: ti.i32, step: ti.i32):
@@ -348,46 +316,35 @@ class MPMSolver(MaterialUpdate, Knife, Scatter):
         self.grid_op(t, contact)
         self.g2p(n, step, t)
 
-    @ti.kernel
-    def _set_run(self, n: ti.i32, step: ti.i32, contact: ti.i32):
-        self.run_n[None], self.run_step[None], self.run_first[None], self.run_contact[None] = n, step, step, contact
-
-    def begin_run(self, n: int, step: int, ts, contact: int = 0) -> None:
-        """Put a run of len(ts) <= RUN_TIMES substeps on the device: numbered step, step + 1, ... at times ts (one
-        copy of the times and one launch); ``run`` then takes them in order."""
-        if not 0 < len(ts) <= RUN_TIMES:
-            raise ValueError(f"begin_run: {len(ts)} substeps; a run holds 1 .. {RUN_TIMES}")
-        times = np.zeros(RUN_TIMES, np.float32)
-        times[:len(ts)] = ts  # float64 -> float32 as a kernel's f32 argument rounds it
-        self.run_t.from_numpy(times)
-        self._set_run(int(n), int(step), int(contact))
-
-    def run(self, k: int) -> None:
-        """The run's next k substeps, from one Python call: a compiled ti.graph dispatches their 3 k launches
-        from C++ (no Python between them, no compile, no argument copies)."""
-        graph = self._graph(k) if k > 1 else None
-        if graph is None:  # one substep, or no kernel graphs on this backend: the same launches from Python
-            for _ in range(k):
-                for kernel in self._run_kernels:
-                    kernel()
-            return
-        graph.run({})
-
     def advance(self, n: int, step: int, ts, contact: int = 0) -> None:
-        """len(ts) substeps, numbered step, step + 1, ... at times ts: a run of them (``begin_run``, ``run``), the
-        same values as len(ts) ``substep`` calls, so the same result bit for bit."""
-        for a in range(0, len(ts), RUN_TIMES):
-            part = ts[a:a + RUN_TIMES]
-            self.begin_run(n, step + a, part, contact)
-            self.run(len(part))
+        """len(ts) substeps, numbered step, step + 1, ... at times ts, from one Python call.
+
+        Same kernels and arguments as len(ts) ``substep`` calls (so the same result bit for bit), but a
+        compiled ti.graph dispatches the 3 len(ts) launches from C++: no Python between them, no compile.
+        """
+        graph = self._graph(len(ts))
+        if graph is None:  # no kernel graphs on this backend: the same launches from Python
+            for j, t in enumerate(ts):
+                self.substep(n, step + j, t, contact)
+            return
+        args = {"n": int(n), "contact": int(contact)}
+        for j, t in enumerate(ts):
+            args[f"step{j}"], args[f"t{j}"] = int(step) + j, float(t)
+        graph.run(args)
 
     def _graph(self, k: int):
         if k not in self._graphs:
+            def arg(name, dtype):
+                return ti.graph.Arg(ti.graph.ArgKind.SCALAR, name, dtype)
+
             try:
+                n, contact = arg("n", ti.i32), arg("contact", ti.i32)
                 g = ti.graph.GraphBuilder()
-                for _ in range(k):
-                    for kernel in self._run_kernels:
-                        g.dispatch(kernel)
+                for j in range(k):
+                    step, t = arg(f"step{j}", ti.i32), arg(f"t{j}", ti.f32)
+                    g.dispatch(self.p2g, n, step)
+                    g.dispatch(self.grid_op, t, contact)
+                    g.dispatch(self.g2p, n, step, t)
                 self._graphs[k] = g.compile()
             except Exception as e:  # noqa: BLE001 (any backend limitation: keep simulating, say so once)
                 warnings.warn(f"ti.graph unavailable ({type(e).__name__}: {e}); MPMSolver.advance falls back to "
