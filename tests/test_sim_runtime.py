@@ -4,8 +4,12 @@ Taichi's kernel cache on disk is keyed by each kernel's IR, which names its fiel
 runtime before every file (tests/conftest.py) so that a file's fields get the same ids whatever ran before it.
 """
 import os
+import shutil
+import subprocess
+import sys
 
 import numpy as np
+import pytest
 import taichi as ti
 
 from topocut.sim.runtime import KERNEL_CACHE_BYTES, init_taichi, offline_cache_size, reset_taichi
@@ -101,3 +105,30 @@ def test_source_excerpts_are_taichis_own_and_made_once_per_place(monkeypatch):
     assert not wrong
     assert len(made) == len(runtime._EXCERPTS) < len(asked)
     assert asked.count("affine") >= 3 * made.count("affine") > 0  # inlined thrice, each place made once
+
+
+TO_HOST_CHECK = """
+import numpy as np, taichi as ti
+from topocut.sim import runtime
+runtime.init_taichi("cuda")
+vec, mat = ti.Vector.field(3, ti.f32, shape=(4, 1000)), ti.Matrix.field(3, 3, ti.f32, shape=(4, 1000))
+ints = ti.field(ti.i32, shape=(4, 1000))
+rng = np.random.default_rng(0)
+vec.from_numpy(rng.random((4, 1000, 3)).astype(np.float32))
+mat.from_numpy(rng.random((4, 1000, 3, 3)).astype(np.float32))
+ints.from_numpy(rng.integers(-5, 5, (4, 1000)).astype(np.int32))
+for f in (vec, mat, ints):
+    a, b = f.to_numpy(), runtime.to_host(f)
+    assert a.dtype == b.dtype and a.shape == b.shape and np.array_equal(a, b), f
+    b[0] += 1  # the host copy is the caller's: writable, and the field does not change
+    assert np.array_equal(f.to_numpy(), a)
+print("TO_HOST_OK")
+"""
+
+
+@pytest.mark.skipif(shutil.which("nvidia-smi") is None, reason="needs an NVIDIA GPU (to_host's CUDA path)")
+def test_to_host_equals_to_numpy_on_cuda():
+    """topocut.sim.runtime.to_host reads a field through a device tensor and pinned memory on CUDA (on the CPU it is
+    to_numpy itself): the same arrays, dtypes and shapes, for vector, matrix and integer fields."""
+    r = subprocess.run([sys.executable, "-c", TO_HOST_CHECK], capture_output=True, text=True, timeout=600)
+    assert "TO_HOST_OK" in r.stdout, r.stdout[-3000:] + r.stderr[-3000:]

@@ -26,7 +26,7 @@ from topocut.sim.action import KnifeAction, KnifeSweep
 from topocut.sim.config import SimConfig
 from topocut.sim.mpm import MPMSolver
 from topocut.sim.primitives import Primitives
-from topocut.sim.runtime import init_taichi
+from topocut.sim.runtime import init_taichi, to_host
 from topocut.sim.scenes import NO_STEP, Scenes, SimState, cell_order  # noqa: F401 - SimState, cell_order: re-exported
 from topocut.utils.runtime import host_threads
 
@@ -178,7 +178,7 @@ class CuttingEnv(Scenes, Primitives):
             split = self._split_on_device(sweeps, idle, reach)
             if split is None:
                 return
-        body = s.body.to_numpy()
+        body = to_host(s.body)
         side = np.zeros((self.B, cfg.fields), np.int32)
         for b in range(self.B):
             if idle[b] or on_device:
@@ -270,7 +270,7 @@ class CuttingEnv(Scenes, Primitives):
             te = np.minimum(i * self.dt, depth / np.maximum(speed, 1e-9))[:, None]  # B,1
             edge = np.asarray(o0) + np.stack([f[1] for f in frames]) * speed[:, None] * te \
                 + np.stack([f[0] for f in frames]) * cfg.osc_amplitude * np.sin(om * te)  # B,3
-            snaps.append(CutSnapshot(i, s.x.to_numpy()[:, :self.n].copy(), s.damage.to_numpy()[:, :self.n].astype(bool),
+            snaps.append(CutSnapshot(i, to_host(s.x)[:, :self.n].copy(), to_host(s.damage)[:, :self.n].astype(bool),
                                      edge))
         return record
 
@@ -295,8 +295,8 @@ class CuttingEnv(Scenes, Primitives):
         idle = np.array([a is None for a in acts]) | self.dead
         acts = [KnifeAction(0.5, 0.5) if i else a for a, i in zip(acts, idle)]  # geometry only: no budget
         counts = self.counts
-        x = [xb[:c] for xb, c in zip(s.x.to_numpy().astype(np.float64), counts)]  # B x (n_b,3)
-        dmg0 = s.damage.to_numpy()[:, :self.n].sum(1)
+        x = [xb[:c] for xb, c in zip(to_host(s.x).astype(np.float64), counts)]  # B x (n_b,3)
+        dmg0 = to_host(s.damage)[:, :self.n].sum(1)
         frames, o0, depth, sweeps = _blade_plans(acts, x, cfg)
         speed = self._knife_speeds(depth)
         # the swept surface of each scene's blade (P.blade_sweep): what _split separates before the knife moves
@@ -328,7 +328,7 @@ class CuttingEnv(Scenes, Primitives):
         duration = (totals * self.dt).astype(np.float32)  # B: each scene's own cut duration
         return CutInfo(sweeps=sweeps, force=s.k_imp.to_numpy() / np.maximum(duration, self.dt)[:, None], peak_force=s.k_peak.to_numpy(),
                        work=s.k_work.to_numpy().astype(np.float64), knife_end=np.asarray(ends),
-                       newly_damaged=s.damage.to_numpy()[:, :self.n].sum(1) - dmg0, substeps=total,
+                       newly_damaged=to_host(s.damage)[:, :self.n].sum(1) - dmg0, substeps=total,
                        wall_time=time.perf_counter() - t_wall, substeps_per_scene=totals, split_time=t_split,
                        snapshots=snaps)
 

@@ -27,7 +27,7 @@ import numpy as np
 import taichi as ti
 
 from topocut.sim.pieces import LINK, MIN_PIECE
-from topocut.sim.runtime import _ON_RESET
+from topocut.sim.runtime import _ON_RESET, to_host
 
 CELL_MARGIN = 1.001  # cells a bit wider than the bond length: a bond's ends lie in adjacent cells despite rounding
 BIG = 1e300
@@ -289,7 +289,7 @@ class DeviceSplit:
         self._heads()
         self._scan(self.mark)
         self._rank()
-        return self.out.to_numpy()
+        return to_host(self.out)
 
 
 _CACHE: dict = {}  # B -> DeviceSplit: fields and kernels kept between cuts while the capacity suffices

@@ -8,6 +8,7 @@ import math
 import numpy as np
 
 from topocut.sim import pieces as P
+from topocut.sim.runtime import to_host
 
 
 def turned_positions(p: np.ndarray, turn, cfg) -> np.ndarray:
@@ -54,7 +55,7 @@ class Primitives:
             raise ValueError(f"turn got {len(turns)} turns for batch_size={self.B}")
         self.turn_refused = [None] * self.B
         counts = self.counts  # B: scene b's particles are rows :counts[b] (the rest pad)
-        x = s.x.to_numpy()  # B,cap,3
+        x = to_host(s.x)  # B,cap,3
         mask = np.zeros((self.B, n), bool)
         if select is not None:
             mask[:] = np.broadcast_to(np.asarray(select, bool), (self.B, n))
@@ -65,8 +66,8 @@ class Primitives:
                 lab = self.piece[b, :counts[b]]
                 mask[b, :counts[b]] = lab == nearest_piece(x[b, :counts[b]].astype(np.float64), lab, turns[b].center)
         mask &= np.arange(n)[None] < counts[:, None]  # never the padding
-        F, C, v = s.F.to_numpy(), s.C.to_numpy(), s.v.to_numpy()
-        body = s.body.to_numpy()
+        F, C, v = to_host(s.F), to_host(s.C), to_host(s.v)
+        body = to_host(s.body)
         lo, hi = 2.5 * cfg.dx, 1.0 - 2.5 * cfg.dx  # the solver's boundary band
         turned = np.zeros(self.B, bool)
         for b in range(self.B):
@@ -148,7 +149,7 @@ class Primitives:
                 s.k_on.fill(0)
                 self._set_frozen()
         elif cfg.push_mode == "press":  # a flat plate (the knife box laid horizontally) pressing down lightly
-            xs = [xb[:c] for xb, c in zip(s.x.to_numpy(), self.counts)]  # B x (n_b,3)
+            xs = [xb[:c] for xb, c in zip(to_host(s.x), self.counts)]  # B x (n_b,3)
             o = np.array([[xb[:, 0].mean(), xb[:, 1].mean(), xb[:, 2].max() + cfg.knife_clearance] for xb in xs])
             depth = np.full(self.B, cfg.knife_clearance + cfg.press_depth)
             tile = lambda v: np.tile(np.asarray(v, np.float32), (self.B, 1))  # noqa: E731

@@ -16,6 +16,7 @@ from topocut.sim import pieces as P
 from topocut.sim.action import KnifeSweep
 from topocut.sim.mpm import MPMSolver
 from topocut.sim.objects import ObjectPose, sample_object
+from topocut.sim.runtime import to_host
 
 NO_STEP = 2 ** 30
 
@@ -139,8 +140,8 @@ class Scenes:
         """Every scene's particles (B,n,...); where scenes hold different counts, rows past counts[b] are padding
         (``SimState.scene(b)`` drops them)."""
         s, n = self._need(), self.n
-        return SimState(x=s.x.to_numpy()[:, :n], v=s.v.to_numpy()[:, :n], material=s.material.to_numpy()[0, :n],
-                        damage=s.damage.to_numpy()[:, :n].astype(bool), sweeps=[list(w) for w in self.sweeps],
+        return SimState(x=to_host(s.x)[:, :n], v=to_host(s.v)[:, :n], material=to_host(s.material)[0, :n],
+                        damage=to_host(s.damage)[:, :n].astype(bool), sweeps=[list(w) for w in self.sweeps],
                         piece=self.piece.copy(), counts=self.counts)
 
     def get_state(self, b: int = 0) -> dict:
@@ -281,13 +282,13 @@ class Scenes:
         self.dead[scenes] = False
         targets = {"x": s.x, "v": s.v, "C": s.C, "F": s.F, "sigma_y": s.sigma_y, "damage": s.damage, "body": s.body}
         for key, fld in targets.items():
-            arr = fld.to_numpy()  # B,cap,...
+            arr = to_host(fld)  # B,cap,...
             for sb, st in states.items():
                 n, vals = prepared[id(st)][:2]
                 arr[sb, :n] = np.asarray(vals[key])
                 arr[sb, n:] = 0  # past the scene's particles: nothing (padding, or the rows no loop reaches)
             fld.from_numpy(arr)
-        mat = s.material.to_numpy()  # B,cap
+        mat = to_host(s.material)  # B,cap
         for sb, st in states.items():
             n, _, piece, material, sweeps = prepared[id(st)]
             if material is not None:
@@ -298,7 +299,7 @@ class Scenes:
             self.sweeps[sb] = list(sweeps)
             self.piece[sb, :n], self.piece[sb, n:] = piece, 0
         s.material.from_numpy(mat)
-        s.Jp.from_numpy(np.linalg.det(s.F.to_numpy()).astype(np.float32))
+        s.Jp.from_numpy(np.linalg.det(to_host(s.F)).astype(np.float32))
         top = max(int(v[1]["body"].max(initial=0)) for v in prepared.values())
         self._loaded(scenes, top + 1)
 

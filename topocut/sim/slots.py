@@ -14,6 +14,8 @@ restores as its executed cut instead of simulating that cut again (docs/data.md,
 
 import taichi as ti
 
+from topocut.sim.runtime import to_host
+
 FIELDS = ("x", "v", "C", "F", "Jp", "sigma_y", "damage", "body", "material")
 
 
@@ -77,7 +79,7 @@ class SceneSlot(_Slot):
 
     def to_numpy(self, n: int) -> dict:
         """The slot's first n rows as numpy arrays, by field name."""
-        return {name: fld.to_numpy()[:n] for name, fld in self.f.items()}
+        return {name: to_host(fld)[:n] for name, fld in self.f.items()}
 
 
 @ti.data_oriented
