@@ -101,6 +101,19 @@ def bench_demo(args) -> dict:
               f"-> {b['wall']:.3f} s a cut ({a['wall'] / b['wall']:.2f}x), simulation {a['sim']:.3f} -> "
               f"{b['sim']:.3f} s ({a['sim'] / max(b['sim'], 1e-9):.2f}x)")
         return out
+    if args.reward_kernels == "both":
+        from reward_kernels import reference_kernels
+
+        m, out = modes[-1], {}
+        for how in ("before", "current"):
+            with reference_kernels() if how == "before" else contextlib.nullcontext():
+                out[how] = demo_cuts(args, m, push_last=args.push_last == "true", size_solver=args.size_solver,
+                                     executed=EXECUTED[args.executed][-1])
+        a, b = out["before"], out["current"]
+        print(f"the reward's Warp kernels (FPS, neighbour queries) against the code they replace, same process: wall "
+              f"{a['wall']:.3f} -> {b['wall']:.3f} s a cut ({a['wall'] / b['wall']:.2f}x), reward {a['reward']:.3f} -> "
+              f"{b['reward']:.3f} s ({a['reward'] / max(b['reward'], 1e-9):.2f}x)")
+        return out
     if args.host == "both":
         m = modes[-1]
         out = {}
@@ -407,6 +420,9 @@ def main() -> None:
                    "the reference)")
     p.add_argument("--gpu-profile", default="", help="demo: the measured episode's GPU time by kernel (torch.profiler) "
                    "into this file")
+    p.add_argument("--reward-kernels", choices=("current", "both"), default="current",
+                   help="demo: both: the reward's FPS and neighbour queries as before 2026-12-01 (a captured CUDA graph, "
+                   "tensor blocks: the reference), then as they are (Warp kernels)")
     p.add_argument("--host", choices=("current", "both"), default="current",
                    help="demo: both: the host functions of a cut as before 2026-12-01 (the reference), then as they are")
     p.add_argument("--batch", type=int, default=16, help="evaluation scenes (episodes at once)")

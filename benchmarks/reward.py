@@ -61,8 +61,6 @@ def main():
         raise SystemExit("--device cuda requested but torch.cuda.is_available() is False")
     import dataclasses
 
-    if args.device == "cuda":
-        bench_fps(args)
     w0, _ = descriptor(resample(cloud(0), cfg), sigma, cfg)
     # subspace-a2: the subspace solver with A^-2 steps (its design before 2026-11-30), against today's A^-4
     solvers = ["device", "subspace-a2", "subspace", "host"] if args.device == "cuda" else \
@@ -101,40 +99,6 @@ def steps_of(power: int):
         yield
     finally:
         eigen.smallest_eigenpairs_subspace = solver
-
-
-def bench_fps(args) -> None:
-    """The reward's batched FPS (fps_torch over padded fragments): its pick loop launched kernel by kernel against
-    one captured CUDA graph replayed per pick, and the picks against numpy's fps of each cloud."""
-    import torch
-
-    import topocut.metrics.sampling as sampling
-    from topocut.metrics.sampling import fps, fps_torch
-
-    rng = np.random.default_rng(3)
-    sizes = rng.integers(600, 6000, 48)  # fragments of a cut: padded to the largest
-    clouds = [cloud(int(s), int(n)) for s, n in enumerate(sizes)]
-    N = int(sizes.max())
-    pts = np.zeros((len(clouds), N, 3))
-    mask = np.zeros((len(clouds), N), bool)
-    for b, c in enumerate(clouds):
-        pts[b, :len(c)], mask[b, :len(c)] = c, True
-    p, m = torch.tensor(pts, device=args.device), torch.tensor(mask, device=args.device)
-
-    def run(min_picks):
-        sampling.GRAPH_MIN_PICKS = min_picks
-        out = fps_torch(p, 512, m)
-        if args.device == "cuda":
-            torch.cuda.synchronize()
-        return out
-
-    t_loop = timeit(lambda: run(10 ** 9), args.repeat)
-    t_graph = timeit(lambda: run(16), args.repeat)
-    idx = run(16).cpu().numpy()
-    same = sum(int(np.array_equal(idx[b], fps(c, 512))) for b, c in enumerate(clouds))
-    print(f"batched FPS ({args.device}), {len(clouds)} clouds of 600-6000 points -> 512: kernel by kernel "
-          f"{1e3 * t_loop:7.1f} ms (reference), one CUDA graph per call {1e3 * t_graph:7.1f} ms: "
-          f"{t_loop / t_graph:.2f}x; picks equal to numpy's fps for {same}/{len(clouds)} clouds")
 
 
 if __name__ == "__main__":

@@ -168,26 +168,39 @@ def test_host_and_device_eigen_solvers_agree():
         RewardConfig(eig_solver="gpu").validate()
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="the captured-graph pick loop runs on CUDA only")
-def test_fps_graph_picks_equal_the_launched_loop_and_numpy():
-    """fps_torch on CUDA replays one captured graph per pick: the same picks as the kernel-by-kernel loop and as
-    numpy's fps of each (unpadded) cloud."""
-    import topocut.metrics.sampling as sampling
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_fps_kernel_picks_equal_the_loop_and_numpy_lattice_ties_included(device, monkeypatch):
+    """fps_torch's one-launch kernel (the default) against its tensor loop and numpy's fps of each cloud alone: an
+    unjittered lattice (exact distance ties everywhere: the first maximum must win, whatever the block's reduction
+    order), random clouds, a masked batch with padding between valid points, float32, a given start, and block
+    sizes from one thread a cloud to 1024.  Warp runs one thread a block on the CPU, so the reduction across a
+    block's threads is checked on CUDA only (run there: benchmarks/gpu.sh)."""
+    import topocut.metrics.fps_kernel as fk
 
     rng = np.random.default_rng(8)
-    clouds = [rng.random((int(n), 3)) * [0.03, 0.15, 0.1] for n in rng.integers(100, 900, 6)]
-    N = max(len(c) for c in clouds)
-    P, M = np.zeros((6, N, 3)), np.zeros((6, N), bool)
+    # integer multiples of 2^-8: every coordinate difference and square is exact, so distances tie exactly; one
+    # point off the corner makes the start (the farthest from the centroid) unique
+    grid = np.stack(np.meshgrid(*[np.arange(9)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    lattice = np.r_[grid, [[-3, -3, -3]]] / 256.0  # 730 points
+    clouds = [lattice, rng.permutation(lattice)] + [rng.random((int(n), 3)) * [0.03, 0.15, 0.1]
+                                                   for n in rng.integers(250, 900, 4)]
+    P, M = padded(clouds, rng)
+    p, m = torch.tensor(P, device=device), torch.tensor(M, device=device)
+    loop = fps_torch(p, 200, m, method="loop").cpu().numpy()
     for b, c in enumerate(clouds):
-        P[b, :len(c)], M[b, :len(c)] = c, True
-    p, m = torch.tensor(P, device="cuda"), torch.tensor(M, device="cuda")
-    graph = fps_torch(p, 64, m).cpu().numpy()
-    old = sampling.GRAPH_MIN_PICKS
-    sampling.GRAPH_MIN_PICKS = 10 ** 9
-    try:
-        loop = fps_torch(p, 64, m).cpu().numpy()
-    finally:
-        sampling.GRAPH_MIN_PICKS = old
-    np.testing.assert_array_equal(graph, loop)
-    for b, c in enumerate(clouds):
-        np.testing.assert_array_equal(graph[b], fps(c, 64))
+        np.testing.assert_array_equal(loop[b], np.flatnonzero(M[b])[fps(c, 200)])
+    for block in (1, 32, 256, 1024):
+        monkeypatch.setattr(fk, "BLOCK_DIM", block)
+        np.testing.assert_array_equal(fps_torch(p, 200, m).cpu().numpy(), loop, err_msg=f"block_dim={block}")
+    start = torch.tensor([int(np.flatnonzero(M[b])[b]) for b in range(len(clouds))], device=device)
+    for dtype in (torch.float64, torch.float32):
+        q = p.to(dtype)
+        np.testing.assert_array_equal(fps_torch(q, 64, m, start=start).cpu().numpy(),
+                                      fps_torch(q, 64, m, start=start, method="loop").cpu().numpy())
+    whole = torch.tensor(lattice[None], device=device)  # no mask
+    np.testing.assert_array_equal(fps_torch(whole, 300).cpu().numpy(), fps_torch(whole, 300, method="loop").cpu().numpy())
+    with pytest.raises(ValueError, match="method"):
+        fps_torch(whole, 3, method="graph")

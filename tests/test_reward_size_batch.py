@@ -45,14 +45,15 @@ def pieces():
 
 
 @pytest.mark.parametrize("spacing", [None, H])
-@pytest.mark.parametrize("budget", [1 << 25, 1 << 16])
-def test_the_device_sizes_are_the_hosts_fragment_by_fragment(spacing, budget):
+@pytest.mark.parametrize("method,budget", [("kernel", 1 << 25), ("tensor", 1 << 25), ("tensor", 1 << 16)])
+def test_the_device_sizes_are_the_hosts_fragment_by_fragment(spacing, method, budget):
     """Spacing, extents, volume and profile within 1e-12 of the host's; the profile left out (NaN) where the host
     leaves it out (the block against the die's goal: past R's zero by its extents); the same particles kept (the
-    die's thread loses all but its first link on both).  A small budget splits every pass into many blocks."""
+    die's thread loses all but its first link on both).  The neighbour queries by the Warp kernel and by tensor
+    blocks; a small budget splits every tensor pass into many blocks."""
     items = pieces()
     cfg = RewardConfig(backend="torch", size_solver="device")
-    dev = fragment_sizes(items, cfg, spacing, budget=budget)
+    dev = fragment_sizes(items, cfg, spacing, budget=budget, near_method=method)
     host = [_fragment_size(p, g, cfg, spacing) for p, g in items]
     assert np.isnan(host[3][0]).any() and not np.isnan(host[0][0]).any()  # both branches are exercised
     assert len(host[4][1]) < len(items[4][0])  # the thread was trimmed on the host
@@ -63,31 +64,45 @@ def test_the_device_sizes_are_the_hosts_fragment_by_fragment(spacing, budget):
         assert np.array_equal(dp, hp), (i, len(dp), len(hp))
 
 
-def test_near_counts_and_nearest_match_brute_force():
-    """Counts within r <= h and the k nearest (where the k-th lies within h) of every particle, by cell lists of side
-    h, equal a KD-tree's, for fragments far apart and fragments whose boxes overlap (each only sees its own)."""
+@pytest.mark.parametrize("device", ["cpu"] + (["cuda"] if torch.cuda.is_available() else []))
+@pytest.mark.parametrize("method", ["kernel", "tensor"])
+def test_near_counts_and_nearest_match_brute_force(method, device):
+    """Counts within r <= h (less the particle itself), the k nearest (where the k-th lies within h) and the nearest
+    of another set (where within h) of every particle, by cell lists of side h, equal a KD-tree's, for fragments far
+    apart and fragments whose boxes overlap (each only sees its own); the Warp kernel and the tensor blocks alike."""
     rng = np.random.default_rng(3)
     frags = [lattice(9, 7, 5, 20), lattice(6, 6, 6, 21, turn=False), lattice(6, 6, 6, 22, turn=False) + H * 0.5,
              rng.uniform(0, 0.02, (300, 3))]
     count = [len(f) for f in frags]
-    X = torch.from_numpy(np.concatenate(frags))
-    seg = torch.from_numpy(np.repeat(np.arange(len(frags)), count))
-    rows = torch.arange(len(X))
-    h = torch.full((len(frags),), 1.6 * H, dtype=torch.float64)
-    r = 1.6 * H
-    got_n = near(X, rows, seg, rows, seg, h, len(frags), lambda d, _: (d <= r).sum(-1, keepdim=True).to(d.dtype), 1)
-    got_k = near(X, rows, seg, rows, seg, h, len(frags), lambda d, _: d.topk(5, dim=-1, largest=False).values, 5,
-                 budget=1000)
+    X = torch.from_numpy(np.concatenate(frags)).to(device)
+    seg = torch.from_numpy(np.repeat(np.arange(len(frags)), count)).to(device)
+    rows = torch.arange(len(X), device=device)
+    h = torch.full((len(frags),), 1.6 * H, dtype=torch.float64, device=device)
+    r = torch.full((len(frags),), 1.6 * H, dtype=torch.float64, device=device)
+    got_n = near(X, rows, seg, rows, seg, h, len(frags), "count", radius=r, method=method).cpu()
+    got_k = near(X, rows, seg, rows, seg, h, len(frags), "knn", 5, budget=1000, method=method).cpu()
+    odd = rows % 3 == 0  # the nearest of the others
+    got_m = near(X, rows[~odd], seg[~odd], rows[odd], seg[odd], h, len(frags), "min", method=method)[:, 0].cpu().numpy()
+    X, odd = X.cpu(), odd.cpu()
     lo = 0
     for f in frags:
         tree = cKDTree(f)
-        want_n = tree.query_ball_point(f, r, return_length=True)
+        want_n = tree.query_ball_point(f, 1.6 * H, return_length=True) - 1
         want_k = tree.query(f, 5)[0]
         np.testing.assert_array_equal(got_n[lo:lo + len(f), 0].numpy(), want_n)
         sure = want_k[:, -1] <= 1.6 * H
         assert sure.sum() > len(f) // 2
         np.testing.assert_allclose(got_k[lo:lo + len(f)].numpy()[sure], want_k[sure], rtol=1e-12)
+        mine = np.arange(lo, lo + len(f))
+        others = mine[mine % 3 == 0]
+        want_m = cKDTree(X.numpy()[others]).query(X.numpy()[mine[mine % 3 != 0]])[0]
+        got = got_m[np.isin(np.flatnonzero(~odd.numpy()), mine)]
+        within = want_m <= 1.6 * H
+        assert within.sum() > len(want_m) // 2 and (got >= want_m * (1 - 1e-12)).all()  # past h: a farther one, or inf
+        np.testing.assert_allclose(got[within], want_m[within], rtol=1e-12)
         lo += len(f)
+    with pytest.raises(ValueError, match="mode"):
+        near(X, rows, seg, rows, seg, h, len(frags), "mean", method=method)
 
 
 def test_the_reward_distances_are_the_same_with_either_size_solver():

@@ -26,8 +26,17 @@ def scipy_components(edges, n):
     return connected_components(g, directed=False)
 
 
+def warp_devices():
+    """Warp's CPU, and CUDA where there is a GPU (the union-find's races only show there: run by benchmarks/gpu.sh)."""
+    from topocut.topology.sdf import init_warp
+
+    init_warp()
+    return ["cpu"] + (["cuda"] if wp.get_cuda_device_count() else [])
+
+
+@pytest.mark.parametrize("device", warp_devices())
 @pytest.mark.parametrize("case", ["chain", "random", "isolated", "self_loops"])
-def test_graph_components_match_scipy(case):
+def test_graph_components_match_scipy(case, device):
     from topocut.topology.components import graph_components
 
     rng = np.random.default_rng(1)
@@ -40,10 +49,11 @@ def test_graph_components_match_scipy(case):
         edges = np.array([[0, 399], [5, 7], [7, 9]])
     else:
         edges = np.array([[3, 3], [4, 4], [3, 4], [10, 10]])
-    k, lab = graph_components(edges, n)
     k_ref, lab_ref = scipy_components(edges, n)
-    assert k == k_ref
-    assert np.array_equal(lab, lab_ref)  # same numbering too: by each component's smallest node
+    for _ in range(3 if device == "cuda" else 1):  # a race would not show every time
+        k, lab = graph_components(edges, n, device)
+        assert k == k_ref
+        assert np.array_equal(lab, lab_ref)  # same numbering too: by each component's smallest node
 
 
 def serpentine(n=24):
@@ -59,8 +69,9 @@ def serpentine(n=24):
     return m
 
 
+@pytest.mark.parametrize("device", warp_devices())
 @pytest.mark.parametrize("case", ["random30", "random60", "serpentine", "shells"])
-def test_grid_components_match_ndimage_label(case):
+def test_grid_components_match_ndimage_label(case, device):
     from topocut.topology.components import grid_components
 
     rng = np.random.default_rng(2)
@@ -72,12 +83,14 @@ def test_grid_components_match_ndimage_label(case):
         ax = np.linspace(-1, 1, 31)
         r = np.sqrt(sum(a ** 2 for a in np.meshgrid(ax, ax, ax, indexing="ij")))
         mask = ((r > 0.2) & (r < 0.4)) | ((r > 0.6) & (r < 0.8)) | (r < 0.05)
-    lab, k = grid_components(mask)
     lab_ref, k_ref = ndimage.label(mask)  # default structure: 6-connectivity
-    assert k == k_ref and np.array_equal(lab, lab_ref)
+    for _ in range(3 if device == "cuda" else 1):
+        lab, k = grid_components(mask, device)
+        assert k == k_ref and np.array_equal(lab, lab_ref)
 
 
-def test_fill_voids_fills_small_enclosed_cavities_only():
+@pytest.mark.parametrize("device", warp_devices())
+def test_fill_voids_fills_small_enclosed_cavities_only(device):
     from topocut.topology.components import fill_voids
 
     f = np.ones((20, 20, 20), np.float32)  # outside everywhere ...
@@ -85,13 +98,40 @@ def test_fill_voids_fills_small_enclosed_cavities_only():
     f[5:7, 5:7, 5:7] = 1.0  # an enclosed cavity of 8 nodes
     f[9:12, 9:12, 9:12] = 1.0  # an enclosed cavity of 27 nodes
     f[3:17, 14, 14] = 1.0  # a tunnel open to the outside: not a cavity
-    field = wp.array(f, dtype=float)
-    fill_voids(field, 10, -0.25)
-    out = field.numpy()
+    for _ in range(3 if device == "cuda" else 1):  # on CUDA the last pass once left air nodes under a non-root
+        field = wp.array(f, dtype=float, device=device)
+        fill_voids(field, 10, -0.25, device)
+        out = field.numpy()
+        assert np.count_nonzero(out != f) == 8
     assert np.all(out[5:7, 5:7, 5:7] == -0.25)  # small cavity filled
     assert np.all(out[9:12, 9:12, 9:12] == 1.0)  # large cavity kept (a hollow object)
     assert np.all(out[3:17, 14, 14] == 1.0) and out[0, 0, 0] == 1.0  # connected to the border: kept
     assert np.count_nonzero(out != f) == 8
+
+
+@pytest.mark.parametrize("device", warp_devices())
+def test_label_pieces_drops_pieces_below_min_voxels_and_numbers_the_rest_by_first_node(device):
+    """Inside nodes only (no mesh): blocks of 1, 7, 8, 9 and 512 nodes with min_voxels 8 keep the last three, numbered
+    in the order of their smallest node index, as scipy's labelling says; the dropped blocks' nodes are -1."""
+    from topocut.topology.components import label_pieces
+
+    f = np.ones((24, 24, 24), np.float32)
+    f[20:22, 20:22, 20:22] = -1.0  # 8 nodes
+    f[1, 1, 1] = -1.0  # 1 node
+    f[1, 5, 1:8] = -1.0  # 7 nodes
+    f[10:18, 10:18, 10:18] = -1.0  # 512 nodes
+    f[5, 20, 1:10] = -1.0  # 9 nodes
+    ref, n = ndimage.label(f < 0)
+    sizes = np.bincount(ref.ravel())[1:]
+    kept = [c + 1 for c in range(n) if sizes[c] >= 8]  # scipy numbers in raster order: by first node, as ours
+    empty = wp.zeros(0, dtype=wp.int32, device=device)
+    pieces = label_pieces(wp.array(f, dtype=float, device=device), empty, empty, 0, min_voxels=8, device=device)
+    labels = pieces.labels.numpy().reshape(f.shape)
+    assert pieces.count == 3 == len(kept) and sorted(sizes[np.array(kept) - 1]) == [8, 9, 512]
+    want = np.full(f.shape, -1)
+    for i, c in enumerate(kept):
+        want[ref == c] = i
+    np.testing.assert_array_equal(labels, want)
 
 
 def octahedron():

@@ -52,7 +52,7 @@ def fps(points, n: int, seed: int = 0, start: str = "farthest") -> np.ndarray:
     return idx
 
 
-def fps_torch(points, n: int, mask=None, start=None):
+def fps_torch(points, n: int, mask=None, start=None, method: str = "kernel"):
     """Batched FPS: points (B,N,3) tensor -> indices (B,n) long into N, same start rule as ``fps``.
 
     start (B,) long: each cloud's first pick (``fps``'s start="random" draws it as
@@ -64,13 +64,17 @@ def fps_torch(points, n: int, mask=None, start=None):
     operations in its order, so in float64 row b equals ``fps(points[b][mask[b]], n)`` mapped back to
     padded indices (an exact tie in the start's centroid distance may break the other way: the centroid is
     summed in another order).  A cloud with m < n valid points gets its m FPS picks (all of its points when
-    they are distinct) followed by n - m copies of its last pick; ``valid_rows`` flags the copies.  On CUDA the pick
-    loop is replayed from one captured graph (``_picks_graph``: the same kernels, the same picks).
+    they are distinct) followed by n - m copies of its last pick; ``valid_rows`` flags the copies.
+
+    method "kernel" (default): every pick of every cloud in one Warp launch (``topocut.metrics.fps_kernel``), the same
+    picks bit for bit as "loop": a few tensor operations a pick, the definition (and ~8 kernel launches a pick).
     """
     import torch
 
     if points.dim() != 3:
         raise ValueError(f"fps_torch expects (B,N,3) points, got shape {tuple(points.shape)}")
+    if method not in ("kernel", "loop"):
+        raise ValueError(f"fps_torch: method={method!r}; valid: kernel, loop")
     B, N, _ = points.shape
     n = int(n)
     if mask is None:
@@ -121,8 +125,12 @@ def fps_torch(points, n: int, mask=None, start=None):
             cur = d0.argmax(1)  # B, first maximum, as np.argmax
         else:
             cur = torch.as_tensor(start, dtype=torch.long, device=p.device).reshape(B).clone()
-        if p.is_cuda and n >= GRAPH_MIN_PICKS:
-            idx = _picks_graph(p, dist, cur, n, sqdist)
+        if method == "kernel" and p.dtype in (torch.float32, torch.float64):  # one launch: the loop's picks
+            from topocut.metrics.fps_kernel import fps_picks
+
+            top = N if mask is None else torch.where(mask, torch.arange(N, device=p.device), -1).amax(1) + 1  # B,
+            top = torch.as_tensor(top, device=p.device).expand(B).to(torch.int32).contiguous()
+            idx = fps_picks(p.contiguous(), dist.contiguous(), top, cur.contiguous(), n)
         else:
             picks = []
             for _ in range(n):
@@ -134,48 +142,6 @@ def fps_torch(points, n: int, mask=None, start=None):
             # past its m valid points a cloud would go on picking (zero-distance) points again: repeat pick m-1
             last = idx.gather(1, (count.clamp_max(n) - 1)[:, None])  # B,1
             idx = torch.where(torch.arange(n, device=p.device)[None] < count[:, None], idx, last)
-    return idx
-
-
-GRAPH_MIN_PICKS = 16  # fewer picks: capturing the step costs more than launching it
-
-
-def _picks_graph(p, dist, cur, n: int, sqdist):
-    """The pick loop of fps_torch replayed from one captured CUDA graph: the same kernels in the same order (so the
-    same picks, bit for bit), but one graph launch a pick instead of ~8 kernel launches and their Python (512 picks
-    of 48 padded clouds on an H100: 32.0 ms launched one by one, 26.1 ms replayed; the small kernels' GPU time,
-    not their launches, bounds it).  p (B,N,3), dist (B,N), cur (B,) on one CUDA device;
-    returns (B,n) long."""
-    import torch
-
-    B = p.shape[0]
-    ar = torch.arange(B, device=p.device)
-    idx = torch.zeros(B, n, dtype=torch.long, device=p.device)
-    at = torch.zeros(B, 1, dtype=torch.long, device=p.device)  # the pick being written, advanced inside the graph
-    cur, dist = cur.clone(), dist.clone()
-
-    def step():
-        idx.scatter_(1, at, cur[:, None])
-        torch.minimum(dist, sqdist(p[ar, cur]), out=dist)
-        torch.argmax(dist, 1, out=cur)
-        at.add_(1)
-
-    saved = cur.clone(), dist.clone()
-    side = torch.cuda.Stream(device=p.device)
-    side.wait_stream(torch.cuda.current_stream(p.device))
-    with torch.cuda.stream(side):  # warm-up outside the capture (allocator, kernel selection), then undone
-        step()
-    torch.cuda.current_stream(p.device).wait_stream(side)
-    cur.copy_(saved[0])
-    dist.copy_(saved[1])
-    at.zero_()
-    graph = torch.cuda.CUDAGraph()
-    # thread_local: a DataLoader's pin-memory thread allocating pinned memory during a capture in the default
-    # ("global") mode invalidates it (cudaErrorStreamCaptureInvalidated, seen at 2048 points beside training).
-    with torch.cuda.graph(graph, capture_error_mode="thread_local"):
-        step()
-    for _ in range(n):
-        graph.replay()
     return idx
 
 

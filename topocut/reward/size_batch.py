@@ -49,19 +49,28 @@ def _brute_nearest(X, q, ref, k: int, budget: int = CELL_BUDGET):
                       .topk(k, dim=-1, largest=False).values for a in range(0, len(q), rows)])
 
 
-def near(X, q, qseg, ref, rseg, h, F: int, reduce, width: int, budget: int = CELL_BUDGET):
-    """reduce(distances (r, c), fragments (r,)) -> (r, width) for every query q (Q,) over the references ref (n,) of its
-    own fragment within the 27 cells of side h[fragment] around it; other references are reported at inf.
+def near(X, q, qseg, ref, rseg, h, F: int, mode: str, k: int = 1, radius=None, budget: int = CELL_BUDGET,
+         method: str = "kernel"):
+    """Each query's reduction over the references of its own fragment within the 27 cells of side h[fragment] around
+    it: mode "knn" the k smallest distances ascending (Q, k), "count" how many lie within radius[fragment] less one
+    (Q, 1; the query is among its references), "min" the smallest distance (Q, 1).  Other references count as inf.
 
-    Cell lists on the device: the references sorted by (fragment, cell), each query's 27 neighbour cells read at once,
-    padded to the fullest cell (c = 27 x its count).  A reference within h of a query is always among its candidates,
-    so a count within a radius <= h, or a nearest distance <= h, is exact.  q, ref: rows of X (long, on X's device);
-    qseg, rseg: their fragments; h (F,): each fragment's cell side."""
+    Cell lists on the device: the references sorted by (fragment, cell), each query's 27 neighbour cells read at once.
+    A reference within h of a query is always among its candidates, so a count within a radius <= h, or a nearest
+    distance <= h, is exact.  q, ref: rows of X (long, on X's device); qseg, rseg: their fragments; h (F,): each
+    fragment's cell side.  method "kernel": one Warp thread a query walks its cells (topocut.reward.near_kernel);
+    "tensor": the candidates gathered into blocks padded to the fullest cell (27 x its count) and reduced by tensor
+    operations, in chunks of ``budget`` distances: the same numbers to rounding, the reference."""
     import torch
 
+    if method not in ("kernel", "tensor"):
+        raise ValueError(f"near: method={method!r}; valid: kernel, tensor")
+    if mode not in ("knn", "count", "min"):
+        raise ValueError(f"near: mode={mode!r}; valid: knn, count, min")
+    width = k if mode == "knn" else 1
     dev, Q = X.device, len(q)
     if Q == 0 or len(ref) == 0:
-        return reduce(X.new_full((Q, 27), float("inf")), qseg)
+        return torch.full((Q, width), -1.0 if mode == "count" else float("inf"), dtype=X.dtype, device=dev)
     big = torch.iinfo(torch.int64).max
     cr = torch.floor(X[ref] / h[rseg, None]).long()  # n,3
     idx3 = rseg[:, None].expand(-1, 3)
@@ -81,6 +90,19 @@ def near(X, q, qseg, ref, rseg, h, F: int, reduce, width: int, budget: int = CEL
     cq = torch.floor(X[q] / h[qseg, None]).long() - lo[qseg] + 2  # Q,3
     inside = ((cq >= 1) & (cq <= dims[qseg] - 2)).all(1)  # else more than a cell from every reference
     cq = torch.where(inside[:, None], cq, 2)
+    if method == "kernel" and X.dtype == torch.float64:
+        from topocut.reward.near_kernel import walk_cells
+
+        return walk_cells(mode, k, X, q, qseg, cq, inside, base, stride, start, count, ref, radius)
+    if mode == "knn":
+        def reduce(d, _):
+            return d.topk(k, dim=-1, largest=False).values
+    elif mode == "count":
+        def reduce(d, t):
+            return (d <= radius[t][:, None]).sum(-1, keepdim=True).to(d.dtype) - 1
+    else:
+        def reduce(d, _):
+            return d.amin(-1, keepdim=True)
     off = torch.stack(torch.meshgrid(*[torch.arange(-1, 2, device=dev)] * 3, indexing="ij"), -1).reshape(27, 3)
     nb = (base[qseg] + (cq * stride[qseg]).sum(1))[:, None] + (off[None] * stride[qseg][:, None, :]).sum(-1)  # Q,27
     ncount = count[nb] * inside[:, None]  # Q,27
@@ -175,9 +197,10 @@ def _descriptors(X, seg, F: int, s, profile: bool):
     return torch.cat(out, 1)
 
 
-def fragment_sizes(items, cfg, spacing: float | None = None, budget: int = CELL_BUDGET) -> list:
+def fragment_sizes(items, cfg, spacing: float | None = None, budget: int = CELL_BUDGET, near_method: str = "kernel") -> list:
     """(size descriptor, the points described) of each (fragment (N,3), its set's goal sizes (G, 5+Q)) in ``items``:
-    ``topocut.reward.distance._fragment_size`` of every fragment, batched on ``cfg.device``."""
+    ``topocut.reward.distance._fragment_size`` of every fragment, batched on ``cfg.device``.  near_method: ``near``'s
+    (the tensor path, with ``budget`` distances a block, is the reference)."""
     import torch
 
     from topocut.reward.distance import _fragment_size, past_zero_by_size
@@ -194,7 +217,7 @@ def fragment_sizes(items, cfg, spacing: float | None = None, budget: int = CELL_
         seg_np = np.repeat(np.arange(F), count)
         seg = torch.from_numpy(seg_np).to(dev)  # P,
         if spacing is None:
-            s = _spacings(X, seg, start, count, budget)
+            s = _spacings(X, seg, start, count, budget, near_method)
         else:
             s = X.new_full((F,), float(spacing))
         base = _descriptors(X, seg, F, s, profile=False).cpu().numpy()  # host sync 1
@@ -209,7 +232,7 @@ def fragment_sizes(items, cfg, spacing: float | None = None, budget: int = CELL_
                 continue
             on.append(f)
         if on:
-            keep = _bodies(X, start, count, s, on, cfg.stray_share, budget)  # host masks, one per fragment in on
+            keep = _bodies(X, start, count, s, on, cfg.stray_share, budget, near_method)  # host masks, one per fragment in on
             kept = [start[f] + np.flatnonzero(k) for f, k in zip(on, keep)]
             rows = torch.from_numpy(np.concatenate(kept)).to(dev)
             kseg = torch.from_numpy(np.repeat(np.arange(len(on)), [len(k) for k in kept])).to(dev)
@@ -225,7 +248,7 @@ def fragment_sizes(items, cfg, spacing: float | None = None, budget: int = CELL_
     return out
 
 
-def _spacings(X, seg, start, count, budget: int):
+def _spacings(X, seg, start, count, budget: int, method: str = "kernel"):
     """topocut.reward.size.particle_spacing of each fragment (F,): the median distance of its query particles (all, or
     the host's fixed-seed sample of SPACING_QUERIES) to their NN_K nearest neighbours, / NN_RATIO.  Neighbours by cell
     lists of side twice the fragment's mean particle distance (from its principal extents); a query whose NN_K-th
@@ -245,8 +268,7 @@ def _spacings(X, seg, start, count, budget: int):
               - X.new_full((F, 3), np.inf).scatter_reduce(0, idx3, X, "amin")).amax(1)  # F: the widest side
     h = torch.maximum(2.0 * (box / n) ** (1.0 / 3.0), extent / 64.0 + 1e-12)  # at most 64 cells a side (memory)
     every = torch.arange(len(X), device=dev)
-    nn = near(X, q, qseg, every, seg, h, F, lambda d, _: d.topk(NN_K + 1, dim=-1, largest=False).values, NN_K + 1,
-              budget)  # Q,K+1: itself first, as the host's query(k + 1)
+    nn = near(X, q, qseg, every, seg, h, F, "knn", NN_K + 1, budget=budget, method=method)  # Q,K+1: itself first, as query(k + 1)
     unsure = nn[:, -1] > h[qseg]  # Q,
     for f in torch.unique(qseg[unsure]).tolist():  # against every particle of the fragment (rare: strays, sheets)
         u = (unsure & (qseg == f)).nonzero().reshape(-1)
@@ -254,7 +276,7 @@ def _spacings(X, seg, start, count, budget: int):
     return _medians(nn[:, 1:].reshape(-1), qseg.repeat_interleave(NN_K), F) / NN_RATIO
 
 
-def _bodies(X, start, count, s, on: list, max_share: float, budget: int) -> list:
+def _bodies(X, start, count, s, on: list, max_share: float, budget: int, method: str = "kernel") -> list:
     """topocut.reward.strays.body's kept mask (N_f,) of each fragment f in ``on``; s (F,) their spacings."""
     import torch
 
@@ -264,12 +286,11 @@ def _bodies(X, start, count, s, on: list, max_share: float, budget: int) -> list
     r = LINK * s[torch.as_tensor(on, device=dev)]  # J,: the link radius of each fragment in on
     rows = torch.from_numpy(np.concatenate([start[f] + np.arange(count[f]) for f in on])).to(dev)
     jseg = torch.from_numpy(np.repeat(np.arange(len(on)), [count[f] for f in on])).to(dev)
-    near_n = near(X, rows, jseg, rows, jseg, r, len(on),
-                  lambda d, t: (d <= r[t][:, None]).sum(-1, keepdim=True).to(d.dtype) - 1, 1, budget)
+    near_n = near(X, rows, jseg, rows, jseg, r, len(on), "count", radius=r, budget=budget, method=method)
     core = near_n.reshape(-1) >= CORE_NEIGHBOURS  # itself not counted
     # the non-core particles within one link of the core
-    dmin = near(X, rows[~core], jseg[~core], rows[core], jseg[core], r, len(on),
-                lambda d, _: d.amin(-1, keepdim=True), 1, budget).reshape(-1)
+    dmin = near(X, rows[~core], jseg[~core], rows[core], jseg[core], r, len(on), "min", budget=budget,
+                method=method).reshape(-1)
     keep = core.clone()
     keep[~core] = dmin <= r[jseg[~core]]
     keep, core = keep.cpu().numpy(), core.cpu().numpy()  # host sync 2

@@ -46,6 +46,20 @@ def find_root(parent: wp.array(dtype=wp.int32), a: int):
     return curr
 
 
+@wp.func
+def root_of(parent: wp.array(dtype=wp.int32), a: int):
+    # the root without writing: for the last pass, where every element is pointed at its root.  find_root's
+    # pointer jumping there would race with those writes: a thread that read an element's parent before the
+    # element's own thread stored the root can store that older ancestor back over it (seen on CUDA: nodes left
+    # pointing at a non-root, so unlabelled or counted under the wrong root)
+    curr = a
+    nxt = parent[curr]
+    while nxt != curr:
+        curr = nxt
+        nxt = parent[curr]
+    return curr
+
+
 if hasattr(wp, "atomic_cas"):
     @wp.func
     def _hook(parent: wp.array(dtype=wp.int32), child: int, root: int):
@@ -160,7 +174,7 @@ def _link_vertex_nodes(vnode: wp.array(dtype=wp.int32), offset: int, parent: wp.
 def _compress(parent: wp.array(dtype=wp.int32)):
     i = wp.tid()
     if parent[i] >= 0:
-        parent[i] = find_root(parent, i)
+        parent[i] = root_of(parent, i)
 
 
 @wp.kernel
@@ -184,18 +198,29 @@ def _labels_of_roots(parent: wp.array(dtype=wp.int32), flags: wp.array(dtype=wp.
 
 
 @wp.kernel
-def _compress_void_stats(parent: wp.array(dtype=wp.int32), nx: int, ny: int, nz: int,
-                         size: wp.array(dtype=wp.int32), border: wp.array(dtype=wp.int32)):
-    # compress and count in one pass: size of each component, and whether it touches the grid border
+def _compress_mark_border(parent: wp.array(dtype=wp.int32), nx: int, ny: int, nz: int,
+                          border: wp.array(dtype=wp.int32)):
+    # compress, and flag the components that touch the grid border
     i, j, k = wp.tid()
     idx = (i * ny + j) * nz + k
     if parent[idx] < 0:
         return
-    p = find_root(parent, idx)
+    p = root_of(parent, idx)
     parent[idx] = p
-    wp.atomic_add(size, p, 1)
     if i == 0 or j == 0 or k == 0 or i == nx - 1 or j == ny - 1 or k == nz - 1:
         border[p] = 1
+
+
+@wp.kernel
+def _count_enclosed(parent: wp.array(dtype=wp.int32), border: wp.array(dtype=wp.int32),
+                    size: wp.array(dtype=wp.int32)):
+    # the size of each component that does not touch the border: the air around the objects (one component, most
+    # of the grid) is not counted, so its nodes do not all queue on one atomic counter
+    i = wp.tid()
+    p = parent[i]
+    if p >= 0:
+        if border[p] == 0:
+            wp.atomic_add(size, p, 1)
 
 
 @wp.kernel
@@ -210,15 +235,19 @@ def _fill_small_voids(field: wp.array3d(dtype=float), parent: wp.array(dtype=wp.
 
 
 @wp.kernel
-def _compress_count(parent: wp.array(dtype=wp.int32), num_nodes: int, count: wp.array(dtype=wp.int32)):
-    # compress, and count the grid nodes (i < num_nodes) of each component
+def _compress_count(parent: wp.array(dtype=wp.int32), num_nodes: int, min_count: int,
+                    count: wp.array(dtype=wp.int32)):
+    # compress, and count the grid nodes (i < num_nodes) of each component up to min_count: only whether a
+    # component reaches it is asked, and a large piece's nodes then stop queueing on its counter (a read that
+    # comes late adds one more: the count only passes min_count by that)
     i = wp.tid()
     if parent[i] < 0:
         return
-    p = find_root(parent, i)
+    p = root_of(parent, i)
     parent[i] = p
     if i < num_nodes:
-        wp.atomic_add(count, p, 1)
+        if count[p] < min_count:
+            wp.atomic_add(count, p, 1)
 
 
 @wp.kernel
@@ -271,7 +300,8 @@ def fill_voids(field, max_voxels: int, value: float, device: str = "cpu") -> Non
     parent = grid_union_find(field, inside=False, device=device)
     size = wp.zeros(parent.shape[0], dtype=wp.int32, device=device)
     border = wp.zeros(parent.shape[0], dtype=wp.int32, device=device)
-    wp.launch(_compress_void_stats, dim=field.shape, inputs=[parent, *field.shape, size, border], device=device)
+    wp.launch(_compress_mark_border, dim=field.shape, inputs=[parent, *field.shape, border], device=device)
+    wp.launch(_count_enclosed, dim=parent.shape[0], inputs=[parent, border, size], device=device)
     wp.launch(_fill_small_voids, dim=field.shape,
               inputs=[field, parent, size, border, int(max_voxels), float(value)], device=device)
 
@@ -296,11 +326,11 @@ def label_pieces(field, faces, vnode, num_verts: int, min_voxels: int, device: s
     if num_verts:
         wp.launch(_link_faces, dim=faces.shape[0] // 3, inputs=[faces, g, parent], device=device)
         wp.launch(_link_vertex_nodes, dim=num_verts, inputs=[vnode, g, parent], device=device)
-    count = wp.zeros(g + num_verts, dtype=wp.int32, device=device)  # inside nodes per root
-    wp.launch(_compress_count, dim=g + num_verts, inputs=[parent, g, count], device=device)
+    count = wp.zeros(g + num_verts, dtype=wp.int32, device=device)  # inside nodes per root, up to min_voxels
+    min_count = max(int(min_voxels), 1)
+    wp.launch(_compress_count, dim=g + num_verts, inputs=[parent, g, min_count, count], device=device)
     flags = wp.empty_like(parent)
-    wp.launch(_kept_roots, dim=parent.shape[0], inputs=[parent, count, max(int(min_voxels), 1), flags],
-              device=device)
+    wp.launch(_kept_roots, dim=parent.shape[0], inputs=[parent, count, min_count, flags], device=device)
     k, labels = _number_roots(parent, flags, device)
     return Pieces(k, labels, g)
 
