@@ -15,9 +15,15 @@ wp = pytest.importorskip("warp")
 
 @pytest.fixture(scope="module", autouse=True)
 def _warp():
+    """Warp's default device is CUDA where there is a GPU: the arrays these tests make without a device, and the
+    routines they call with device="cpu", must meet on the CPU (else a launch reads device memory on the host)."""
     from topocut.topology.sdf import init_warp
 
     init_warp()
+    before = wp.get_device()
+    wp.set_device("cpu")
+    yield
+    wp.set_device(before)
 
 
 def scipy_components(edges, n):
