@@ -52,16 +52,10 @@ def graph_loop(p, dist, top, start, n: int, block_dim=None):
     at = torch.zeros(B, 1, dtype=torch.long, device=p.device)
     cur, dist = start.clone(), dist.clone()
 
-    def sqdist(c):
-        diff = p - c[:, None, :]  # B,N,3
-        diff.mul_(diff)
-        d = diff[..., 0] + diff[..., 1]
-        d += diff[..., 2]
-        return d
-
-    def step():
+    def step():  # the squared distances as fps_torch's loop sums them: (dx^2 + dy^2) + dz^2
         idx.scatter_(1, at, cur[:, None])
-        torch.minimum(dist, sqdist(p[ar, cur]), out=dist)
+        sq = (p - p[ar, cur][:, None, :]).square_()  # B,N,3
+        torch.minimum(dist, sq[..., 0] + sq[..., 1] + sq[..., 2], out=dist)
         torch.argmax(dist, 1, out=cur)
         at.add_(1)
 
