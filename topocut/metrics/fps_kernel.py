@@ -1,7 +1,7 @@
 """Batched farthest point sampling as one Warp kernel: every pick of every cloud in a single launch.
 
 ``fps_torch``'s pick loop is ~8 small tensor kernels a pick (distances to the last pick, the running minimum, the
-argmax): 512 picks of the reward's ~50 fragments cost 26-40 ms on an H200 even replayed from a captured CUDA graph,
+argmax): 512 picks of the reward's ~50 fragments cost 26-78 ms on an H200 even replayed from a captured CUDA graph,
 four times a demonstration cut.  Here one block of threads owns one cloud and runs all n picks:
 
   each thread    walks its points j = lane, lane + block_dim, ... < top[b]: the squared distance to the last pick,
@@ -13,7 +13,7 @@ four times a demonstration cut.  Here one block of threads owns one cloud and ru
 Compiled with ``fuse_fp`` off (no fused multiply-adds), so every distance is rounded as the torch loop and numpy's
 ``fps`` round it and the picks are theirs bit for bit, lattice ties included (tests/test_reward_batched.py).  Points
 past ``top[b]`` (the last valid one + 1) are never read: they are padding at -inf, which argmax never picks while
-a valid point exists.  Runs on the CPU too (one Warp launch; a block's threads run in turn).
+a valid point exists.  Runs on the CPU too, where Warp gives a block one thread: a cloud's points in turn.
 """
 from __future__ import annotations
 

@@ -2,9 +2,9 @@
 
 ``topocut.reward.size_batch.near`` sorts each fragment's reference particles into cells of side h[fragment] and, for
 every query, reads the 27 cells around it.  Its tensor path gathers every candidate into a (rows, 27 x fullest cell)
-block of float64 distances and reduces it (topk, a count, a min): at 128^3 that is ~10^8 distances a reward call,
-chunked, 40 ms of an H200's time (docs/benchmarks.md).  Here each query's thread walks its cells and keeps only what
-the reduction needs, in registers:
+block of float64 distances and reduces it (topk, a count, a min): at 128^3 ~10^8 distances a reward call, in
+chunks.  Here each query's thread walks its cells and keeps only what the reduction needs, in registers (the size
+descriptors of a 128^3 cut's 32 fragments: 64.6 -> 46.3 ms on an H200, docs/benchmarks.md):
 
   knn    the k smallest distances, ascending (an insertion list; inf where fewer than k candidates)
   count  how many candidates lie within radius[fragment], less one (the query itself is one of them)
