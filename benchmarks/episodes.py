@@ -104,27 +104,10 @@ def bench_demo(args) -> dict:
     if args.reward_kernels == "both":
         from reward_kernels import reference_kernels
 
-        m, out = modes[-1], {}
-        for how in ("before", "current"):
-            with reference_kernels() if how == "before" else contextlib.nullcontext():
-                out[how] = demo_cuts(args, m, push_last=args.push_last == "true", size_solver=args.size_solver,
-                                     executed=EXECUTED[args.executed][-1])
-        a, b = out["before"], out["current"]
-        print(f"the reward's Warp kernels (FPS, neighbour queries) against the code they replace, same process: wall "
-              f"{a['wall']:.3f} -> {b['wall']:.3f} s a cut ({a['wall'] / b['wall']:.2f}x), reward {a['reward']:.3f} -> "
-              f"{b['reward']:.3f} s ({a['reward'] / max(b['reward'], 1e-9):.2f}x)")
-        return out
+        return before_and_now(args, modes[-1], reference_kernels(), "the reward's Warp kernels (FPS, neighbour queries)",
+                              "reward")
     if args.host == "both":
-        m = modes[-1]
-        out = {}
-        for how in ("before", "current"):
-            with host_functions(how):
-                out[how] = demo_cuts(args, m, push_last=args.push_last == "true", size_solver=args.size_solver,
-                                     executed=EXECUTED[args.executed][-1])
-        a, b = out["before"], out["current"]
-        print(f"this session's host shortcuts against the functions they replace, same process: wall {a['wall']:.3f} "
-              f"-> {b['wall']:.3f} s a cut ({a['wall'] / b['wall']:.2f}x), rest {a['rest']:.3f} -> {b['rest']:.3f} s")
-        return out
+        return before_and_now(args, modes[-1], host_functions("before"), "this session's host shortcuts", "rest")
     executed = EXECUTED[args.executed]
     if len(executed) > 1:
         m = modes[-1]
@@ -154,6 +137,20 @@ def bench_demo(args) -> dict:
         print(f"batched discovery against per scene, same process: wall {a['wall']:.3f} -> {b['wall']:.3f} s a cut "
               f"({a['wall'] / b['wall']:.2f}x), discovery {a['discovery']:.3f} -> {b['discovery']:.3f} s "
               f"({a['discovery'] / max(b['discovery'], 1e-9):.2f}x)")
+    return out
+
+
+def before_and_now(args, batched: bool, reference, what: str, part: str) -> dict:
+    """The demonstration cut twice in one process: under ``reference`` (a context manager putting back the code as it
+    was: the reference, first), then as it is; prints the ratios of the wall and of ``part`` (a column of the table)."""
+    out = {}
+    for how, context in (("before", reference), ("current", contextlib.nullcontext())):
+        with context:
+            out[how] = demo_cuts(args, batched, push_last=args.push_last == "true", size_solver=args.size_solver,
+                                 executed=EXECUTED[args.executed][-1])
+    a, b = out["before"], out["current"]
+    print(f"{what} against the code they replace, same process: wall {a['wall']:.3f} -> {b['wall']:.3f} s a cut "
+          f"({a['wall'] / b['wall']:.2f}x), {part} {a[part]:.3f} -> {b[part]:.3f} s ({a[part] / max(b[part], 1e-9):.2f}x)")
     return out
 
 
