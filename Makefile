@@ -47,6 +47,7 @@ bench: setup
 	$(BIN)/python benchmarks/p2g_variants.py --grid 32 --batches 1 4 --steps 20
 	$(BIN)/python benchmarks/topology.py --quick
 	$(BIN)/python benchmarks/reward.py --batch 16
+	$(BIN)/python benchmarks/reward_kernels.py --repeat 1
 	$(BIN)/python benchmarks/mppi.py --K 4 --n-grid 32
 	$(BIN)/python benchmarks/train.py --steps 3
 	$(BIN)/python benchmarks/train_policy.py --blocks 2 --batch 8 --steps 8 32
