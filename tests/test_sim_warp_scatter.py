@@ -4,7 +4,7 @@ On the CPU: the particle order it relies on (CuttingEnv.reset orders particles b
 checks.  On a machine with an NVIDIA GPU: the warp scatter against the plain one, in a CUDA subprocess
 (this process's Taichi runs on the CPU), on the cell order, a shuffled order and a crowded cell (the plain
 one on one struct per grid node, the warp one on the GPU's default grid of an array per component), and a
-cut with the scatter's batch block size (384 threads) against 128.
+cut with the scatter's batch block size (512 threads) against 128, and the box against the whole grid.
 """
 import shutil
 import subprocess
@@ -123,12 +123,14 @@ for b, xb in enumerate((x, x[::-1])):
 print("resort order ok")
 e.solver.destroy()
 # 4. the scatter's threads per block (launch bounds: registers) change no result beyond the order of the GPU's
-# float atomics: a batched cut at 384 (the batch default) against 128 differs no more than 128 does from itself
+# float atomics: a batched cut at 512 (the batch default) against 128 differs no more than 128 does from itself;
+# so does the whole grid (grid_box off) against the box, whose CUDA loops read its bounds in every thread
 out = {}
-for tag, bd in (("a", 128), ("b", 128), ("c", 384)):
-    e = CuttingEnv(SimConfig(arch="cuda", n_grid=48, batch_size=4, tuning=TuningConfig(scatter_block_dim=bd)))
-    assert e.solver.scatter_block == bd
+for tag, bd, box in (("a", 128, "on"), ("b", 128, "on"), ("c", 512, "on"), ("d", 512, "off")):
+    e = CuttingEnv(SimConfig(arch="cuda", n_grid=48, batch_size=4,
+                             tuning=TuningConfig(scatter_block_dim=bd, grid_box=box)))
     e.reset("cube")
+    assert e.solver.scatter_block == bd and e.solver.use_box == (box == "on")
     e.cut([KnifeAction(0.5 + 0.01 * b, 0.5, yaw=0.2 * b) for b in range(4)])
     st = e.state()
     out[tag] = (st.x, st.damage)
@@ -136,7 +138,11 @@ for tag, bd in (("a", 128), ("b", 128), ("c", 384)):
 spread = np.abs(out["a"][0] - out["b"][0]).max()
 dx = np.abs(out["a"][0] - out["c"][0]).max()
 agree = (out["a"][1] == out["c"][1]).mean()
-print("block 384 vs 128: max |dx|", dx, "(128 vs 128:", spread, ") damage agreement", agree)
+print("block 512 vs 128: max |dx|", dx, "(128 vs 128:", spread, ") damage agreement", agree)
+assert dx < 2e-3 and agree > 0.99, (dx, agree)
+dx = np.abs(out["c"][0] - out["d"][0]).max()
+agree = (out["c"][1] == out["d"][1]).mean()
+print("box vs whole grid: max |dx|", dx, "damage agreement", agree)
 assert dx < 2e-3 and agree > 0.99, (dx, agree)
 print("WARP_SCATTER_OK")
 """

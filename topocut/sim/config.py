@@ -78,14 +78,15 @@ class TuningConfig:
         task's registers at or below 65536 / (2 block_dim): 128 threads leave it uncapped (the scatter takes
         91, the gather 155), 256 cap it at 128, 384 at 85, 512 at 64.  Fewer registers let more warps stay on
         an SM (what a batch needs: its scatter is latency-bound at 28% occupancy), at the risk of spills.
-        auto: a batch's scatter takes 384 (H100, 16 scenes: 84^3 190-196 -> 181-187 us per substep, 128^3 518.2 ->
-        472.2, the warp scatter); a single scene, one partial wave of blocks, keeps 128, and so do the plain
-        scatter (not timed at 384) and the gather (384: slower).  Results change only by the GPU's float atomics
+        auto: a batch's scatter takes 512 (H100, 16 scenes: 128 -> 384 took 84^3 190-196 -> 181-187 us per substep,
+        128^3 518.2 -> 472.2; H200: 384 -> 512 took 128^3 467-480 -> 443-448 us, 64^3 143.2 -> 139.9; 640 and 768
+        slower); a single scene, one partial wave of blocks, keeps 128, and so do the plain
+        scatter (not timed above 128) and the gather (384: slower; 64 and 256: no faster).  Results change only by the GPU's float atomics
         order (docs/benchmarks.md)."""
         if arch != "cuda":
             return None, None
         batch_warp = batch_size > 1 and self.warp_scatter_enabled(arch)
-        return self.scatter_block_dim or (384 if batch_warp else 128), self.gather_block_dim or 128
+        return self.scatter_block_dim or (512 if batch_warp else 128), self.gather_block_dim or 128
 
     def resort_interval(self, arch: str) -> int:
         """Substeps between re-sorts of the scatter's particle order by base cell (0: never).  Only the warp
