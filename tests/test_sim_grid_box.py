@@ -78,8 +78,14 @@ def test_grid_box_validation():
         SimConfig(tuning=TuningConfig(grid_box="maybe")).validate()
     auto = TuningConfig()
     assert auto.grid_box_enabled("cpu", 1) and auto.grid_box_enabled("cuda", 16)
-    assert not auto.grid_box_enabled("cuda", 1)  # a single GPU scene: the box's serial tasks cost more
+    assert not auto.grid_box_enabled("cuda", 1)  # a single GPU scene (measured when the box still had serial tasks)
     assert not TuningConfig(grid_box="off").grid_box_enabled("cuda", 16)
+    # on CUDA the box's loops flatten (scene, field, node) into one 32-bit index: refused where it would overflow
+    big = dict(arch="cuda", n_grid=256, batch_size=64, fields=2, tuning=TuningConfig(warp_scatter="off"))
+    with pytest.raises(ValueError, match=r"sim\.tuning\.grid_box: the box loops' node indices .* overflow 32 bits"):
+        SimConfig(**big).validate()
+    SimConfig(**{**big, "batch_size": 63}).validate()  # 63 * 2 * 256^3 < 2^31
+    SimConfig(**{**big, "tuning": TuningConfig(warp_scatter="off", grid_box="off")}).validate()
 
 
 def _spoon_run(grid_box: str):

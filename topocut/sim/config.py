@@ -48,9 +48,10 @@ class TuningConfig:
 
     def grid_box_enabled(self, arch: str, batch_size: int) -> bool:
         """The object fills a few percent of the n^3 grid: on a CPU the whole-grid clear and update cost up to a
-        third of a substep (48^3, 4 scenes), on an H100 135 of 752 us (84^3, 16 scenes).  The box's bounds are
-        read on the device before its loops (3 small serial tasks, ~20 us of one scene's 60-90 us on an
-        H100), so auto leaves it off for a single scene on a GPU (docs/benchmarks.md)."""
+        third of a substep (48^3, 4 scenes), on an H100 135 of 752 us (84^3, 16 scenes).  When this was
+        measured the box's bounds were read before its loops by 3 small serial tasks (~20 us of one scene's 60-90 us
+        on an H100), so auto leaves it off for a single scene on a GPU (docs/benchmarks.md); on CUDA the loops now
+        read the bounds themselves (MPMSolver.box_threads), and a single scene was not timed again."""
         if self.grid_box != "auto":
             return self.grid_box == "on"
         return arch != "cuda" or batch_size > 1
@@ -124,6 +125,9 @@ class TuningConfig:
         if self.warp_scatter_enabled(arch) and batch_size * n_fields * n_grid ** 3 >= 2 ** 31:
             bad("warp_scatter", f"run keys (scene, cell) overflow 32 bits at batch_size={batch_size}, "
                                 f"n_grid={n_grid}; use fewer scenes or sim.tuning.warp_scatter=off")
+        if arch == "cuda" and self.grid_box_enabled(arch, batch_size) and batch_size * n_fields * n_grid ** 3 >= 2 ** 31:
+            bad("grid_box", f"the box loops' node indices (MPMSolver.box_threads) overflow 32 bits at "
+                            f"batch_size={batch_size}, n_grid={n_grid}; use fewer scenes")
         _one_of("sim.tuning.device_split", self.device_split, SWITCHES)
         _one_of("sim.tuning.grid_layout", self.grid_layout, LAYOUTS)
         for key in ("scatter_block_dim", "gather_block_dim"):
