@@ -51,6 +51,25 @@ def runs():
     return _run("on"), _run("off")
 
 
+def test_the_gpus_box_loops_visit_the_same_nodes(runs):
+    """The box's clear and update as CUDA runs them (a fixed number of threads, each reading the box's bounds and
+    striding over the flattened (scene, field, node) index), here on the CPU with 97 threads so that each thread
+    takes many nodes: the same cut and push as the ranged loops.  The update's float contraction may differ between
+    the two loops, so positions agree to float32 rounding and the damage flags exactly."""
+    import topocut.sim.mpm as mpm
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(mpm, "box_loop_threads", lambda arch: 97)
+        env, strided = _run("on")
+    assert env.solver.box_threads == 97 and env.solver.use_box
+    (_, ranged), _ = runs
+    assert strided["newly"].min() > 0
+    for b in range(env.B):
+        np.testing.assert_array_equal(strided[f"damage{b}"], ranged[f"damage{b}"])
+        np.testing.assert_allclose(strided[f"x{b}"], ranged[f"x{b}"], rtol=0, atol=1e-5)
+    np.testing.assert_allclose(strided["force"], ranged["force"], rtol=1e-3, atol=1e-6)
+
+
 def test_box_changes_no_value(runs):
     (env_on, on), (env_off, off) = runs
     assert env_on.solver.use_box and not env_off.solver.use_box

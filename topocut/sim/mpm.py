@@ -56,6 +56,15 @@ def apic_gather(grid_v: ti.template(), g, base, fx, dx: ti.template(), inv_dx: t
     return new_v, new_C
 
 
+def box_loop_threads(arch: str) -> int:
+    """Threads of the grid box's clear and update on ``arch``, each reading the box's bounds; 0: ranged loops.
+
+    A Taichi loop whose bounds are fields first runs a serial task that reads them (a launch; 6-7 us each under
+    the kernel profiler, which syncs after every launch); without them a 128^3 batched substep of 443-448 us gained
+    0.8-1.1% on an H200.  The CPU keeps the ranged loops (tests/test_sim_grid_box.py runs these on it too)."""
+    return 2 ** 18 if arch == "cuda" else 0
+
+
 @ti.data_oriented
 class MPMSolver(MaterialUpdate, Knife, Scatter):
     """Fields of B scenes with room for ``capacity`` particles each; kernels read cfg constants."""
@@ -114,10 +123,7 @@ class MPMSolver(MaterialUpdate, Knife, Scatter):
         # nodes [box[0:3], box[3:6]) of every scene hold all the scatter wrote since the last clear
         # (sim.tuning.grid_box)
         self.use_box = tune.grid_box_enabled(cfg.arch, B)
-        # on CUDA the box's loops run this many threads, each reading the box's bounds: a loop whose bounds are
-        # fields costs a serial task first (a launch; 6-7 us each under the kernel profiler, which syncs after every
-        # launch; without it a 128^3 batched substep of 443-448 us gained 0.8-1.1%, H200)
-        self.box_threads = 2 ** 18 if cfg.arch == "cuda" else 0
+        self.box_threads = box_loop_threads(cfg.arch)
         self.use_warp = tune.warp_scatter_enabled(cfg.arch)
         self.scatter_block, self.gather_block = tune.block_dims(cfg.arch, B)  # None on the CPU: Taichi's chunking
         self.serial_scatter = not self.use_warp and cpu_threads() == 1  # Scatter.scatter
@@ -186,7 +192,7 @@ class MPMSolver(MaterialUpdate, Knife, Scatter):
         Only the scenes that scattered since their last clear (``wrote``): nothing else writes a node without
         mass (grid_op, the knife, the tools act where m > 0), so an idle scene's grid is still zero."""
         if ti.static(self.use_box):  # only what the last scatter wrote; then the box is empty
-            if ti.static(self.box_threads):  # CUDA: threads read the box themselves (no serial task for its bounds)
+            if ti.static(self.box_threads):  # CUDA: threads read the box themselves (no serial task: box_loop_threads)
                 for t in range(self.box_threads):
                     lo, ext = self.box_extent()
                     per_slot = ext[0] * ext[1] * ext[2]
@@ -195,7 +201,7 @@ class MPMSolver(MaterialUpdate, Knife, Scatter):
                         s, r = q // per_slot, q % per_slot
                         b, f = s // self.n_fields[None], s % self.n_fields[None]
                         if self.wrote[b]:
-                            I = lo + ti.Vector([r // (ext[1] * ext[2]), (r // ext[2]) % ext[1], r % ext[2]])
+                            I = self.box_node(lo, ext, r)
                             self.grid_v[b * self.K + f, I] = ti.Vector.zero(ti.f32, 3)
                             self.grid_m[b * self.K + f, I] = 0.0
                         q += self.box_threads
@@ -224,6 +230,11 @@ class MPMSolver(MaterialUpdate, Knife, Scatter):
         return lo, ti.max(ti.Vector([self.box[3], self.box[4], self.box[5]]) - lo, 0)
 
     @ti.func
+    def box_node(self, lo, ext, r):
+        """The box's r-th node (z fastest), r < ext[0] ext[1] ext[2]."""
+        return lo + ti.Vector([r // (ext[1] * ext[2]), (r // ext[2]) % ext[1], r % ext[2]])
+
+    @ti.func
     def grow_box(self, base):
         """A scatter writes nodes base .. base + 2 (one box for all scenes).  Every scatter into grid_v / grid_m
         calls it (the solver's, the spoon's sided one), so grid_op and the next clear see all it wrote."""
@@ -244,8 +255,7 @@ class MPMSolver(MaterialUpdate, Knife, Scatter):
                 while q < self.B * per_scene:
                     b, r = q // per_scene, q % per_scene
                     if self.wrote[b]:  # an idle scene's nodes are empty
-                        I = lo + ti.Vector([r // (ext[1] * ext[2]), (r // ext[2]) % ext[1], r % ext[2]])
-                        self.update_node(b, I, t, contact)
+                        self.update_node(b, self.box_node(lo, ext, r), t, contact)
                     q += self.box_threads
         elif ti.static(self.use_box):
             for b, i, j, k in ti.ndrange(self.B, (self.box[0], self.box[3]), (self.box[1], self.box[4]),
