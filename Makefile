@@ -44,6 +44,7 @@ lint: setup
 
 bench: setup
 	$(BIN)/python benchmarks/sim_throughput.py --quick
+	$(BIN)/python benchmarks/cut_parts.py --device cpu --n-grid 32 --batch 2 --cuts 1
 	$(BIN)/python benchmarks/p2g_variants.py --grid 32 --batches 1 4 --steps 20
 	$(BIN)/python benchmarks/topology.py --quick
 	$(BIN)/python benchmarks/reward.py --batch 16

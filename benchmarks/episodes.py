@@ -196,8 +196,9 @@ def host_functions(how: str):
                 worst = min(worst, float(inter[m][j] / (size_l[lab] + size_p[pairs[1][m][j]] - inter[m][j])))
         return n_sim, worst
 
-    def band(x, p0, nrm, width):
-        return np.flatnonzero(np.abs((x - p0) @ nrm) <= width)
+    def band(x, p0, nrm, width):  # the full (N,3) difference, rows by fancy indexing
+        x = np.asarray(x, np.float64)
+        return x[np.flatnonzero(np.abs((x - p0) @ nrm) <= width)]
 
     def fragments(x, labels, min_points):
         x, labels = np.asarray(x), np.asarray(labels).reshape(-1)
@@ -206,12 +207,12 @@ def host_functions(how: str):
         ids, start = np.unique(labels[order], return_index=True)
         return [f for c, f in zip(ids, np.split(x[order], start[1:])) if c >= 0 and len(f) >= min_points]
 
-    saved = engine.piece_agreement, pieces._within_band, scoring.fragments
-    engine.piece_agreement, pieces._within_band, scoring.fragments = agreement, band, fragments
+    saved = engine.piece_agreement, pieces._in_band, scoring.fragments
+    engine.piece_agreement, pieces._in_band, scoring.fragments = agreement, band, fragments
     try:
         yield
     finally:
-        engine.piece_agreement, pieces._within_band, scoring.fragments = saved
+        engine.piece_agreement, pieces._in_band, scoring.fragments = saved
 
 
 # --executed: how the demonstration's executed cut is made, and the runs each choice makes (the first the reference)

@@ -1,6 +1,6 @@
 """Host shortcuts on every cut of MPPI's rollouts and every score give exactly what they replace:
 ``plane_splits`` (a float32 test of the plane's sides, falling back to ``cut_mask``), ``fragments`` (one stable
-sort of 16-bit labels), the blade's centring band (``pieces._within_band``: candidates first) and the engine's
+sort of 16-bit labels), the blade's centring band (``pieces._in_band``: candidates first) and the engine's
 ``piece_agreement`` (one table of (label, piece) overlaps)."""
 import numpy as np
 import pytest
@@ -8,7 +8,7 @@ import pytest
 import topocut.sim.action as action_mod
 from topocut.episode.scoring import fragments, piece_agreement
 from topocut.sim.action import KnifeAction, cut_mask, plane_splits
-from topocut.sim.pieces import _within_band
+from topocut.sim.pieces import _in_band
 
 
 def _rule(x, a, board_z=0.05):
@@ -57,7 +57,7 @@ def test_fragments_are_each_labels_points_in_their_order(top):
         np.testing.assert_array_equal(g, w)
 
 
-def test_within_band_is_the_term_by_term_rule_on_every_particle_and_at_its_edges():
+def test_in_band_is_the_term_by_term_rule_on_every_particle_and_at_its_edges():
     rng = np.random.default_rng(2)
     for _ in range(30):
         nrm = rng.normal(size=3)
@@ -69,10 +69,10 @@ def test_within_band_is_the_term_by_term_rule_on_every_particle_and_at_its_edges
         x[:len(t)] = p0 + t[:, None] * nrm
         r = x - p0
         want = np.flatnonzero(np.abs(r[:, 0] * nrm[0] + r[:, 1] * nrm[1] + r[:, 2] * nrm[2]) <= 0.01)
-        np.testing.assert_array_equal(_within_band(x, p0, nrm, 0.01), want)
+        np.testing.assert_array_equal(_in_band(x, p0, nrm, 0.01), x[want])  # the particles, in their order
         assert 1 <= len(want) < len(x)
     far = np.array([[5.0, 5.0, 5.0]])  # nothing within the band: empty
-    assert _within_band(far, np.zeros(3), np.array([0.0, 0.0, 1.0]), 0.01).size == 0
+    assert _in_band(far, np.zeros(3), np.array([0.0, 0.0, 1.0]), 0.01).shape == (0, 3)
 
 
 def _agreement_by_masks(labels, piece, min_points=4):

@@ -161,8 +161,8 @@ def test_labels_past_a_mask_leave_the_colouring_to_the_host():
 
 
 def test_env_cuts_with_the_device_fields_equal_the_host_path(taichi_one_thread, monkeypatch):
-    """Three scenes, three rounds of cuts (one scene idle in one round): pieces, every particle's field, the
-    fields' sides, the push's side, the field count and the conflicts are the host path's; so they are where
+    """Three scenes, three rounds of cuts (one scene idle in one round): the blade plans, pieces, every particle's
+    field, the fields' sides, the push's side, the field count and the conflicts are the host path's; so they are where
     labels outgrow the masks (MAX_PIECES lowered to 3 here) and the env falls back to colouring on the host."""
     from topocut.sim import fields_device
     from topocut.sim.env import CuttingEnv
@@ -184,7 +184,8 @@ def test_env_cuts_with_the_device_fields_equal_the_host_path(taichi_one_thread, 
             env.cut(acts)
             s = env.solver
             seen[mode].append((env.piece.copy(), s.body.to_numpy()[:, :env.n].copy(), s.field_side.to_numpy().copy(),
-                               env.push_side.copy(), int(s.n_fields[None]), env.field_conflicts))
+                               env.push_side.copy(), int(s.n_fields[None]), env.field_conflicts,
+                               [list(w) for w in env.sweeps]))  # the blade plans (plans_device when on)
         env.solver.destroy()
         summaries[mode] = len(calls)
     assert [r[0].max(1).tolist() for r in seen["off"]] == [[1, 1, 1], [1, 3, 2], [3, 5, 5]]
@@ -194,3 +195,4 @@ def test_env_cuts_with_the_device_fields_equal_the_host_path(taichi_one_thread, 
         for k, (host, dev) in enumerate(zip(seen["off"], seen[mode])):
             for name, h, d in zip(("piece", "body", "field_side", "push_side", "n_fields", "conflicts"), host, dev):
                 np.testing.assert_array_equal(d, h, err_msg=f"{mode}, round {k}: {name}")
+            assert dev[-1] == host[-1], f"{mode}, round {k}: sweeps"

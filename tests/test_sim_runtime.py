@@ -122,8 +122,11 @@ for f in (vec, mat, ints):
     assert a.dtype == b.dtype and a.shape == b.shape and np.array_equal(a, b), f
     b[0] += 1  # the host copy is the caller's: writable, and the field does not change
     assert np.array_equal(f.to_numpy(), a)
+COPIES_CHECK
 print("TO_HOST_OK")
 """
+TO_HOST_CHECK = TO_HOST_CHECK.replace("COPIES_CHECK", f"import sys; sys.path.insert(0, {os.path.dirname(os.path.abspath(__file__))!r})\n"
+                                      "from test_sim_runtime import copies_check; copies_check(ints)")
 
 
 @pytest.mark.skipif(shutil.which("nvidia-smi") is None, reason="needs an NVIDIA GPU (to_host's CUDA path)")
@@ -132,3 +135,37 @@ def test_to_host_equals_to_numpy_on_cuda():
     to_numpy itself): the same arrays, dtypes and shapes, for vector, matrix and integer fields."""
     r = subprocess.run([sys.executable, "-c", TO_HOST_CHECK], capture_output=True, text=True, timeout=600)
     assert "TO_HOST_OK" in r.stdout, r.stdout[-3000:] + r.stderr[-3000:]
+
+
+def copies_check(ints) -> None:
+    """to_device's tensor as a kernel's ndarray argument fills the first rows of the (4, 1000) i32 field ``ints``,
+    the rest unchanged; row_sums of its first 650 columns equals numpy's."""
+    import taichi as ti
+
+    from topocut.sim import runtime
+
+    @ti.kernel
+    def put(f: ti.template(), a: ti.types.ndarray(dtype=ti.i32, ndim=2)):
+        for b, i in ti.ndrange(a.shape[0], a.shape[1]):
+            f[b, i] = a[b, i]
+
+    src = np.random.default_rng(1).integers(-9, 9, (4, 700)).astype(np.int32)
+    before = ints.to_numpy()
+    put(ints, runtime.to_device(src))  # a device tensor on CUDA, the array itself on the CPU
+    after = ints.to_numpy()
+    assert np.array_equal(after[:, :700], src) and np.array_equal(after[:, 700:], before[:, 700:])
+    sums = runtime.row_sums(ints, 650)
+    assert sums.dtype == np.int64 and np.array_equal(sums, src[:, :650].sum(1)), (sums, src[:, :650].sum(1))
+
+
+def test_row_sums_and_to_device_on_the_cpu():
+    """row_sums (a cut's damaged particles per scene, summed on the device on CUDA) and to_device (a kernel's
+    ndarray argument, a device tensor on CUDA) on the CPU backend: the check the CUDA test also runs."""
+    import taichi as ti
+
+    from topocut.sim import runtime
+
+    runtime.init_taichi("cpu")
+    ints = ti.field(ti.i32, shape=(4, 1000))
+    ints.from_numpy(np.random.default_rng(0).integers(-5, 5, (4, 1000)).astype(np.int32))
+    copies_check(ints)

@@ -99,34 +99,12 @@ def size_descriptor(points, spacing: float | None = None, profile: bool = True) 
     return np.concatenate([e, [len(p) * s ** 3], prof, [s]])
 
 
-_BLAS = None  # threadpoolctl's controller of the loaded BLAS libraries, made on first use
-
-
-def one_blas_thread():
-    """A context in which BLAS runs on one thread.  The descriptor's products are (N,3) @ (3,3): threaded OpenBLAS
-    spends more on waking and joining its threads than on the product, worst beside other busy threads (a 10^5
-    particle piece: 108 ms a descriptor on 2 busy cores, 39 ms in this context, the same bits)."""
-    global _BLAS
-    from threadpoolctl import ThreadpoolController
-
-    if _BLAS is None:
-        _BLAS = ThreadpoolController()
-    return _BLAS.limit(limits=1, user_api="blas")
-
-
 def size_descriptors(clouds: list, fn=size_descriptor) -> list:
     """fn (default size_descriptor) of each cloud, in threads (the KD-tree queries and the sorts release the GIL),
     BLAS on one thread (``one_blas_thread``)."""
-    from concurrent.futures import ThreadPoolExecutor
+    from topocut.utils.runtime import host_map
 
-    from topocut.utils.runtime import host_threads
-
-    workers = max(1, min(len(clouds), host_threads()))
-    with one_blas_thread():
-        if workers == 1:
-            return [fn(c) for c in clouds]
-        with ThreadPoolExecutor(max_workers=workers) as pool:
-            return list(pool.map(fn, clouds))
+    return host_map(fn, clouds)
 
 
 def size_distance(sx, sy, size_weight: float = 3.0, fill_weight: float = 3.0, profile_weight: float = 3.0,

@@ -16,7 +16,6 @@ import copy
 import dataclasses
 import math
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -26,9 +25,9 @@ from topocut.sim.action import KnifeAction, KnifeSweep
 from topocut.sim.config import SimConfig
 from topocut.sim.mpm import MPMSolver
 from topocut.sim.primitives import Primitives
-from topocut.sim.runtime import init_taichi, to_host
+from topocut.sim.runtime import init_taichi, row_sums, to_device, to_host
 from topocut.sim.scenes import NO_STEP, Scenes, SimState, cell_order  # noqa: F401 - SimState, cell_order: re-exported
-from topocut.utils.runtime import host_threads
+from topocut.utils.runtime import host_map
 
 
 class SimulationDiverged(RuntimeError):
@@ -148,25 +147,27 @@ class CuttingEnv(Scenes, Primitives):
         along ``direction`` (default w, its own edge direction), smoothly started and stopped if ``smooth``."""
         s = self.solver
         direction = w if direction is None else direction
-        for fld, val in ((s.k_o, o), (s.k_u, u), (s.k_w, w), (s.k_n, nrm), (s.k_half, half), (s.k_dir, direction)):
-            fld.from_numpy(np.asarray(val, np.float32).reshape(self.B, 3))
-        per_scene = lambda v: np.ascontiguousarray(np.broadcast_to(np.asarray(v, np.float32), (self.B,)))  # noqa: E731
-        s.k_depth.from_numpy(per_scene(depth))
-        s.k_speed.from_numpy(per_scene(speed))
-        s.k_amp.from_numpy(per_scene(amp))
-        s.k_target.from_numpy(per_scene(self.cfg.knife_wedge * np.asarray(speed) if target is None else target))
-        s.k_smooth.fill(int(smooth))
-        s.k_sharp.fill(int(sharp))  # a cut: the blade damages what it occupies (not the push, not the press)
-        s.k_hold.from_numpy(np.zeros(self.B, np.int32) if hold is None else np.asarray(hold, np.int32))
-        s.k_on.from_numpy(np.ones(self.B, np.int32) if on is None else np.asarray(on, np.int32))
+        f = np.zeros((self.B, 22), np.float32)  # Knife.arm's columns: six (B,3) frames, then four per-scene scalars
+        for c, val in enumerate((o, u, w, nrm, half, direction)):
+            f[:, 3 * c:3 * c + 3] = np.asarray(val, np.float32).reshape(self.B, 3)
+        for c, val in enumerate((depth, speed, amp,
+                                 self.cfg.knife_wedge * np.asarray(speed) if target is None else target), start=18):
+            f[:, c] = np.broadcast_to(np.asarray(val, np.float32), (self.B,))
+        k = np.zeros((self.B, 4), np.int32)
+        k[:, 0], k[:, 1] = int(smooth), int(sharp)  # sharp, a cut: the blade damages what it occupies (not the push)
+        k[:, 2] = 0 if hold is None else np.asarray(hold, np.int32)
+        k[:, 3] = 1 if on is None else np.asarray(on, np.int32)
+        s.arm(to_device(f), to_device(k))  # one launch: a from_numpy per field was 14 (2-2.7 ms a cut at 128^3)
         s.reset_knife_stats()
 
     # -- pieces -------------------------------------------------------------------------
-    def _split(self, x: list[np.ndarray], sweeps: list[KnifeSweep], idle=None) -> None:
+    def _split(self, xs: np.ndarray, sweeps: list[KnifeSweep], idle=None) -> None:
         """Before a cut: the pieces its swept surfaces make, their velocity fields and the fields' sides.
 
-        ``x``: each scene's particles (n_b,3).  Scenes holding the same particles (MPMSolver rollouts from one
-        state) share one neighbour search.  ``idle`` (B,) scenes are not cut: their pieces stay."""
+        ``xs``: the scenes' particles (B,N,3) f32 as the solver holds them (the device path reads the solver's
+        own; the host path converts each scene's first counts[b] rows to f64).  Scenes holding the same particles
+        (MPMSolver rollouts from one state) share one neighbour search.  ``idle`` (B,) scenes are not cut: their
+        pieces stay."""
         cfg, s = self.cfg, self.solver
         bonds = {}
         reach = cfg.knife_half_thickness + cfg.margin + 2 * cfg.dx  # where the wedge acts on a node's fields
@@ -178,6 +179,7 @@ class CuttingEnv(Scenes, Primitives):
             split = self._split_on_device(sweeps, idle, reach)
             if split is None:
                 return
+        x = [None if idle[b] else xs[b, :counts[b]].astype(np.float64) for b in range(self.B)]  # B x (n_b,3)
         body = to_host(s.body)
         side = np.zeros((self.B, cfg.fields), np.int32)
         for b in range(self.B):
@@ -200,11 +202,10 @@ class CuttingEnv(Scenes, Primitives):
         cut = [b for b in range(self.B) if not idle[b]]
         self.push_side[idle] = 0  # an idle scene cut nothing off
         side[idle] = s.field_side.to_numpy().reshape(self.B, -1)[idle]
-        with ThreadPoolExecutor(max_workers=max(1, min(len(cut), host_threads()))) as pool:
-            for b, (after, field, conflicts, cut_off, sides) in zip(cut, pool.map(one, cut)):
-                c = counts[b]
-                self.piece[b, :c], body[b, :c], self.push_side[b], side[b] = after, field, cut_off, sides
-                self.field_conflicts += conflicts
+        for b, (after, field, conflicts, cut_off, sides) in zip(cut, host_map(one, cut)):
+            c = counts[b]
+            self.piece[b, :c], body[b, :c], self.push_side[b], side[b] = after, field, cut_off, sides
+            self.field_conflicts += conflicts
         s.body.from_numpy(body)
         s.field_side.from_numpy(side.reshape(-1))
         s.n_fields[None] = max(int(s.n_fields[None]), int(body[:, :self.n].max()) + 1)  # only grows (see below)
@@ -220,11 +221,10 @@ class CuttingEnv(Scenes, Primitives):
 
         cfg, s, n = self.cfg, self.solver, self.n
         ds = device_split(self.B, n)
-        before = np.zeros((self.B, ds.n), np.int32)  # rows past n: padding the kernels skip
-        before[:, :n] = self.piece[:, :n]
+        before = self.piece[:, :n]
         split = ds.run(s.x, self.counts, before, [None if i else sw for sw, i in zip(sweeps, idle)],
                        cfg.spacing)[:, :n]
-        done = colour_batch(ds, s.body, split, before[:, :n], cfg.n_grid, cfg.fields, reach)
+        done = colour_batch(ds, s.body, split, before, cfg.n_grid, cfg.fields, reach)
         if done is None:
             return split
         side = s.field_side.to_numpy().reshape(self.B, -1)
@@ -234,9 +234,9 @@ class CuttingEnv(Scenes, Primitives):
             if res is None:
                 continue
             conflicts, self.push_side[b], side[b], fields = res
-            self.piece[b, :self.counts[b]] = split[b, :self.counts[b]]
             self.field_conflicts += conflicts
             used = max(used, fields)
+        self.piece[:, :n] = split  # an idle scene's labels and the rows past a scene's count come back unchanged
         s.field_side.from_numpy(side.reshape(-1))
         s.n_fields[None] = used  # only grows (see _split)
         return None
@@ -295,13 +295,13 @@ class CuttingEnv(Scenes, Primitives):
         idle = np.array([a is None for a in acts]) | self.dead
         acts = [KnifeAction(0.5, 0.5) if i else a for a, i in zip(acts, idle)]  # geometry only: no budget
         counts = self.counts
-        x = [xb[:c] for xb, c in zip(to_host(s.x).astype(np.float64), counts)]  # B x (n_b,3)
-        dmg0 = to_host(s.damage)[:, :self.n].sum(1)
-        frames, o0, depth, sweeps = _blade_plans(acts, x, cfg)
+        dmg0 = row_sums(s.damage, self.n)
+        xs = to_host(s.x)  # B,N,3 f32
+        frames, o0, depth, sweeps = _blade_plans(acts, xs, counts, cfg)
         speed = self._knife_speeds(depth)
         # the swept surface of each scene's blade (P.blade_sweep): what _split separates before the knife moves
         t_split = time.perf_counter()
-        self._split(x, sweeps, idle)
+        self._split(xs, sweeps, idle)
         t_split = time.perf_counter() - t_split
         # each scene's own budget (cut_substeps exactly: ceil(depth / (speed dt)) may round up by one)
         travel = [cfg.cut_substeps if cfg.cut_substeps is not None else int(math.ceil(depth[b] / (speed[b] * self.dt)))
@@ -328,22 +328,24 @@ class CuttingEnv(Scenes, Primitives):
         duration = (totals * self.dt).astype(np.float32)  # B: each scene's own cut duration
         return CutInfo(sweeps=sweeps, force=s.k_imp.to_numpy() / np.maximum(duration, self.dt)[:, None], peak_force=s.k_peak.to_numpy(),
                        work=s.k_work.to_numpy().astype(np.float64), knife_end=np.asarray(ends),
-                       newly_damaged=to_host(s.damage)[:, :self.n].sum(1) - dmg0, substeps=total,
+                       newly_damaged=row_sums(s.damage, self.n) - dmg0, substeps=total,
                        wall_time=time.perf_counter() - t_wall, substeps_per_scene=totals, split_time=t_split,
                        snapshots=snaps)
 
 
-def _blade_plans(acts: list[KnifeAction], x: list[np.ndarray], cfg: SimConfig) -> tuple:
+def _blade_plans(acts: list[KnifeAction], xs: np.ndarray, counts, cfg: SimConfig) -> tuple:
     """(frames [(blade axis, travel, normal)], start points, depths (B,), sweeps) of each scene's canonical action
-    over its particles (P.blade_sweep)."""
+    over its particles xs[b, :counts[b]] (the solver's float32 positions, P.blade_sweep).  One scene after another:
+    on an H200's host 16 scenes took 13.4 ms at 128^3 and 3.6 ms at 64^3 so, and 14-16 and 9.5-12 ms in 16
+    threads (docs/benchmarks.md, "The thirty-fourth session")."""
     frames, o0, depth, sweeps = [], [], [], []
-    for b, a in enumerate(acts):
+    for a, x, n in zip(acts, xs, counts):
         a = a.canonical()
-        sw, d, o = P.blade_sweep(a, x[b], cfg)
-        sweeps.append(sw)
-        depth.append(d)
-        o0.append(o)
+        sw, d, o = P.blade_sweep(a, x[:n], cfg)
         frames.append((a.blade_axis, a.travel, a.normal))
+        o0.append(o)
+        depth.append(d)
+        sweeps.append(sw)
     return frames, o0, np.asarray(depth), sweeps
 
 

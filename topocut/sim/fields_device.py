@@ -47,9 +47,9 @@ class DeviceFields:
         fb.dense(ti.i, self.B).place(self.lo, self.hi)
         self.adj, self.kids = ti.field(ti.u64), ti.field(ti.u64)  # B,64: pieces near each piece; labels after
         self.size, self.plus, self.minus = ti.field(ti.i32), ti.field(ti.i32), ti.field(ti.i32)  # B,64 per piece
-        self.tot, self.up, self.of = ti.field(ti.i32), ti.field(ti.i32), ti.field(ti.i32)  # B,64 per label before
+        self.tot, self.up = ti.field(ti.i32), ti.field(ti.i32)  # B,64 per label before
         fb.dense(ti.ij, (self.B, MAX_PIECES)).place(self.adj, self.kids, self.size, self.plus, self.minus, self.tot,
-                                                    self.up, self.of)
+                                                    self.up)
         self.tree = fb.finalize()
 
     def destroy(self) -> None:
@@ -125,31 +125,47 @@ class DeviceFields:
                     ti.atomic_add(self.up[b, was], 1)
 
     @ti.kernel
-    def _paint(self, ds: ti.template(), body: ti.template()):
+    def _paint(self, ds: ti.template(), body: ti.template(), of: ti.types.ndarray(dtype=ti.i32, ndim=2)):  # B,64
         for b, i in ds.x:
             if self._live(ds, b, i):
-                body[b, i] = self.of[b, ds.out[b, i]]
+                body[b, i] = of[b, ds.out[b, i]]
+
+    @ti.kernel
+    def _pack(self, out: ti.types.ndarray(dtype=ti.u64, ndim=3)):  # 7,B,64: every summary in one copy
+        for b, k in self.adj:
+            out[0, b, k], out[1, b, k] = self.adj[b, k], self.kids[b, k]
+            out[2, b, k], out[3, b, k] = ti.cast(self.size[b, k], ti.u64), ti.cast(self.plus[b, k], ti.u64)
+            out[4, b, k], out[5, b, k] = ti.cast(self.minus[b, k], ti.u64), ti.cast(self.tot[b, k], ti.u64)
+            out[6, b, k] = ti.cast(self.up[b, k], ti.u64)
 
     def summarise(self, ds, reach: float) -> dict[str, np.ndarray]:
-        """The per-piece summaries (each (B, 64)) of the scenes ``ds`` (a DeviceSplit) has just split."""
+        """The per-piece summaries (each (B, 64): u64 masks, i64 counts) of the scenes ``ds`` (a DeviceSplit) has
+        just split."""
         self._bounds(ds)
         self._occupy(ds)
         self._dilate(self.occ, self.tmp, 0)
         self._dilate(self.tmp, self.occ, 1)
         self._dilate(self.occ, self.tmp, 2)
         self._gather(ds, float(reach))
-        names = ("adj", "kids", "size", "plus", "minus", "tot", "up")
-        return {k: getattr(self, k).to_numpy() for k in names}
+        out = np.zeros((7,) + self.adj.shape, np.uint64)  # 7,B,64
+        self._pack(out)  # one launch and one copy back: seven to_numpy calls were seven of each
+        s = dict(zip(("adj", "kids"), out[:2]))
+        s.update(zip(("size", "plus", "minus", "tot", "up"), out[2:].astype(np.int64)))  # counts < 2^31
+        return s
 
     def paint(self, ds, body, of: np.ndarray) -> None:
         """body[b, i] = of[b, label of particle i] for every live particle of every scene ds cut."""
-        self.of.from_numpy(np.ascontiguousarray(of, np.int32))
-        self._paint(ds, body)
+        self._paint(ds, body, np.ascontiguousarray(of, np.int32))
 
 
 def _bits(mask) -> list[int]:
     m = int(mask)
     return [k for k in range(m.bit_length()) if m >> k & 1]
+
+
+def _several(masks: np.ndarray) -> np.ndarray:
+    """Which u64 masks have more than one bit set (m & (m - 1) clears the lowest; 0 - 1 wraps to all ones)."""
+    return (masks & (masks - np.uint64(1))) != 0
 
 
 def scene_fields(s: dict, b: int, fields: int) -> tuple[np.ndarray, int, int, np.ndarray]:
@@ -160,7 +176,7 @@ def scene_fields(s: dict, b: int, fields: int) -> tuple[np.ndarray, int, int, np
     pairs = {(p, q) for q in range(n) for p in _bits(s["adj"][b, q]) if p < q}
     side = P.sides_from_counts(s["plus"][b, :n], s["minus"][b, :n])
     of, conflicts = P.greedy_colour(size[:n], pairs | P.side_pairs(side), fields)
-    split = np.array([len(_bits(k)) > 1 for k in s["kids"][b]])
+    split = _several(s["kids"][b])
     cut_off = P.cut_off_from_counts(split, s["up"][b], s["tot"][b])
     plus = np.bincount(of, weights=s["plus"][b, :n], minlength=fields)
     minus = np.bincount(of, weights=s["minus"][b, :n], minlength=fields)
@@ -183,8 +199,8 @@ def colour_batch(ds, body, labels: np.ndarray, before: np.ndarray, n_grid: int, 
     if df is None:
         df = _CACHE[(B, n_grid)] = DeviceFields(B, n_grid)
     s = df.summarise(ds, reach)
-    on = ds.on.to_numpy()
-    of = np.zeros(df.of.shape, np.int32)  # B,64
+    on = ds.on_host
+    of = np.zeros(df.adj.shape, np.int32)  # B,64
     out = []
     for b in range(B):
         if not on[b]:

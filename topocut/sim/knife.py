@@ -18,6 +18,17 @@ import taichi as ti
 
 
 class Knife:
+    @ti.kernel
+    def arm(self, f: ti.types.ndarray(dtype=ti.f32, ndim=2), k: ti.types.ndarray(dtype=ti.i32, ndim=2)):
+        """Every scene's knife in one launch: f (B,22) o, u, w, n, half extents, travel direction (3 each), depth,
+        speed, amplitude, target; k (B,4) smooth, sharp, hold, on."""
+        for b in range(f.shape[0]):
+            for a in ti.static(range(3)):
+                self.k_o[b][a], self.k_u[b][a], self.k_w[b][a] = f[b, a], f[b, 3 + a], f[b, 6 + a]
+                self.k_n[b][a], self.k_half[b][a], self.k_dir[b][a] = f[b, 9 + a], f[b, 12 + a], f[b, 15 + a]
+            self.k_depth[b], self.k_speed[b], self.k_amp[b], self.k_target[b] = f[b, 18], f[b, 19], f[b, 20], f[b, 21]
+            self.k_smooth[b], self.k_sharp[b], self.k_hold[b], self.k_on[b] = k[b, 0], k[b, 1], k[b, 2], k[b, 3]
+
     @ti.func
     def knife_motion(self, b, t):
         """Edge midpoint and velocity of scene b's knife at time t (stopped once it travelled k_depth)."""

@@ -27,7 +27,7 @@ import numpy as np
 import taichi as ti
 
 from topocut.sim.pieces import LINK, MIN_PIECE
-from topocut.sim.runtime import _ON_RESET, to_host
+from topocut.sim.runtime import _ON_RESET, to_device, to_host
 
 CELL_MARGIN = 1.001  # cells a bit wider than the bond length: a bond's ends lie in adjacent cells despite rounding
 BIG = 1e300
@@ -253,27 +253,41 @@ class DeviceSplit:
             if i < self.count[b]:
                 self.x[b, i] = ti.cast(src[b, i], ti.f64)  # exact: the host's to_numpy().astype(np.float64)
 
+    @ti.kernel
+    def _load_host(self, x: ti.types.ndarray(dtype=ti.f64, ndim=3)):  # B,m,3 (m <= n)
+        for b, i in ti.ndrange(x.shape[0], x.shape[1]):
+            self.x[b, i] = ti.Vector([x[b, i, 0], x[b, i, 1], x[b, i, 2]])
+
+    @ti.kernel
+    def _set(self, piece: ti.types.ndarray(dtype=ti.i32, ndim=2), geo: ti.types.ndarray(dtype=ti.f64, ndim=2),
+             ints: ti.types.ndarray(dtype=ti.i32, ndim=2)):  # piece B,m (m <= n); geo B,14; ints B,2
+        for b, i in ti.ndrange(piece.shape[0], piece.shape[1]):
+            self.piece[b, i] = piece[b, i]
+        for b in range(self.B):
+            for a in ti.static(range(3)):
+                self.o[b][a], self.u[b][a], self.w[b][a], self.nrm[b][a] = geo[b, a], geo[b, 3 + a], geo[b, 6 + a], \
+                    geo[b, 9 + a]
+            self.half[b], self.depth[b], self.count[b], self.on[b] = geo[b, 12], geo[b, 13], ints[b, 0], ints[b, 1]
+
     def run(self, x, counts, piece: np.ndarray, sweeps, spacing: float) -> np.ndarray:
-        """Labels (B,n) after the cut of ``x``: (B,n,3) positions, or the solver's particle field (B,N) itself."""
+        """Labels (B,m) after the cut of ``x``: (B,m,3) positions, or the solver's particle field (B,N) itself;
+        ``piece`` (B,m) the labels before, m <= n (the rows past counts[b] are padding the kernels skip)."""
         B = self.B
-        on = np.array([sw is not None for sw in sweeps], np.int32)
-        geo = np.zeros((4, B, 3))  # o, u, w, n per scene (zeros for idle scenes)
-        half, depth = np.zeros(B), np.zeros(B)
+        geo = np.zeros((B, 14))  # o, u, w, n, half length, depth per scene (zeros for idle scenes)
+        ints = np.zeros((B, 2), np.int32)  # particles, cut or idle
+        ints[:, 0] = counts
         for b, sw in enumerate(sweeps):
             if sw is not None:
-                geo[:, b] = sw.as_arrays()
-                half[b], depth[b] = sw.half_length, sw.depth
-        self.count.from_numpy(np.asarray(counts, np.int32))
+                geo[b, :12] = np.concatenate(sw.as_arrays())
+                geo[b, 12:], ints[b, 1] = (sw.half_length, sw.depth), 1
+        self.on_host = ints[:, 1].copy()  # colour_batch's scenes, without reading them back
+        # one launch for the inputs, through device tensors on CUDA (to_device): each from_numpy was a launch
+        # with its own copies there and back
+        self._set(to_device(np.ascontiguousarray(piece, np.int32)), to_device(geo), to_device(ints))
         if isinstance(x, np.ndarray):
-            self.x.from_numpy(np.ascontiguousarray(x, np.float64))
+            self._load_host(to_device(np.ascontiguousarray(x, np.float64)))
         else:  # the solver's own positions (B,N) f32, on the device: no round trip through the host
             self._load(x)
-        self.piece.from_numpy(np.ascontiguousarray(piece, np.int32))
-        for fld, val in zip((self.o, self.u, self.w, self.nrm), geo):
-            fld.from_numpy(val)
-        self.half.from_numpy(half)
-        self.depth.from_numpy(depth)
-        self.on.from_numpy(on)
         r = LINK * spacing
         r2, h = r * r, r * CELL_MARGIN  # r2 = r * r in f64: cKDTree compares squared distances with it
         self._clear()
@@ -324,9 +338,4 @@ def split_batch(x: np.ndarray, counts, piece: np.ndarray, sweeps, spacing: float
         raise ValueError(f"split_batch: x {x.shape}, counts {len(counts)}, sweeps {len(sweeps)} for piece {piece.shape}")
     if n == 0 or all(sw is None for sw in sweeps):
         return piece.astype(np.int32, copy=True)
-    ds = device_split(B, n)
-    if ds.n > n:  # rows past counts[b] are padding the kernels skip
-        xp, pp = np.zeros((B, ds.n, 3)), np.zeros((B, ds.n), np.int32)
-        xp[:, :n], pp[:, :n] = x, piece
-        x, piece = xp, pp
-    return ds.run(x, counts, piece, sweeps, spacing)[:, :n]
+    return device_split(B, n).run(x, counts, piece, sweeps, spacing)[:, :n]

@@ -5,6 +5,7 @@ options it memoises the source excerpt Taichi writes for each AST node it transf
 """
 import os
 
+import numpy as np
 import taichi as ti
 
 _STATE = {"arch": None}
@@ -78,6 +79,27 @@ def to_host(field):
     out = field.to_torch(device="cuda").to("cpu", non_blocking=True)  # pinned, queued on torch's stream
     torch.cuda.current_stream().synchronize()
     return out.numpy()
+
+
+def row_sums(field, n: int) -> np.ndarray:
+    """``field.to_numpy()[:, :n].sum(1)`` (int64) of a (B,N) integer field, summed on the device on CUDA: only B
+    numbers cross to the host (a cut counts its scenes' damaged particles before and after)."""
+    if HOST_COPY == "numpy" or _STATE["arch"] != "cuda":
+        return field.to_numpy()[:, :n].sum(1, dtype=np.int64)
+    import torch
+
+    return field.to_torch(device="cuda")[:, :n].sum(1, dtype=torch.int64).cpu().numpy()
+
+
+def to_device(arr):
+    """``arr`` (a numpy array) as a kernel's ndarray argument: on CUDA a device tensor (one copy up, complete when
+    this returns), else the array itself.  Handed a host array, a CUDA launch copies it up, synchronises, runs,
+    synchronises and copies it back (see to_host)."""
+    if _STATE["arch"] != "cuda":
+        return arr
+    import torch
+
+    return torch.from_numpy(arr).to("cuda")
 
 
 def cpu_threads() -> int:
