@@ -64,6 +64,7 @@ class DeviceSplit:
                                      self.on, self.far)
         self.tree = fb.finalize()
         self._scans = {}
+        self.on_host = np.zeros(self.B, np.int32)  # the last run's cut scenes, as the host sent them
 
     def destroy(self) -> None:
         self.tree.destroy()
@@ -280,7 +281,7 @@ class DeviceSplit:
             if sw is not None:
                 geo[b, :12] = np.concatenate(sw.as_arrays())
                 geo[b, 12:], ints[b, 1] = (sw.half_length, sw.depth), 1
-        self.on_host = ints[:, 1].copy()  # colour_batch's scenes, without reading them back
+        self.on_host = ints[:, 1].copy()  # colour_batch reads them here, not back from the device
         # one launch for the inputs, through device tensors on CUDA (to_device): each from_numpy was a launch
         # with its own copies there and back
         self._set(to_device(np.ascontiguousarray(piece, np.int32)), to_device(geo), to_device(ints))
