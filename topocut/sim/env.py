@@ -335,9 +335,9 @@ class CuttingEnv(Scenes, Primitives):
 
 def _blade_plans(acts: list[KnifeAction], xs: np.ndarray, counts, cfg: SimConfig) -> tuple:
     """(frames [(blade axis, travel, normal)], start points, depths (B,), sweeps) of each scene's canonical action
-    over its particles xs[b, :counts[b]] (the solver's float32 positions, P.blade_sweep).  One scene after another:
-    on an H200's host 16 scenes took 13.4 ms at 128^3 and 3.6 ms at 64^3 so, and 14-16 and 9.5-12 ms in 16
-    threads (docs/benchmarks.md, "The thirty-fourth session")."""
+    over its particles xs[b, :counts[b]] (the solver's float32 positions, P.blade_sweep), one scene after another:
+    on an H200's host 16 scenes took 13.4 ms at 128^3 and 3.6 ms at 64^3 in turn, 14-16 and 9.5-12 ms in 16 threads
+    (numpy's small passes hold the GIL; docs/benchmarks.md, "The thirty-fourth session")."""
     frames, o0, depth, sweeps = [], [], [], []
     for a, x, n in zip(acts, xs, counts):
         a = a.canonical()
