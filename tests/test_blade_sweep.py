@@ -58,6 +58,9 @@ def test_the_band_equals_the_exact_test_on_every_particle(dtype):
             p0, n = a.plane_point(CFG.board_z), a.normal
             got, want = P._in_band(x, p0, n, P.CENTRE_BAND), exact(x, p0, n, P.CENTRE_BAND)
             assert got.dtype == np.float64 and np.array_equal(got, want), (a, len(got), len(want))
+    half = scenes()[0].astype(np.float16)  # a dtype without its own slack: planned as its float64 copy
+    a = KnifeAction(x=0.5, y=0.5, yaw=0.3)
+    assert P.blade_sweep(a, half, CFG)[0] == P.blade_sweep(a, half.astype(np.float64), CFG)[0]
 
 
 def test_particles_on_the_band_edge():

@@ -68,6 +68,8 @@ def _in_band(x: np.ndarray, p0: np.ndarray, nrm: np.ndarray, band: float) -> np.
     128^3, and the full (N,3) difference was ~1 ms a blade on the host.  Rows are gathered with np.take (x[idx]
     on (N,3) rows took 5x as long: 0.17 ms for 4.7k).  float32's pass errs by < 6e-7 (1 + |x|): three products,
     two sums and the rounded normal, each within 2^-24."""
+    if x.dtype not in BAND_SLACK:  # another dtype (float16, integers): its float64 copy, whose slack is known
+        x = x.astype(np.float64)
     d = x @ nrm.astype(x.dtype)  # N: one pass, no (N,3) temporary
     reach = max(float(x.max(initial=0.0)), -float(x.min(initial=0.0)), float(np.abs(p0).max()))  # largest |coordinate|
     c, slack = float(p0 @ nrm), BAND_SLACK[x.dtype] * (1.0 + 2.0 * reach)
