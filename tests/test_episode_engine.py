@@ -27,7 +27,10 @@ EPISODES = [
 
 
 class Stopping(GoalPlanesPolicy):
-    """The goal's planes; stops (None) after ``limit`` cuts in episodes of seed 12, so its scene idles."""
+    """The goal's planes; stops (None) after ``limit`` cuts in episodes of seed 12, so its scene idles.  It is
+    shown the observed points (``observation_fields``), which the fixture records."""
+
+    observation_fields = ("points", "labels", "history", "goal", "goal_labels")
 
     def reset(self, goal, seed=None):
         super().reset(goal)
@@ -44,20 +47,36 @@ def logs():
     from topocut.sim.env import CuttingEnv
 
     sc = make_scoring(RewardConfig(), TopologyConfig(resolution=48))
-    out = {}
+    out, seen = {}, {}
     for B in (2, 1):
         env = CuttingEnv(SimConfig(**SIM, batch_size=B))
-        calls = []
+        calls, seen[B] = [], {}
+
+        def observe(x, labels, seed, seen=seen[B]):  # what a policy reading points sees (Stopping reads none)
+            seen[seed] = (np.asarray(x)[::97].copy(), np.asarray(labels)[::97].copy())
+            return seen[seed]
+
         if B > 1:
             orig = env.reset_scenes
             env.reset_scenes = lambda *a, orig=orig, calls=calls, **k: calls.append(a[0]) or orig(*a, **k)
-        out[B] = run_episodes(env, EPISODES, Stopping(), sc, max_cuts=3), calls
+            observe.batch = lambda xs, labels, seeds, calls=calls, f=observe: (
+                calls.append(("batch", len(xs))) or [f(x, lab, s) for x, lab, s in zip(xs, labels, seeds)])
+        out[B] = run_episodes(env, EPISODES, Stopping(), sc, max_cuts=3, observe_fn=observe), calls
+    out["seen"] = seen
     return out
 
 
 def test_batched_episodes_equal_episodes_run_alone(logs):
     (batched, calls), (alone, _) = logs[2], logs[1]
-    assert calls == [["cube", "cake"], ["cube", "cube"]]  # two batches; the second padded with a copy
+    resets = [c for c in calls if not isinstance(c, tuple)]
+    assert resets == [["cube", "cake"], ["cube", "cube"]]  # two batches; the second padded with a copy
+    # the live episodes observed in one call (observe_fn.batch) where two were live, one alone after that; each
+    # episode's observation at each cut (keyed by its step seed) is the one it gets run alone
+    assert ("batch", 2) in calls and not any(c == ("batch", 1) for c in calls)
+    assert set(logs["seen"][2]) == set(logs["seen"][1])
+    for seed, (x, lab) in logs["seen"][1].items():
+        np.testing.assert_allclose(logs["seen"][2][seed][0], x, atol=1e-6, rtol=0)
+        np.testing.assert_array_equal(logs["seen"][2][seed][1], lab)
     for a, b in zip(alone, batched):
         assert a.status == b.status == "ok", (a.error, b.error)
         assert a.actions == b.actions and a.turns == b.turns and a.num_pieces == b.num_pieces

@@ -183,6 +183,45 @@ def test_a_policy_declaring_history_len_2_receives_histories_of_length_2():
     assert history_len_of(PlanePolicy()) == HISTORY_LEN == 3
 
 
+def test_observed_points_are_made_only_for_a_policy_that_reads_them():
+    """The FPS of every scene (eval.observation) runs for a policy that reads ``points`` (one that declares no
+    ``observation_fields``: a learned policy, your own) and not for one whose ``observation_fields`` leave them out
+    (the scripted policies); both cut the same and get the same history, goal and labels.  Each scripted policy's
+    class declares the inputs the registry lists for it; PDDP's ``inputs`` method does not read as a declaration."""
+    from topocut.episode import reads_points
+    from topocut.planning.heuristic import HeuristicPolicy
+    from topocut.planning.mppi import MPPIPolicy
+    from topocut.planning.oracle import OraclePolicy
+    from topocut.policies import registry
+
+    spec = episode_specs(smoke())[0]
+    calls = []
+
+    def observe(x, labels, seed):
+        calls.append(seed)
+        return x[::2], labels[::2]
+
+    reader, blind = PlanePolicy(), PlanePolicy()
+    blind.observation_fields = ("goal",)
+    a = evaluate_episode(spec, reader, BoxEnv(), slice_task(), observe_fn=observe, **FAKES)
+    assert len(calls) == 4 and all("points" in o and "labels" in o for o in reader.seen)
+    calls.clear()
+    b = evaluate_episode(spec, blind, BoxEnv(), slice_task(), observe_fn=observe, **FAKES)
+    assert calls == [] and not any("points" in o or "labels" in o for o in blind.seen)
+    assert a.actions == b.actions and a.rewards == b.rewards and len(blind.seen) == len(reader.seen) == 4
+    for o1, o2 in zip(reader.seen, blind.seen):
+        for k in ("history", "goal", "goal_labels", "particle_labels"):
+            np.testing.assert_array_equal(o1[k], o2[k])
+    classes = {"oracle": OraclePolicy, "heuristic": HeuristicPolicy, "mppi": MPPIPolicy}
+    assert set(classes) == set(registry.scripted())
+    for name, cls in classes.items():
+        assert cls.observation_fields == registry.get(name).inputs and not reads_points(cls), name
+    assert reads_points(PlanePolicy()) and reads_points(SimpleNamespace(observation_fields=("labels",)))
+    from topocut.policies.deploy import PDDPPolicy
+
+    assert callable(PDDPPolicy.inputs) and reads_points(PDDPPolicy)  # a learned policy: it reads them
+
+
 def test_episode_max_cuts_and_divergence():
     spec = episode_specs(smoke())[0]
     res = evaluate_episode(spec, PlanePolicy(), BoxEnv(), slice_task(), max_cuts=2, **FAKES)

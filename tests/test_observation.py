@@ -101,3 +101,39 @@ def test_no_points_or_one_point_observe_nothing_without_crashing(mode):
     cam = make_cameras(ObservationConfig())[0]
     far = cam.t - 5.0 * cam.R[2]  # behind the camera along its viewing axis
     assert np.isinf(render_depth(far[None], cam, 0.01)).all()
+
+
+def test_the_scenes_fps_in_one_launch_equals_fps_of_each_scene(monkeypatch):
+    """fps_clouds' one launch (``_fps_padded``: the clouds padded into one float64 batch, each start found as
+    ``fps`` finds it; run here on the CPU's Warp) picks what ``fps`` picks on each cloud, to the index: clouds of
+    different sizes, one smaller than the sample (all its points, no padding copies), and an unjittered lattice
+    whose distances tie exactly.  ``observe_scenes`` built on it (the evaluation's ``observe.batch`` on a GPU)
+    gives each scene's ``observe``; a start taken from a centroid summed in another order (the device's) is not
+    what the test accepts: it compares indices, not sets."""
+    from topocut.eval.protocol import make_observe_fn
+    from topocut.metrics import fps, sampling
+    from topocut.topology import observation
+
+    rng = np.random.default_rng(0)
+    g = np.stack(np.meshgrid(*[np.arange(9) * S] * 3, indexing="ij"), -1).reshape(-1, 3)  # 729 exact ties
+    clouds = [box(), box()[::3] + 0.01, g, rng.uniform(0, 0.1, (40, 3))]
+    picked = sampling._fps_padded([np.asarray(c, np.float64) for c in clouds], 200, "cpu")
+    for c, idx in zip(clouds, picked):
+        np.testing.assert_array_equal(idx, fps(c, min(200, len(c))))
+    assert len(picked[3]) == 40 and len(set(picked[3].tolist())) == 40
+
+    cfg = ObservationConfig(mode="particles", num_points=200)
+    labels = [np.arange(len(c)) % 5 for c in clouds]
+    monkeypatch.setattr("topocut.metrics.fps_clouds", lambda xs, n, device: sampling._fps_padded(xs, n, "cpu"))
+    many = observation.observe_scenes(clouds, labels, cfg, seeds=[1, 2, 3, 4], device="cuda")
+    fn = make_observe_fn("particles", 200, device="cuda")
+    for c, lab, s, (p, lb), (p2, lb2) in zip(clouds, labels, [1, 2, 3, 4], many, fn.batch(clouds, labels, [1, 2, 3, 4])):
+        q, ql = observe(c, lab, cfg, s)
+        np.testing.assert_array_equal(p, q)
+        np.testing.assert_array_equal(lb, ql)
+        np.testing.assert_array_equal(p2, fn(c, lab, s)[0])
+        np.testing.assert_array_equal(lb2, fn(c, lab, s)[1])
+    # depth mode goes scene by scene: the same as observe with each scene's seed
+    dcfg = ObservationConfig(mode="depth", num_points=100)
+    for (p, _), c, s in zip(observation.observe_scenes(clouds[:2], labels[:2], dcfg, [5, 6], "cuda"), clouds, [5, 6]):
+        np.testing.assert_array_equal(p, observe(c, np.zeros(len(c), int), dcfg, s)[0])

@@ -1,7 +1,7 @@
 """The episode core: one episode loop for demonstrations, evaluation, teleop replay, renders and the gym env.
 
 - ``records``: ``Episode``, ``Score``, ``EpisodeOutcome`` / ``EpisodeLog``, the pose history (HISTORY_LEN,
-  ``history_len_of``), ``make_record`` (one dataset record);
+  ``history_len_of``), ``reads_points`` (whether a policy reads the observed points), ``make_record`` (one dataset record);
 - ``seeds``: the demonstrations' and evaluation's episode seeds, the observation seeds, ``mix_seed``;
 - ``scene``: what the core reads from a simulator, and its divergence error;
 - ``scoring``: ``make_scoring`` (the one Scoring builder), ``Scorer`` (one goal: MPPI's rollouts, teleop),
@@ -21,6 +21,7 @@ from topocut.episode.records import (
     history_len_of,
     make_record,
     new_history,
+    reads_points,
 )
 from topocut.episode.run import run_episode, run_episodes
 from topocut.episode.scene import env_board_z, env_spacing, simulation_diverged_error, topology_device
@@ -28,7 +29,7 @@ from topocut.episode.scoring import Scorer, Scoring, discover_labels, fragments,
 from topocut.episode.seeds import demo_episode_seed, eval_episode_seed, mix_seed, step_seed
 
 __all__ = ["EpisodeBatch", "reset_policy", "HISTORY_LEN", "Episode", "EpisodeLog", "EpisodeOutcome", "Score",
-           "history_len_of", "make_record", "new_history", "run_episode", "run_episodes", "env_board_z",
+           "history_len_of", "make_record", "new_history", "reads_points", "run_episode", "run_episodes", "env_board_z",
            "env_spacing", "simulation_diverged_error", "topology_device", "Scorer", "Scoring", "discover_labels",
            "fragments", "make_scoring", "piece_agreement", "demo_episode_seed", "eval_episode_seed", "mix_seed",
            "step_seed"]

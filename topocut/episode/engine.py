@@ -114,14 +114,34 @@ class EpisodeBatch:
         self.initial = init
         return self.logs
 
-    def observation(self, b: int, observe_fn: Callable | None = None) -> dict:
-        """Episode b's policy observation (topocut.policies.base.OBS_KEYS, + particle_labels, cuts_done)."""
-        observe_fn = observe_fn or (lambda x, labels, seed: (np.asarray(x, np.float32), np.asarray(labels, np.int32)))
-        points, obs_labels = observe_fn(self.xs[b], self.labels[b], step_seed(self.eps[b].seed or 0, self.k))
-        return {"points": points, "labels": obs_labels, "history": np.stack(list(self.hist[b])),  # h,7 oldest first
-                "goal": np.asarray(self.goals[b].points, np.float32),
-                "goal_labels": np.asarray(self.goals[b].labels, np.int32),
-                "particle_labels": self.labels[b], "cuts_done": self.k}
+    def observation(self, b: int, observe_fn: Callable | None = None, points: bool = True) -> dict:
+        """Episode b's policy observation (topocut.policies.base.OBS_KEYS, + particle_labels, cuts_done);
+        ``points`` False leaves out the observed ``points`` and ``labels`` (records.reads_points: a policy that
+        declares it does not read them), whose FPS would cost more than the policy's act."""
+        obs = {"history": np.stack(list(self.hist[b])),  # h,7 oldest first
+               "goal": np.asarray(self.goals[b].points, np.float32),
+               "goal_labels": np.asarray(self.goals[b].labels, np.int32),
+               "particle_labels": self.labels[b], "cuts_done": self.k}
+        if points:
+            observe_fn = observe_fn or (lambda x, labels, seed: (np.asarray(x, np.float32),
+                                                                 np.asarray(labels, np.int32)))
+            obs["points"], obs["labels"] = observe_fn(self.xs[b], self.labels[b],
+                                                      step_seed(self.eps[b].seed or 0, self.k))
+        return obs
+
+    def observations(self, live: list, observe_fn: Callable | None = None, points: bool = True) -> dict:
+        """{b: observation(b)} of the live episodes; an ``observe_fn`` with a ``batch(xs, labels, seeds)`` method
+        (the evaluation's: topocut.eval.protocol.make_observe_fn) observes them in one call, the same points."""
+        batch = getattr(observe_fn, "batch", None) if points else None
+        if batch is None or len(live) < 2:
+            return {b: self.observation(b, observe_fn, points) for b in live}
+        seen = batch([self.xs[b] for b in live], [self.labels[b] for b in live],
+                     [step_seed(self.eps[b].seed or 0, self.k) for b in live])
+        out = {}
+        for b, (pts, lab) in zip(live, seen):
+            out[b] = self.observation(b, points=False)
+            out[b]["points"], out[b]["labels"] = pts, lab
+        return out
 
     # -- one cut of every live episode -----------------------------------------------------------------
     def simulated(self, cut, actions: list):

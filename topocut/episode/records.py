@@ -20,6 +20,14 @@ def history_len_of(policy) -> int:
     return HISTORY_LEN if n is None else int(n)
 
 
+def reads_points(policy) -> bool:
+    """Whether ``policy`` reads the observed points (``points``, ``labels``: an FPS of the scene, ~0.5 s a scene of
+    69k particles on one core): its ``observation_fields`` where its class declares them (the scripted policies:
+    topocut.policies.registry's ``inputs``), else yes (a learned policy, your own)."""
+    fields = getattr(policy, "observation_fields", None)
+    return fields is None or "points" in fields or "labels" in fields
+
+
 def new_history(history_len: int = HISTORY_LEN) -> deque:
     """The pose features (history_len,7) of the last cuts, oldest first: zeros before the first cut."""
     return deque([np.zeros(POSE_FEATURE_DIM, np.float32)] * history_len, maxlen=history_len)

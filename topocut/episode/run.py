@@ -19,7 +19,7 @@ from collections.abc import Callable
 import numpy as np
 
 from topocut.episode.engine import EpisodeBatch, reset_policy
-from topocut.episode.records import Episode, EpisodeLog, history_len_of
+from topocut.episode.records import Episode, EpisodeLog, history_len_of, reads_points
 from topocut.episode.scene import topology_device
 from topocut.episode.scoring import Scorer, Scoring, make_scoring
 
@@ -47,6 +47,7 @@ def run_episodes(env, episodes: list[Episode], policy, scoring: Scoring, max_cut
     engine = EpisodeBatch(env, scoring, max_cuts, turns, spacing, record, frames, stop_on_success, progress,
                           cut_frames)
     logs: list[EpisodeLog] = []
+    sees = reads_points(policy)  # the scripted policies read no observed points: no FPS of every scene for them
     for c0 in range(0, len(episodes), size):
         chunk = episodes[c0:c0 + size]
         pols = [policy] if alone else [_slot_policy(policy) for _ in chunk]
@@ -56,7 +57,7 @@ def run_episodes(env, episodes: list[Episode], policy, scoring: Scoring, max_cut
         batched = not alone and callable(getattr(type(policy), "act_batch", None))
         while any(engine.live):
             live = [b for b in range(len(chunk)) if engine.live[b]]
-            obs = {b: engine.observation(b, observe_fn) for b in live}
+            obs = engine.observations(live, observe_fn, points=sees)
             if getattr(policy, "privileged", False):  # the oracle reads the scene itself (planning/oracle.py)
                 for b in live:
                     obs[b]["particles"] = engine.xs[b]  # N,3

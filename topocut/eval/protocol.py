@@ -116,7 +116,8 @@ def episode_specs(cfg: EvalConfig | None = None) -> list[EpisodeSpec]:
 
 
 # -- observations -----------------------------------------------------------------------------------
-def make_observe_fn(mode: str = "particles", num_points: int = 2048, obs_cfg=None, seed: int = 0) -> Callable:
+def make_observe_fn(mode: str = "particles", num_points: int = 2048, obs_cfg=None, seed: int = 0,
+                    device: str = "cpu") -> Callable:
     """``observe(x (N,3), labels (N,), seed) -> (points (M,3) f32, labels (M,) i32)`` for ``eval.observation``.
 
     particles: FPS of the particles to ``num_points`` (as the dataset stores them);
@@ -125,6 +126,8 @@ def make_observe_fn(mode: str = "particles", num_points: int = 2048, obs_cfg=Non
     decides what the policy sees whatever the ``observation`` group says).
     ``seed`` (per call; evaluate_episode passes one per episode and cut) draws the FPS start and the
     sensor noise, so an episode observes the same points whenever and wherever it is run.
+    ``observe.batch(xs, labels, seeds)`` observes several scenes at once, the same points as ``observe`` each
+    (the episode engine's batches: on a CUDA ``device`` the particles' FPS of every scene is one launch).
     """
     import dataclasses
 
@@ -142,6 +145,13 @@ def make_observe_fn(mode: str = "particles", num_points: int = 2048, obs_cfg=Non
         pts, lab = observe_points(np.asarray(x), np.asarray(labels), cfg, s)
         return np.asarray(pts, np.float32), np.asarray(lab, np.int32)
 
+    def batch(xs, labels, seeds):
+        from topocut.topology.observation import observe_scenes
+
+        seeds = [(base * 1_000_003 + int(s)) % (2**31 - 1) for s in seeds]
+        return observe_scenes(xs, labels, cfg, seeds, device)
+
+    observe.batch = batch
     return observe
 
 

@@ -236,7 +236,8 @@ def setup(ctx: RunContext, eval, sim, topology, reward, planner, observation, ta
     policies, inputs = build_policies(ctx, eval.policies, env, sim, planner, reward, topology, task_cfgs, sampler,
                                       versions=eval.checkpoints, train_seeds=eval.train_seeds, runs=runs,
                                       policy_kwargs=eval.policy_kwargs)
-    return env, policies, inputs, make_observe_fn(eval.observation, eval.num_points, observation, seed=eval.seed)
+    return env, policies, inputs, make_observe_fn(eval.observation, eval.num_points, observation, seed=eval.seed,
+                                                  device=ctx.device)
 
 
 def render_episodes(specs, policies, env, task_cfgs, out_dir, eval, reward, topology, observe_fn, spacing):

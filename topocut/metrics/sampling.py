@@ -145,6 +145,36 @@ def fps_torch(points, n: int, mask=None, start=None, method: str = "kernel"):
     return idx
 
 
+def fps_clouds(clouds, n: int, device: str = "cpu") -> list[np.ndarray]:
+    """``fps(c, min(n, len(c)))`` of each cloud of ``clouds`` ((N_i,3) arrays, start "farthest"): the same picks
+    bit for bit.  On a CUDA ``device`` every cloud's picks are one launch (``fps_torch``'s kernel on the clouds
+    padded into one float64 batch, each start found on the host as ``fps`` finds it: a centroid summed on the
+    device could break an exact tie the other way); elsewhere ``fps`` cloud by cloud.  The evaluation's
+    observations (eval.observation=particles): 16 scenes of 69k particles to 2,048 points each, ~0.5 s a scene on
+    one host core."""
+    pts = [np.asarray(c, np.float64).reshape(-1, 3) for c in clouds]  # N_i,3
+    if not str(device).startswith("cuda") or len(pts) == 0:
+        return [np.asarray(fps(c, min(int(n), len(c))), np.int64) for c in pts]
+    return _fps_padded(pts, n, device)
+
+
+def _fps_padded(pts: list, n: int, device) -> list[np.ndarray]:
+    """fps_clouds' one launch (any device: the tests run it on the CPU against ``fps``)."""
+    import torch
+
+    for c in pts:
+        _check(1, len(c))
+    counts = np.array([len(c) for c in pts])
+    B, N, m = len(pts), int(counts.max()), int(min(int(n), counts.max()))
+    padded = np.zeros((B, N, 3), np.float64)
+    for b, c in enumerate(pts):
+        padded[b, :len(c)] = c
+    start = [int(np.argmax(((c - c.mean(0)) ** 2).sum(1))) for c in pts]  # fps's start, its float operations
+    mask = torch.as_tensor(np.arange(N)[None] < counts[:, None], device=device)  # B,N
+    idx = fps_torch(torch.as_tensor(padded, device=device), m, mask=mask, start=torch.as_tensor(start)).cpu().numpy()
+    return [idx[b, :min(int(n), int(counts[b]))] for b in range(B)]
+
+
 def valid_rows(idx) -> np.ndarray:
     """True on the first occurrence of each index in ``idx`` (N,): padding copies of a point, added when a
     cloud has fewer points than asked for, are False so that losses, metrics and attention count it once."""

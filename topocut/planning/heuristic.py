@@ -17,6 +17,8 @@ from topocut.sim.action import KnifeAction
 class GoalPlanesPolicy:
     """Policy protocol: ``reset(goal)``, ``act(obs) -> KnifeAction`` returning goal.planes[t]."""
 
+    observation_fields: tuple = ()  # what it reads (topocut.policies.registry's inputs): none, the goal's planes are its plan
+
     def __init__(self, goal=None):
         self.planes: list[KnifeAction] = []
         self.t = 0

@@ -125,6 +125,7 @@ class MPPIPolicy:
     """
 
     uses_simulator = True  # its rollouts are the env's scenes: the episode engine runs its episodes one at a time
+    observation_fields = ("goal", "sim_state", "particle_labels", "cuts_done")  # the registry's inputs
 
     def __init__(self, cfg: MPPIConfig | None = None, rollout_factory=None, seed: int = 0, goal=None):
         self.cfg = cfg or MPPIConfig()

@@ -58,6 +58,7 @@ class OraclePolicy(GoalPlanesPolicy):
     the goal) it cuts the planes where the plan put them."""
 
     privileged = True  # the episode engine adds the scene's particles to its observation (no learned policy's)
+    observation_fields = ("goal", "particles", "cuts_done")  # topocut.policies.registry's inputs: no observed points
 
     def __init__(self, goal=None, board_z: float = 0.05, track: bool = True):
         self.board_z, self.track = float(board_z), bool(track)

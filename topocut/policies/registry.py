@@ -28,7 +28,7 @@ class PolicySpec:
     name: str
     display: str  # row label of the Table 1 report
     family: str  # scripted | pddp | pose
-    inputs: tuple = ()  # observation fields the policy reads
+    inputs: tuple = ()  # observation fields the policy reads (a scripted policy's class says the same: ``observation_fields``)
     encoder: str | None = None  # PDDP: the perception encoder (topocut.policies.encoders.ENCODER_KINDS)
     kind: str | None = None  # pose baselines: the denoiser network (PoseDiffusionModule.kind)
     reference: bool = False  # a reference row (not selectable in eval.policies)
@@ -42,7 +42,8 @@ class PolicySpec:
 _SCRIPTED = "topocut.policies.scripted"
 _SPECS = (
     # scripted: built by stage=eval through their builder from the goal, the simulator or the planner config
-    PolicySpec("oracle", "Oracle (goal planes)", "scripted", ("goal",), builder=f"{_SCRIPTED}:oracle"),
+    PolicySpec("oracle", "Oracle (goal planes)", "scripted", ("goal", "particles", "cuts_done"),
+               builder=f"{_SCRIPTED}:oracle"),
     PolicySpec("heuristic", "Heuristic", "scripted", (), builder=f"{_SCRIPTED}:heuristic"),
     PolicySpec("mppi", "MPPI (expert)", "scripted", ("goal", "sim_state", "particle_labels", "cuts_done"),
                builder=f"{_SCRIPTED}:mppi"),

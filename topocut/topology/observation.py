@@ -173,6 +173,26 @@ def carve_solid(depths: list, cams: list, cfg: ObservationConfig) -> np.ndarray:
     return centres[solid]
 
 
+def observe_scenes(positions: list, labels: list, cfg: ObservationConfig | None = None, seeds=None,
+                   device: str = "cpu") -> list[tuple]:
+    """``observe`` of several scenes, [(points, labels)]: in mode "particles" on a CUDA ``device`` every scene's FPS
+    in one launch (topocut.metrics.fps_clouds: the same points bit for bit); otherwise scene by scene."""
+    cfg = (cfg or ObservationConfig()).validate()
+    seeds = [0] * len(positions) if seeds is None else list(seeds)
+    xs = [np.asarray(x, np.float64).reshape(-1, 3) for x in positions]  # N_i,3
+    if cfg.mode != "particles" or not str(device).startswith("cuda") or not all(len(x) for x in xs):
+        return [observe(x, lab, cfg, s) for x, lab, s in zip(xs, labels, seeds)]
+    from topocut.metrics import fps_clouds
+
+    out = []
+    for x, lab, idx in zip(xs, labels, fps_clouds(xs, cfg.num_points, device)):
+        lab = np.asarray(lab).reshape(-1)
+        if lab.shape[0] != len(x):
+            raise ValueError(f"labels has {lab.shape[0]} entries, positions has {len(x)}")
+        out.append((x[idx].astype(np.float32), lab[idx].astype(np.int32)))
+    return out
+
+
 def observe(positions, labels, cfg: ObservationConfig | None = None, seed: int = 0):
     """-> (points (M,3) f32, labels (M,) i32); M = min(num_points, available)."""
     cfg = (cfg or ObservationConfig()).validate()
