@@ -2,6 +2,7 @@
 
     python benchmarks/eval_units.py --device cpu --n-grid 64 --batch 2 --episodes 2 --policies oracle pddp --topo-resolution 64
     python benchmarks/eval_units.py --device cuda --n-grid 128 --batch 16 --episodes 16 --observe both
+    python benchmarks/eval_units.py --device cuda --n-grid 128 --batch 16 --episodes 16 --policies pddp --runs 3
 
 A work unit of ``topocut.eval.runner.eval_tasks`` is ``--batch`` specs of the 405-episode protocol (a stride
 through it, so tasks, objects and poses mix) run by one policy in one simulator batch: the protocol's task configs
@@ -9,15 +10,20 @@ through it, so tasks, objects and poses mix) run by one policy in one simulator 
 the oracle, the heuristic, and PDDP with untrained weights at the paper's sizes (the time of an action does not
 depend on the weights; where its untrained cuts fall does, a little).  Each policy's episodes are timed after a
 warm-up batch, split into the simulator (cut, push, turn), discovery, the reward, the observations, the policy's act
-and the rest.
+and the rest (``--profile``: where the rest goes).
 
 ``--observe both`` runs every policy first as the engine did before 2026-12-01 (the reference: every policy's every
 scene observed on the host, one scene at a time), then as now (no observation for the scripted policies, which read
-none; the scenes' FPS in one launch on a GPU for the others), in the same process.
+none; the scenes' FPS in one launch on a GPU for the others), in the same process.  ``--runs 3`` runs each policy
+over its episodes three times in a row, as a learned policy's work unit runs its three training seeds: before, each
+run built its goals and their pieces' sizes and descriptors anew; now the later runs find them kept
+(``topocut.episode.scoring.task_goal``, ``topocut.reward.distance``'s cache).
 """
 from __future__ import annotations
 
 import argparse
+import cProfile
+import pstats
 import sys
 import time
 from pathlib import Path
@@ -67,7 +73,17 @@ def timed_act(policy):
                 else staticmethod(wrapped) if isinstance(fn, staticmethod) else wrapped)
 
 
-def run_unit(env, specs, warm, policy, sc, task_cfgs, observe_fn, way: str) -> dict:
+def forget_goals() -> None:
+    """The goals and the goal pieces' work kept between runs (the engine before 2026-12-01 kept neither a goal nor,
+    past 256 entries, a goal piece)."""
+    from topocut.episode import scoring
+    from topocut.reward import distance
+
+    scoring._GOALS.clear()
+    distance._CACHE.clear()
+
+
+def run_unit(env, specs, warm, policy, sc, task_cfgs, observe_fn, way: str, profile: int = 0, first: bool = True) -> dict:
     from topocut.episode import run_episodes
     from topocut.eval.protocol import _episode
 
@@ -90,13 +106,22 @@ def run_unit(env, specs, warm, policy, sc, task_cfgs, observe_fn, way: str) -> d
                 return observe.batch(xs, labels, seeds)
 
         counted.batch = batch
-    run_episodes(env, [_episode(s, task_cfgs[s.task]) for s in warm], policy, sc, max_cuts=5,
-                 observe_fn=counted)  # warm-up: kernels, caches
+    if first:
+        run_episodes(env, [_episode(s, task_cfgs[s.task]) for s in warm], policy, sc, max_cuts=5,
+                     observe_fn=counted)  # warm-up: kernels, caches
+    if way == "before" or first:  # a run's first pass over its episodes builds their goals
+        forget_goals()
     TIMES.clear()
+    prof = cProfile.Profile() if profile else None
     t0 = time.perf_counter()
+    if prof is not None:
+        prof.enable()
     logs = run_episodes(env, [_episode(s, task_cfgs[s.task]) for s in specs], policy, sc, max_cuts=5,
                         observe_fn=counted)
     wall = time.perf_counter() - t0
+    if prof is not None:
+        prof.disable()
+        pstats.Stats(prof).sort_stats("cumulative").print_stats(profile)
     out = {"wall": wall, "episodes": len(specs), "cuts": sum(len(lg.actions) for lg in logs),
            **{k: TIMES.get(k, 0.0) for k in PARTS}}
     out["rest"] = wall - sum(out[k] for k in PARTS)
@@ -110,8 +135,14 @@ def main() -> None:
     p.add_argument("--batch", type=int, default=16, help="scenes: the specs of a work unit")
     p.add_argument("--episodes", type=int, default=16, help="timed episodes a policy (after a warm-up batch)")
     p.add_argument("--policies", nargs="+", default=["oracle", "heuristic", "pddp"])
-    p.add_argument("--observe", choices=("now", "before", "both"), default="now")
+    p.add_argument("--observe", choices=("now", "before", "both"), default="now",
+                   help="the engine as before 2026-12-01 (every scene observed on the host, no goal kept between "
+                   "runs), as now, or both (before first, the reference)")
+    p.add_argument("--runs", type=int, default=1, help="passes of each policy over the same episodes, one after "
+                   "another (a learned policy's training seeds in a work unit: 3); the averages compare")
     p.add_argument("--topo-resolution", type=int, default=128)
+    p.add_argument("--profile", type=int, default=0, help="cProfile each timed run and print this many entries of "
+                   "most cumulative time (on CUDA a host sync books the queued work's wait)")
     args = p.parse_args()
 
     from topocut.episode import make_scoring
@@ -129,7 +160,9 @@ def main() -> None:
     specs = episode_specs(ecfg)
     stride = max(1, len(specs) // (args.episodes + args.batch))
     chosen = specs[::stride]
-    warm, timed_specs = chosen[:2], chosen[2: 2 + args.episodes]
+    # the warm-up: one episode of each task (the push and the turn compile on their first use)
+    warm = [next(s for s in chosen if s.task == t) for t in ecfg.tasks]
+    timed_specs = [s for s in chosen if s not in warm][:args.episodes]
     task_cfgs = task_configs(ecfg.tasks, ecfg.max_cuts)  # the protocol's own: push where the task pushes
     env = CuttingEnv(SimConfig(n_grid=args.n_grid, batch_size=args.batch, arch=args.device), batch_size=args.batch)
     instrument(env)
@@ -143,15 +176,19 @@ def main() -> None:
     print(f"{args.device}, {args.n_grid}^3, {args.batch} scenes, {len(timed_specs)} timed episodes a policy "
           f"(tasks {sorted({s.task for s in timed_specs})}, objects {sorted({s.object for s in timed_specs})}); "
           f"s an episode")
-    print(f"{'policy':<10} {'way':<7} {'cuts':>5} {'wall':>7} " + " ".join(f"{k:>9}" for k in PARTS + ("rest",)))
+    print(f"{'policy':<10} {'way':<9} {'cuts':>5} {'wall':>7} " + " ".join(f"{k:>9}" for k in PARTS + ("rest",)))
     res = {}
     for name, pol in pols.items():
         for way in ways:
-            r = run_unit(env, timed_specs, warm, pol, sc, task_cfgs, observe_fn, way)
-            res[name, way] = r
-            n = r["episodes"]
-            print(f"{name:<10} {way:<7} {r['cuts']:>5} {r['wall'] / n:7.3f} "
-                  + " ".join(f"{r[k] / n:9.3f}" for k in PARTS + ("rest",)))
+            runs = []
+            for i in range(args.runs):
+                r = run_unit(env, timed_specs, warm, pol, sc, task_cfgs, observe_fn, way, args.profile, first=i == 0)
+                runs.append(r)
+                n = r["episodes"]
+                print(f"{name:<10} {way + (f' {i + 1}' if args.runs > 1 else ''):<9} {r['cuts']:>5} {r['wall'] / n:7.3f} "
+                      + " ".join(f"{r[k] / n:9.3f}" for k in PARTS + ("rest",)))
+            res[name, way] = {k: sum(r[k] for r in runs) / len(runs) if k != "episodes" else runs[0][k]
+                              for k in runs[0]}
         if len(ways) == 2:
             a, b = res[name, "before"], res[name, "now"]
             print(f"{name}: now against before, same process: {a['wall'] / n:.3f} -> {b['wall'] / n:.3f} s an episode "

@@ -11,6 +11,7 @@ are the builder's.
 from __future__ import annotations
 
 import inspect
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -44,6 +45,29 @@ def fragments(x, labels, min_points: int) -> list[np.ndarray]:
     return [f for c, f in zip(ids, pieces) if c >= 0 and len(f) >= min_points]
 
 
+_GOALS: OrderedDict = OrderedDict()  # task_goal's: the goals of the last GOALS_KEPT episodes of this process
+GOALS_KEPT = 32
+
+
+def task_goal(task_cfg, obj, pose, spacing: float, board_z: float, seed: int = 0):
+    """``get_task(task_cfg.name).make_goal(...)``, kept for the process's last GOALS_KEPT (task config, object, pose,
+    spacing, board, seed): the evaluation runs each batch of episodes once per policy run (a learned policy's
+    training seeds one after another), and a 128³ goal costs ~1 s of host time (its ideal execution, its sampling).
+    make_goal is deterministic in these; each caller gets its own copy (a policy may keep what it is given)."""
+    import copy
+
+    from topocut.tasks import get_task
+
+    key = (repr(task_cfg), str(obj), repr(pose), float(spacing), float(board_z), int(seed))
+    if key in _GOALS:
+        _GOALS.move_to_end(key)
+    else:
+        _GOALS[key] = get_task(task_cfg.name).make_goal(task_cfg, obj, pose, spacing, board_z=board_z, seed=seed)
+        while len(_GOALS) > GOALS_KEPT:
+            _GOALS.popitem(last=False)
+    return copy.deepcopy(_GOALS[key])
+
+
 def discover_labels(x, damage, sweeps, previous, topo_cfg=None, device: str = "cpu",
                     start_positions=None) -> np.ndarray:  # N,
     """Topology discovery (topocut.topology.discover on ``device``) with the previous labels' cluster ids;
@@ -74,7 +98,7 @@ def make_scoring(reward_cfg=None, topo_cfg=None, device: str = "cpu", board_z: f
     from topocut.tasks import get_task
 
     def default_goal(task_cfg, obj, pose, spacing, seed=0):  # the scene's own particles (its sampling seed), ideally cut
-        return get_task(task_cfg.name).make_goal(task_cfg, obj, pose, spacing, board_z=board_z, seed=seed)
+        return task_goal(task_cfg, obj, pose, spacing, board_z, seed)
 
     if discover_fn is None:
         def discover(x, damage, sweeps, previous, start_positions=None):

@@ -28,7 +28,9 @@ def piecewise_reward(d, cfg: RewardConfig | None = None):
 
 
 _CACHE: OrderedDict[tuple, object] = OrderedDict()  # goal resamplings / descriptors reused across MPPI rollouts
-_CACHE_SIZE = 256
+# and across the evaluation's runs of one batch of episodes (a learned policy's training seeds, one after another:
+# topocut.eval.runner): 16 dice goals of 27 pieces are ~1,300 entries
+_CACHE_SIZE = 4096
 
 
 def _cached(key: tuple, make):
@@ -159,11 +161,11 @@ def _score_sets(fragment_sets, goal_fragments, cfg: RewardConfig | None = None, 
                 ugoals.append((k, g))
             row.append(keys[k])
         gidx.append(row)
-    # goal pieces by their bodies as the fragments (ideal pieces have no strays: the same points)
-    ugoals = [(k, _cached(("body", k, *skey, cfg.stray_share), lambda g=g: body(
-        g, particle_spacing(g) if spacing is None else float(spacing), cfg.stray_share))) for k, g in ugoals]
-    gsizes = np.array([_cached(("size", k, *skey, cfg.stray_share), lambda g=g: size_descriptor(g, spacing))  # U,5+Q
-                       for k, g in ugoals])
+    # goal pieces by their bodies as the fragments (ideal pieces have no strays: the same points), and their sizes
+    pieces = [_cached(("goal piece", k, *skey, cfg.stray_share), lambda g=g: _goal_piece(g, spacing, cfg))
+              for k, g in ugoals]
+    ugoals = [(k, b) for (k, _), (b, _) in zip(ugoals, pieces)]
+    gsizes = np.array([size for _, size in pieces])  # U,5+Q
     gres = [_cached(("resample", k, ckey), lambda g=g: resample(g, cfg)) for k, g in ugoals]
     set_goals = gidx if per_set else gidx * len(raw)  # each set's goal indices into ugoals
     # every scene's pieces at once (on the device, or in one host thread pool: reward.size_solver), each profiled only
@@ -199,6 +201,16 @@ def _score_sets(fragment_sets, goal_fragments, cfg: RewardConfig | None = None, 
                         for u in row]
             D[i] = np.asarray(spec) + ds[i]
     return Ds, vols, gvols
+
+
+def _goal_piece(points: np.ndarray, spacing: float | None, cfg: RewardConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(body, size_descriptor of the body) of a goal piece (N,3).  Its spacing is estimated once where the body
+    kept every point (an ideal piece has no strays): the body's own estimate would read the same points in the
+    same order, so it is the same number, and it is one KD-tree of the piece less (a goal piece is new every
+    evaluation episode: its pose is the episode's)."""
+    s = particle_spacing(points) if spacing is None else float(spacing)
+    kept = body(points, s, cfg.stray_share)
+    return kept, size_descriptor(kept, s if spacing is not None or len(kept) == len(points) else None)
 
 
 def _fragment_sizes(items: list, cfg: RewardConfig, spacing: float | None = None) -> list:
