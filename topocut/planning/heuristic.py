@@ -13,6 +13,8 @@ import numpy as np
 
 from topocut.sim.action import KnifeAction
 
+_NOMINAL: dict = {}  # (task config, object, spacing, board) -> the goal at the nominal pose, every HeuristicPolicy's
+
 
 class GoalPlanesPolicy:
     """Policy protocol: ``reset(goal)``, ``act(obs) -> KnifeAction`` returning goal.planes[t]."""
@@ -53,17 +55,17 @@ class HeuristicPolicy(GoalPlanesPolicy):
     def __init__(self, task_cfgs: dict, spacing: float, board_z: float = 0.05):
         super().__init__()
         self.task_cfgs, self.spacing, self.board_z = dict(task_cfgs), spacing, board_z
-        self._cache: dict[tuple[str, str], object] = {}
 
     def reset(self, goal) -> None:
         from topocut.sim.objects import ObjectPose
         from topocut.tasks import make_goal
 
-        key = (goal.task, goal.object)
-        if key not in self._cache:
-            if goal.task not in self.task_cfgs:
-                raise KeyError(f"HeuristicPolicy has no TaskConfig for task {goal.task!r}; "
-                               f"known: {', '.join(self.task_cfgs)}")
-            self._cache[key] = make_goal(self.task_cfgs[goal.task], goal.object, ObjectPose(),
-                                         spacing=self.spacing, board_z=self.board_z)
-        super().reset(self._cache[key])
+        if goal.task not in self.task_cfgs:
+            raise KeyError(f"HeuristicPolicy has no TaskConfig for task {goal.task!r}; known: {', '.join(self.task_cfgs)}")
+        cfg = self.task_cfgs[goal.task]
+        # kept in the module, not on the policy: the episode engine resets a copy of the policy per scene of each
+        # batch (topocut.episode.run._slot_policy), and a copy's own cache died with it (a 128^3 goal: ~1 s each)
+        key = (repr(cfg), goal.object, float(self.spacing), float(self.board_z))
+        if key not in _NOMINAL:
+            _NOMINAL[key] = make_goal(cfg, goal.object, ObjectPose(), spacing=self.spacing, board_z=self.board_z)
+        super().reset(_NOMINAL[key])  # its planes only, read and never changed
