@@ -3,6 +3,7 @@
     python benchmarks/eval_units.py --device cpu --n-grid 64 --batch 2 --episodes 2 --policies oracle pddp --topo-resolution 64
     python benchmarks/eval_units.py --device cuda --n-grid 128 --batch 16 --episodes 16 --observe both
     python benchmarks/eval_units.py --device cuda --n-grid 128 --batch 16 --episodes 16 --policies pddp --runs 3
+    python benchmarks/eval_units.py --device cuda --n-grid 128 --fps
 
 A work unit of ``topocut.eval.runner.eval_tasks`` is ``--batch`` specs of the 405-episode protocol (a stride
 through it, so tasks, objects and poses mix) run by one policy in one simulator batch: the protocol's task configs
@@ -27,6 +28,8 @@ import pstats
 import sys
 import time
 from pathlib import Path
+
+import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from episodes import TIMES, instrument, timed  # noqa: E402 - the engine's timers, shared with episodes.py
@@ -128,6 +131,32 @@ def run_unit(env, specs, warm, policy, sc, task_cfgs, observe_fn, way: str, prof
     return out
 
 
+def fps_check(device: str, n_grid: int) -> None:
+    """fps_clouds (one launch for all scenes) against fps scene by scene on the host: 16 posed objects at the
+    grid's particle spacing to 2,048 points each, the time of each and whether every index is equal."""
+    import torch
+
+    from topocut.metrics import fps, fps_clouds
+    from topocut.sim.objects import ObjectPose, sample_object
+
+    names = ["cake", "cube", "ditto", "ham", "potato", "donut", "burger", "sushi"] * 2
+    clouds = [np.asarray(sample_object(o, ObjectPose(0.5, 0.5, 0.1 * i, 0.8 + 0.025 * i), spacing=0.5 / n_grid)[0],
+                         np.float32) for i, o in enumerate(names)]
+    sync = torch.cuda.synchronize if device == "cuda" else (lambda: None)
+    fps_clouds(clouds[:2], 2048, device)  # warm-up: the kernel's compile
+    sync()
+    t = time.perf_counter()
+    one = fps_clouds(clouds, 2048, device)
+    sync()
+    t_one = time.perf_counter() - t
+    t = time.perf_counter()
+    host = [fps(c, min(2048, len(c))) for c in clouds]
+    t_host = time.perf_counter() - t
+    print(f"fps_clouds, {len(clouds)} scenes ({min(map(len, clouds))}-{max(map(len, clouds))} particles) to 2048 on "
+          f"{device}: host one by one {t_host:.3f} s, one call {t_one:.4f} s ({t_host / t_one:.1f}x); equal indices: "
+          f"{all(np.array_equal(a, b) for a, b in zip(one, host))}")
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
@@ -143,7 +172,10 @@ def main() -> None:
     p.add_argument("--topo-resolution", type=int, default=128)
     p.add_argument("--profile", type=int, default=0, help="cProfile each timed run and print this many entries of "
                    "most cumulative time (on CUDA a host sync books the queued work's wait)")
+    p.add_argument("--fps", action="store_true", help="only fps_check: the scenes' FPS in one launch against the host")
     args = p.parse_args()
+    if args.fps:
+        return fps_check(args.device, args.n_grid)
 
     from topocut.episode import make_scoring
     from topocut.eval.config import EvalConfig

@@ -49,7 +49,7 @@ class EpisodeBatch:
     (what ``run_episodes`` and the gymnasium vector env, topocut.envs, both drive).
 
     ``start(episodes)`` loads them (scene b holds episode b; ``alone``: one episode in every scene), builds the
-    goals, labels and scores the uncut scenes; ``observations(observe_fn, sim_state)`` gives each live episode
+    goals, labels and scores the uncut scenes; ``observations(live, observe_fn, points)`` gives each live episode
     its policy observation; ``step(actions)`` executes one cut per scene (None: an ended episode's scene idles),
     discovery, the push where the episode's task pushes, the batched score, and the goals' turns.  ``logs[b]``
     holds what episode b did; ``live[b]`` whether it goes on.
