@@ -5,7 +5,7 @@ slice, stick and dice for the cube and the potato, 5 cuts each, at the protocol'
 per task, every episode >= 0.75, and success (N_C = G and R >= task.success_threshold) where the episode's own R
 and N_C say so.  ~5 min on one core of a 2-core CPU.
 
-The donut (the unseen object) was the third until 2026-12-01: its three episodes cost ~140 of the test's ~440 s
+The donut (the unseen object) was the third until 2026-12-02: its three episodes cost ~140 of the test's ~440 s
 and put make test past 20 min on the 2-core machine (20:28-21:37).  The cube's slabs are the ones that lean
 (docs/sim.md) and the potato is the irregular seen shape; the donut's steps are executed on its particles at every
 pose at 64^3 and 128^3 by tests/test_answer_key.py, and in the simulator at 128^3 by the GPU check of docs/results.md
