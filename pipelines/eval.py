@@ -18,7 +18,7 @@ import logging
 
 from pipelines._common import as_dict
 from topocut.eval.runner import evaluate_in_processes, render_episodes, setup, task_configs
-from topocut.eval.videos import film_episodes
+from topocut.eval.videos import Filming, film_episodes
 from topocut.utils.context import RunContext
 
 
@@ -69,11 +69,13 @@ def run(ctx: RunContext, eval, sim, topology, reward, planner, observation, data
                 "evaluates and films anew", existing)
         return {"eval": str(existing), "reused": True}
     write_json_atomic(writer.path / RUNS_FILE, runs)  # run name -> policy and training seed, for the report
+    # every policy run's first eval.videos episodes filmed as they are evaluated (an MP4 each, each cut in motion)
+    film = Filming.of(specs, eval, writer.path / "videos")
     if eval.jobs > 1:  # the episodes in worker processes; the run below then finds them all written (resume)
         evaluate_in_processes(specs, eval.jobs, env.batch_size, ctx, writer.path, eval, sim, topology, reward,
-                              planner, observation, sampler, task_cfgs)
+                              planner, observation, sampler, task_cfgs, film=film)
     run_evaluation(specs, policies, env, task_cfgs, writer.path, reward, topology, observe_fn, cfg=eval,
-                   progress=ctx.progress, logger=ctx.logger, spacing=sim.spacing)
+                   progress=ctx.progress, logger=ctx.logger, spacing=sim.spacing, film=film)
     for t in teleop:  # the human reference: each committed log replayed like a policy, one episode each
         from topocut.eval.teleop import TeleopReplay
 
@@ -82,9 +84,12 @@ def run(ctx: RunContext, eval, sim, topology, reward, planner, observation, data
     if eval.gifs > 0:
         render_episodes(specs, policies, env, task_cfgs, writer.path / "gifs", eval, reward, topology,
                         observe_fn, sim.spacing)
-    if eval.videos > 0:  # MP4s of every policy's first eval.videos episodes, each cut in motion
-        film_episodes(specs, policies, env, task_cfgs, writer.path / "videos", eval, reward, topology, observe_fn,
-                      sim.spacing)
+    if eval.videos > 0:  # what an interrupted evaluation committed without its video: run again and filmed
+        again = film_episodes(specs, policies, env, task_cfgs, writer.path / "videos", eval, reward, topology,
+                              observe_fn, sim.spacing)
+        if again:
+            logging.getLogger("topocut").info("eval: %d videos filmed by running their episodes again (committed "
+                                              "without them by an interrupted evaluation)", again)
     report = write_report(writer.path, reference=eval.reference, normalize_by=eval.normalize_by,
                           compare_to=eval.comparison, confidence=eval.confidence,
                           n_resamples=eval.bootstrap_resamples, seed=eval.bootstrap_seed)

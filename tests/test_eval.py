@@ -14,7 +14,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from topocut.eval import EvalConfig, episode_specs, evaluate_episode, run_evaluation, smoke
-from topocut.eval.protocol import _diverged_type, episode_path
+from topocut.eval.protocol import EpisodeSpec, _diverged_type, episode_path
 from topocut.eval.report import PAPER_TABLE1, load_episodes, summarize, write_report
 from topocut.sim.action import KnifeAction, cut_mask
 from topocut.sim.objects import random_pose
@@ -270,6 +270,66 @@ def test_run_evaluation_same_episodes_and_resume(tmp_path):
     untimed = lambda d: {n: [{k: v for k, v in e.items() if "time" not in k} for e in es] for n, es in d.items()}  # noqa: E731
     assert untimed(out2) == untimed(out)  # re-run episodes reproduce the originals (timings aside)
     assert episode_path(tmp_path, "oracle", specs[0]).name == f"{specs[0].key}.json"
+
+
+class RecordingFilm:
+    """A Filming double: wants the given spec keys of every run, keeps what write() was handed."""
+    frames_per_cut = 0  # states only: BoxEnv records no snapshots during a cut
+
+    def __init__(self, keys, out_dir):
+        self.keys, self.out_dir, self.written = set(keys), out_dir, {}
+
+    def wants(self, run, spec):
+        return spec.key in self.keys and (run, spec.key) not in self.written
+
+    def write(self, run, spec, log, board_z):
+        json_written = episode_path(self.out_dir, run, spec).exists()
+        self.written[run, spec.key] = (json_written, [(x.copy(), what) for x, _, what, _ in log.frames], board_z)
+
+
+def test_run_evaluation_films_the_evaluated_episodes_without_running_them_again(tmp_path):
+    specs = episode_specs(smoke())
+    tasks = {t: slice_task() for t in ("slice", "stick", "dice")}
+    env, pols = BoxEnv(), {"oracle": PlanePolicy(), "short": PlanePolicy(limit=1)}
+    film = RecordingFilm([specs[0].key, specs[2].key], tmp_path)
+    out = run_evaluation(specs, pols, env, tasks, tmp_path, progress=False, film=film, **FAKES)
+    assert len(env.resets) == 12  # 6 specs x 2 policies, each once: no episode runs again to be filmed
+    assert sorted(film.written) == sorted((n, specs[i].key) for n in pols for i in (0, 2))
+    for (name, key), (json_written, frames, board_z) in film.written.items():
+        [episode] = [e for e in out[name] if EpisodeSpec(**e["spec"]).key == key]
+        assert not json_written  # the video is written before the episode's JSON
+        assert board_z == BOARD_Z
+        # the film is the evaluated episode: reset, then a state after each of its cuts, ending where it ended
+        assert [w for _, w in frames] == ["reset"] + [f"cut {k + 1}: R={r:.2f}" for k, r in enumerate(
+            episode["rewards"])], frames
+        assert len(frames) == 1 + episode["num_cuts"] == 1 + (3 if name == "oracle" else 1)
+        moved = np.sort(frames[-1][0][:, 0]) - np.sort(frames[0][0][:, 0])  # BoxEnv moves cut-off sides by GAP
+        assert np.isclose(moved.max(), episode["num_cuts"] * GAP, atol=1e-6)
+    # filmed once: a second evaluation of the same directory runs and films nothing
+    env2 = BoxEnv()
+    run_evaluation(specs, pols, env2, tasks, tmp_path, progress=False, film=film, **FAKES)
+    assert env2.resets == [] and len(film.written) == 4
+
+
+def test_videos_an_interrupted_evaluation_left_out_are_filmed_by_running_their_episodes_again(tmp_path):
+    """film_episodes: the fallback for episodes committed without their video (a run killed between the two, or
+    evaluated without the film): exactly those run again, and the film shows the committed episode."""
+    from topocut.eval.videos import film_episodes
+
+    specs = episode_specs(smoke())
+    tasks = {t: slice_task() for t in ("slice", "stick", "dice")}
+    pols = {"oracle": PlanePolicy(), "short": PlanePolicy(limit=1)}
+    out = run_evaluation(specs, pols, BoxEnv(), tasks, tmp_path, progress=False, **FAKES)  # filmed nothing
+    film = RecordingFilm([specs[1].key], tmp_path)
+    film.written["short", specs[1].key] = "filmed already"
+    env = BoxEnv()
+    cfg = EvalConfig(videos=2)
+    assert film_episodes(specs, pols, env, tasks, tmp_path, cfg, None, None, None, SPACING, film=film, **FAKES) == 1
+    assert [(obj, seed) for obj, _, seed in env.resets] == [(specs[1].object, specs[1].seed)]  # that one alone
+    json_written, frames, _ = film.written["oracle", specs[1].key]
+    [episode] = [e for e in out["oracle"] if EpisodeSpec(**e["spec"]).key == specs[1].key]
+    assert json_written and [w for _, w in frames][1:] == [f"cut {k + 1}: R={r:.2f}"
+                                                          for k, r in enumerate(episode["rewards"])]
 
 
 # -- report ---------------------------------------------------------------------------------------------

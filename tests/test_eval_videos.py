@@ -37,17 +37,32 @@ def topocut(root: Path, *overrides: str) -> subprocess.CompletedProcess:
                      env=env, timeout=300)
 
 
-def _evaluation(root: Path, *overrides: str) -> Path:
+def _evaluation(root: Path, *overrides: str) -> tuple[Path, str]:
     proc = topocut(root, *TINY, *overrides)
-    assert proc.returncode == 0, (proc.stdout + proc.stderr)[-4000:]
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 0, out[-4000:]
     (path,) = (root / "eval" / "table1").glob("v*")
-    return path
+    return path, out
 
 
 @pytest.fixture(scope="module")
-def filmed(tmp_path_factory) -> Path:
+def filmed_run(tmp_path_factory) -> tuple[Path, str]:
     return _evaluation(tmp_path_factory.mktemp("videos"), "eval.videos=2",
                        f"eval.video_frames_per_cut={FRAMES_PER_CUT}")
+
+
+@pytest.fixture(scope="module")
+def filmed(filmed_run) -> Path:
+    return filmed_run[0]
+
+
+def test_the_evaluation_films_as_it_goes_and_runs_no_episode_again(filmed_run):
+    path, out = filmed_run
+    assert "filmed by running their episodes again" not in out, out[-3000:]
+    # each video was written before its episode's JSON was committed (Filming, in run_evaluation)
+    for video in path.glob("videos/*/*.mp4"):
+        episode = path / "episodes" / video.parent.name / f"{video.stem}.json"
+        assert video.stat().st_mtime_ns <= episode.stat().st_mtime_ns, video
 
 
 def test_every_policy_has_a_video_of_its_first_episodes_only(filmed):
@@ -78,7 +93,7 @@ def test_a_video_holds_each_state_and_the_frames_during_each_cut(filmed):
 
 
 def test_no_videos_with_videos_0(tmp_path):
-    path = _evaluation(tmp_path, "eval.videos=0", "eval.episodes_per_cell=1", "eval.max_cuts=1",
+    path, _ = _evaluation(tmp_path, "eval.videos=0", "eval.episodes_per_cell=1", "eval.max_cuts=1",
                        "eval.policies=[oracle]", "sim.n_grid=20")
     assert not (path / "videos").exists()
     assert json.loads((path / "manifest.json").read_text())["summary"]["videos"] == []

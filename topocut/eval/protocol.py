@@ -33,6 +33,7 @@ from topocut.data.store import write_json_atomic
 from topocut.episode import (
     Episode,
     EpisodeOutcome,
+    env_board_z,
     eval_episode_seed,
     make_scoring,
     run_episodes,
@@ -196,12 +197,14 @@ def episode_path(out_dir, policy_name: str, spec: EpisodeSpec) -> Path:
 
 def run_evaluation(specs: list[EpisodeSpec], policies: dict, env, task_cfgs: dict, out_dir, reward_cfg=None,
                    topo_cfg=None, observe_fn: Callable | None = None, cfg: EvalConfig | None = None,
-                   progress: bool = True, logger=None, **episode_kw) -> dict[str, list[dict]]:
+                   progress: bool = True, logger=None, film=None, **episode_kw) -> dict[str, list[dict]]:
     """Evaluate every policy on every spec; returns {policy: [episode dicts]} (loaded + new).
 
     ``task_cfgs`` maps task name -> TaskConfig.  Episodes whose JSON already exists are skipped (resume).
     Specs run in the outer loop so that an interrupted evaluation holds comparable episodes for all policies.
-    ``episode_kw`` goes to ``evaluate_episode`` (spacing, goal_fn, discover_fn, reward_fn, ...).
+    ``episode_kw`` goes to ``evaluate_episode`` (spacing, goal_fn, discover_fn, reward_fn, ...).  ``film``
+    (topocut.eval.videos.Filming): a batch holding an episode it wants keeps its frames, and that episode's video
+    is written from them before its JSON, so a filmed episode is never run twice.
     """
     from topocut.utils.progress import progress_bar
 
@@ -220,6 +223,7 @@ def run_evaluation(specs: list[EpisodeSpec], policies: dict, env, task_cfgs: dic
     sc = make_scoring(reward_cfg, topo_cfg, min_fragment_points=cfg.min_fragment_points, env=env,
                       **{k: episode_kw.pop(k, None) for k in ("goal_fn", "discover_fn", "reward_fn")})
     B = int(getattr(env, "batch_size", 1) or 1)
+    board_z = env_board_z(env)
     with progress_bar("eval", total=len(todo), enabled=progress) as advance:
         # B specs at a time, every policy on them before the next B: an interrupted evaluation holds
         # comparable episodes for all policies; each policy's B episodes run as one batch (topocut.episode)
@@ -229,9 +233,14 @@ def run_evaluation(specs: list[EpisodeSpec], policies: dict, env, task_cfgs: dic
                 mine = [s for s in group if (name, s.key) not in done]
                 if not mine:
                     continue
+                filmed = {s.key for s in mine if film is not None and film.wants(name, s)}
+                # the batch keeps its frames when it films: its episodes run as they would without (same batch-mates)
+                frames = dict(frames=True, cut_frames=film.frames_per_cut) if filmed else {}
 
-                def finished(i, log, mine=mine, name=name):
+                def finished(i, log, mine=mine, name=name, filmed=filmed):
                     spec = mine[i]
+                    if spec.key in filmed:  # the video first: an episode committed without it is filmed again later
+                        film.write(name, spec, log, board_z)
                     d = _result(spec, name, log).asdict()
                     write_json_atomic(episode_path(out_dir, name, spec), d)
                     done[name, spec.key] = d
@@ -243,5 +252,5 @@ def run_evaluation(specs: list[EpisodeSpec], policies: dict, env, task_cfgs: dic
 
                 run_episodes(env, [_episode(s, task_cfgs[s.task]) for s in mine], policy, sc,
                              max_cuts=cfg.max_cuts, observe_fn=observe_fn, stop_on_success=cfg.stop_on_success,
-                             on_done=finished, **episode_kw)
+                             on_done=finished, **frames, **episode_kw)
     return {n: [done[n, s.key] for s in specs] for n in policies}

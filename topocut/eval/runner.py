@@ -151,11 +151,12 @@ def eval_tasks(specs: list, policy_names, batch: int, one_at_a_time=frozenset())
 
 
 def evaluate_in_processes(specs, jobs: int, batch: int, ctx: RunContext, out_dir: Path, eval, sim, topology, reward,
-                          planner, observation, sampler, task_cfgs) -> None:
+                          planner, observation, sampler, task_cfgs, film=None) -> None:
     """The episodes of ``specs`` in ``jobs`` joblib worker processes (each its own Taichi/CUDA context), their JSONs
     written under out_dir as run_evaluation writes them.  The work is cut into eval_tasks, handed out one at a
     time as workers free up (MPPI's episodes run one at a time at ~28 s each on a GPU: parts dealt up front left
-    most workers idle while a few ran their last batches); each worker sets up its simulator and policies once."""
+    most workers idle while a few ran their last batches); each worker sets up its simulator and policies once and
+    films what ``film`` (topocut.eval.videos.Filming) wants of its episodes as run_evaluation does."""
     import uuid
 
     from joblib import Parallel, delayed
@@ -179,7 +180,7 @@ def evaluate_in_processes(specs, jobs: int, batch: int, ctx: RunContext, out_dir
     # batch_size=1: one task per dispatch, so a worker that finishes early takes the next task instead of
     # waiting behind a prefetched one
     wrote = Parallel(n_jobs=n_jobs, backend="loky", batch_size=1)(
-        delayed(_evaluate_task)(name, part, key, *setup_args) for name, part in tasks)
+        delayed(_evaluate_task)(name, part, key, *setup_args, film=film) for name, part in tasks)
     per_policy = {n: 0 for n in names}
     for (name, _), n in zip(tasks, wrote):
         per_policy[name] += n
@@ -191,7 +192,7 @@ _WORKER: dict = {}  # in a worker process: {"key": the call's key, "setup": (env
 
 
 def _evaluate_task(name: str, specs, key: str, store_root: str, out_dir: str, device: str, seed: int, eval, sim,
-                   topology, reward, planner, observation, sampler, task_cfgs) -> int:
+                   topology, reward, planner, observation, sampler, task_cfgs, film=None) -> int:
     """One task of evaluate_in_processes in a worker: run_evaluation of eval.policies entry ``name`` (all its runs:
     one per training seed) on ``specs``; returns how many episodes it wrote (those already there are resumed)."""
     from topocut.eval.protocol import episode_path, run_evaluation
@@ -216,7 +217,7 @@ def _evaluate_task(name: str, specs, key: str, store_root: str, out_dir: str, de
     mine = {r: p for r, p in policies.items() if runs[r]["policy"] == name}
     before = sum(episode_path(out_dir, r, s).exists() for s in specs for r in mine)
     run_evaluation(specs, mine, env, task_cfgs, out_dir, reward, topology, observe_fn, cfg=eval, progress=False,
-                   spacing=sim.spacing)
+                   spacing=sim.spacing, film=film)
     return sum(episode_path(out_dir, r, s).exists() for s in specs for r in mine) - before
 
 

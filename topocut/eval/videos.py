@@ -5,8 +5,11 @@ For every policy run (a learned policy's training seed is a run of its own, as i
 (``run_episodes(..., frames=True, cut_frames=F)``: CuttingEnv.cut's ``record_every`` snapshots, topocut.sim.cut_frames),
 drawn by the one renderer (topocut.sim.render: particles by cluster id, the knife, the board; one view box over
 the whole episode) and encoded as H.264 MP4 (imageio with the imageio-ffmpeg binary) at
-``videos/<run>/<task>_<object>_<episode>.mp4``.  A batch's episodes do not depend on their batch-mates and each is
-reset with its own seed, so the film is the evaluated episode.
+``videos/<run>/<task>_<object>_<episode>.mp4``.  The evaluation films as it goes (``Filming``, handed to
+topocut.eval.protocol.run_evaluation, in the workers too): a batch holding a filmed episode keeps its frames, and
+the video is written before the episode's JSON, so the film is the evaluated episode itself.  ``film_episodes``
+films afterwards only what an interrupted evaluation left without its video, by running those episodes again (a
+batch's episodes do not depend on their batch-mates and each is reset with its own seed).
 
 Frames of a video: each state (reset, after every cut, after every turn) held ``STATE_HOLD_FRAMES`` frames (1 s),
 and before each cut's state the F frames during it (the pieces coloured as before the cut, the particles this cut
@@ -80,29 +83,55 @@ def write_mp4(frames, path, fps: float = VIDEO_FPS) -> Path:
     return path
 
 
+class Filming:
+    """What run_evaluation films while it evaluates: ``keys``, the episode specs filmed for every run (the first
+    ``eval.videos`` of the protocol's list), with ``frames_per_cut`` frames during each cut, under ``out_dir``."""
+
+    def __init__(self, out_dir, keys, frames_per_cut: int):
+        self.out_dir, self.keys, self.frames_per_cut = Path(out_dir), frozenset(keys), int(frames_per_cut)
+
+    @classmethod
+    def of(cls, specs, eval, out_dir) -> Filming | None:
+        """The eval config's films of ``specs`` (the protocol's whole list, as pipelines/eval.py has it), or None."""
+        keys = [s.key for s in list(specs)[: max(0, int(eval.videos))]]
+        return cls(out_dir, keys, eval.video_frames_per_cut) if keys else None
+
+    def wants(self, run: str, spec) -> bool:
+        return spec.key in self.keys and not video_path(self.out_dir, run, spec).exists()
+
+    def write(self, run: str, spec, log, board_z: float) -> Path:
+        frames, repeats = episode_video_frames(log, f"{run} {spec.key}")
+        from topocut.sim.render import render_frames
+
+        # one view box over every frame of the episode: pieces pushed or turned away stay in view
+        images = render_frames(frames, board_z=board_z, width=VIDEO_WIDTH, height=VIDEO_HEIGHT)
+        return write_mp4([img for img, r in zip(images, repeats) for _ in range(r)], video_path(self.out_dir, run, spec))
+
+
 def film_episodes(specs, policies: dict, env, task_cfgs: dict, out_dir, eval, reward, topology, observe_fn,
-                  spacing) -> int:
-    """For every run of ``policies`` ({run: policy}), the first ``eval.videos`` of ``specs``: an MP4 each under
-    ``out_dir`` (video_path).  A video already there is kept (a resumed evaluation films only what is missing).
-    Returns how many videos this call wrote."""
+                  spacing, film: Filming | None = None, **score_fns) -> int:
+    """For every run of ``policies`` ({run: policy}), the first ``eval.videos`` of ``specs`` not filmed yet: an MP4
+    each under ``out_dir`` (video_path), its episode run again with frames.  The evaluation films as it goes
+    (Filming), so this is left only what an interrupted evaluation committed without its video.  ``film``: what to
+    film (default: Filming.of the config); ``score_fns``: goal_fn, discover_fn, reward_fn as run_evaluation takes
+    them.  Returns how many videos this call wrote."""
     from topocut.episode import env_board_z, make_scoring, run_episodes
     from topocut.eval.protocol import _episode
-    from topocut.sim.render import render_frames
 
-    chosen = list(specs)[: max(0, int(eval.videos))]
-    sc = make_scoring(reward, topology, min_fragment_points=eval.min_fragment_points, env=env)
+    film = film if film is not None else Filming.of(specs, eval, out_dir)
+    if film is None:
+        return 0
+    chosen = [s for s in specs if s.key in film.keys]
+    sc = make_scoring(reward, topology, min_fragment_points=eval.min_fragment_points, env=env, **score_fns)
     board_z, written = env_board_z(env), 0
     for run, policy in policies.items():
-        todo = [s for s in chosen if not video_path(out_dir, run, s).exists()]
+        todo = [s for s in chosen if film.wants(run, s)]
         if not todo:
             continue
         logs = run_episodes(env, [_episode(s, task_cfgs[s.task]) for s in todo], policy, sc, max_cuts=eval.max_cuts,
                             observe_fn=observe_fn, stop_on_success=eval.stop_on_success, spacing=spacing, frames=True,
-                            cut_frames=eval.video_frames_per_cut)
+                            cut_frames=film.frames_per_cut)
         for spec, log in zip(todo, logs):
-            frames, repeats = episode_video_frames(log, f"{run} {spec.key}")
-            # one view box over every frame of the episode: pieces pushed or turned away stay in view
-            images = render_frames(frames, board_z=board_z, width=VIDEO_WIDTH, height=VIDEO_HEIGHT)
-            write_mp4([img for img, r in zip(images, repeats) for _ in range(r)], video_path(out_dir, run, spec))
+            film.write(run, spec, log, board_z)
             written += 1
     return written
