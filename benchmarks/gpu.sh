@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Runs on the lent GPU machine (see docs/benchmarks.md for how the figures were made).
 # The machine has torch/lightning/scipy but not taichi, warp, hydra, trimesh, zarr (zarr 3.4 needs msgspec): they travel as
-# wheels under .whl/ (warp split in three parts, one per call; hydra-joblib-launcher in .whl/b for multiruns), made
+# wheels under .whl/ (warp split in three parts, one per call, imageio-ffmpeg in two; hydra-joblib-launcher in .whl/b
+# for multiruns), made
 # here by benchmarks/fetch_wheels.sh.
 # Usage: bash benchmarks/gpu.sh <phase>
 set -uo pipefail
@@ -46,6 +47,9 @@ mkdir -p "$W" /tmp/site
 for f in .whl/*/*; do [ -f "$f" ] && cp --update=none "$f" "$W/"; done
 if ls "$W"/warp.part0{0,1,2} >/dev/null 2>&1 && [ ! -f "$W/warp_lang-1.19.0-py3-none-manylinux_2_28_x86_64.whl" ]; then
   cat "$W"/warp.part00 "$W"/warp.part01 "$W"/warp.part02 > "$W/warp_lang-1.19.0-py3-none-manylinux_2_28_x86_64.whl"
+fi
+if ls "$W"/ffmpeg.part0{0,1} >/dev/null 2>&1 && [ ! -f "$W/imageio_ffmpeg-0.8.1-py3-none-manylinux_2_28_x86_64.whl" ]; then
+  cat "$W"/ffmpeg.part00 "$W"/ffmpeg.part01 > "$W/imageio_ffmpeg-0.8.1-py3-none-manylinux_2_28_x86_64.whl"
 fi
 for whl in "$W"/*.whl; do
   [ -f "$whl" ] || continue  # no wheels carried (the torch-only recipes: reward, train)
@@ -331,6 +335,23 @@ for f in sorted(glob.glob(sys.argv[1] + '/checkpoint/*/v*/metrics.json')):
     timeout 270 python3 -m topocut.run stage=bc $G policy.train.max_epochs=150 policy.net.n_blocks=12 \
       policy.train.batch_size=8 policy.train.lr=1e-3 2>&1 | grep -E "summary|Error" | tee -a "$OUT/train.txt"
     cp /tmp/o/checkpoint/perception/v*/metrics.json "$OUT/perception_metrics.json" ;;
+  film)  # the evaluation films as it goes (eval.videos=1) on the GPU, in EVAL_JOBS worker processes: the oracle, the
+    # heuristic and MPPI on smoke's two slice specs (and stick at 64^3: a push and a turn), an MP4 per policy run
+    t0=$(date +%s)
+    timeout ${LIMIT:-500} python3 -m topocut.run stage=eval scale=smoke device=cuda reward=torch sim.n_grid=${GRID:-64} \
+      "eval.policies=[${POLICIES:-oracle,heuristic,mppi}]" "eval.tasks=[slice,stick]" eval.jobs=${EVAL_JOBS:-2} \
+      eval.videos=1 eval.gifs=0 logger=none progress=false outputs_root=/tmp/o ${EVAL_ARGS:-} 2>&1 | grep -v -i warn \
+      | tail -25 | tee "$OUT/film.txt"
+    echo "wall $(( $(date +%s) - t0 )) s" | tee -a "$OUT/film.txt"
+    find /tmp/o/eval -name '*.mp4' -printf '%s %p\n' | tee -a "$OUT/film.txt"
+    python3 - <<'PY' 2>&1 | tee -a "$OUT/film.txt"
+import glob, json, os, imageio.v3 as iio
+for v in sorted(glob.glob("/tmp/o/eval/table1/v*/videos/*/*.mp4")):
+    e = json.load(open(v.replace("/videos/", "/episodes/").replace(".mp4", ".json")))
+    print(v.split("/videos/")[1], iio.imread(v).shape, "cuts", e["num_cuts"], "R", round(e["final_reward"], 3),
+          "video before JSON:", os.path.getmtime(v) <= os.path.getmtime(v.replace("/videos/", "/episodes/").replace(".mp4", ".json")))
+PY
+    cp "$(find /tmp/o/eval -name '*.mp4' -path '*mppi*' | head -1)" "$OUT/" 2>/dev/null ;;
   eval)
     G="scale=smoke device=cuda sim.n_grid=64 sim.batch_size=8 planner.num_samples=8 topology.resolution=64
        outputs_root=/tmp/o logger=none progress=false eval.seen=[cake] eval.unseen=[donut]

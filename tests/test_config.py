@@ -126,6 +126,21 @@ def test_out_of_range_values_fail_up_front_naming_the_key(override, key):
         validate(cfg)
 
 
+def test_videos_without_an_encoder_are_refused_up_front_naming_the_key(monkeypatch):
+    """The lent GPU machines have no ffmpeg: an evaluation that films is refused before it starts (it failed after its
+    last episode before), a run that evaluates nothing or films nothing is not."""
+    from topocut.eval import videos
+
+    assert videos.encoder_problem() is None  # this machine films (pyproject's matplotlib, imageio, imageio-ffmpeg)
+    monkeypatch.setattr(videos, "encoder_problem", lambda: "ModuleNotFoundError: No module named 'imageio_ffmpeg'")
+    for stage in ("eval", "all"):
+        with pytest.raises(ConfigError, match=r"eval\.videos: 1 films MP4s, .*imageio_ffmpeg.*set eval\.videos=0"):
+            validate(_compose(f"stage={stage}", "eval.videos=1"))
+    validate(_compose("stage=eval", "eval.videos=0"))
+    validate(_compose("stage=all", "eval.videos=1", "stage.run.sequence=[simulate,mppi]"))
+    validate(_compose("stage=mppi", "eval.videos=1"))
+
+
 def test_boundary_values_pass():
     validate(_compose("stage=eval", "data.episodes=1", "trainer.batch_size=1", "seed=2147483646",
                       "trainer.max_epochs=-1", "trainer.max_steps=10", "eval.unseen=[tomato]"))

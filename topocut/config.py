@@ -304,6 +304,22 @@ def validate(cfg: DictConfig) -> None:
             msg = str(e)
             raise ConfigError(msg if msg.startswith(group.split(".")[0]) else f"{group}: {msg}") from e
     _check_stage_args(cfg)
+    _check_video_encoder(cfg)
+
+
+def _check_video_encoder(cfg: DictConfig) -> None:
+    """eval.videos > 0 in a run that evaluates (stage=eval, or stage=all with eval in its sequence) needs an MP4
+    encoder: refused up front, naming the key, where the machine has none (the lent GPU machines have no ffmpeg)."""
+    stage = cfg.stage.name
+    evaluates = stage == "eval" or (stage == "all" and "eval" in list(cfg.stage.run.get("sequence", [])))
+    if not evaluates or cfg.eval.videos <= 0:
+        return
+    from topocut.eval.videos import encoder_problem
+
+    problem = encoder_problem()
+    _check(problem is None, "eval.videos",
+           f"{cfg.eval.videos} films MP4s, which needs matplotlib, imageio and imageio-ffmpeg's binary ({problem}); "
+           "install them (pip install matplotlib imageio imageio-ffmpeg) or set eval.videos=0")
 
 
 def _check_task_cuts(name: str, max_cuts: int) -> None:

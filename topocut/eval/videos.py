@@ -51,6 +51,21 @@ def episode_video_frames(log, title: str) -> tuple[list[dict], list[int]]:
     return frames, repeats
 
 
+def encoder_problem() -> str | None:
+    """What filming lacks on this machine (the renderer's matplotlib, imageio, the imageio-ffmpeg binary), or None.
+    Asked before an evaluation starts (topocut.config.validate): a machine without an encoder finds out up front,
+    not after its last episode, nor in a worker mid-evaluation."""
+    try:
+        import imageio.v2  # noqa: F401
+        import imageio_ffmpeg
+        import matplotlib  # noqa: F401
+
+        imageio_ffmpeg.get_ffmpeg_exe()  # raises when its binary is missing
+    except Exception as e:  # noqa: BLE001 - an ImportError, or imageio-ffmpeg's RuntimeError for a missing binary
+        return f"{type(e).__name__}: {e}"
+    return None
+
+
 def write_mp4(frames, path, fps: float = VIDEO_FPS) -> Path:
     """(H,W,3) uint8 frames to an H.264 MP4 (yuv420p: plays everywhere), padded white to one size in multiples of
     16 pixels.  Written to a temporary name in the same directory and renamed: the file is complete or absent
