@@ -114,8 +114,11 @@ class Filming:
     def wants(self, run: str, spec) -> bool:
         return spec.key in self.keys and not video_path(self.out_dir, run, spec).exists()
 
-    def write(self, run: str, spec, log, board_z: float) -> Path:
+    def write(self, run: str, spec, log, board_z: float) -> Path | None:
+        """The MP4 of ``log`` (an EpisodeLog kept with frames); None for an episode that reached no state."""
         frames, repeats = episode_video_frames(log, f"{run} {spec.key}")
+        if not frames:
+            return None
         from topocut.sim.render import render_frames
 
         # one view box over every frame of the episode: pieces pushed or turned away stay in view
