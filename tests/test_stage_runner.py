@@ -83,3 +83,38 @@ def test_a_forked_run_past_its_timeout_is_killed(tmp_path):
         stage_runner.run(_cmd(tmp_path, "stage=simulate"), cwd=REPO, timeout=0.05)
     # the server serves the next run
     assert stage_runner.run(_cmd(tmp_path, "stage=simulate", "sim.n_grid=-3"), cwd=REPO, timeout=120).returncode == 2
+
+
+KERNEL_THEN_EXIT = r"""
+import os, sys
+import taichi as ti
+sys.path.insert(0, {repo!r})
+from tests import stage_runner
+ti.init(arch=ti.cpu, offline_cache=True, offline_cache_file_path={cache!r}, log_level=ti.ERROR)
+x = ti.field(ti.f32, shape=8)
+
+@ti.kernel
+def fill(v: ti.f32):
+    for i in x:
+        x[i] = v * i
+
+fill(2.0)
+assert x[3] == 6.0
+if {finalize}:
+    stage_runner._finalize_taichi()
+os._exit(0)  # as a forked run ends
+"""
+
+
+@pytest.mark.parametrize("finalize", [False, True])
+def test_a_run_ending_in_os_exit_caches_its_kernels_only_once_taichi_is_freed(tmp_path, finalize):
+    """Taichi writes a process's kernels to its cache on disk when its runtime is freed, not at exit: a forked run
+    (os._exit) cached none until _finalize_taichi, and every suite compiled its kernels again."""
+    cache = tmp_path / "ticache"
+    script = tmp_path / "kernel_then_exit.py"  # a file: Taichi reads a kernel's source from it
+    script.write_text(KERNEL_THEN_EXIT.format(repo=str(stage_runner.REPO), cache=str(cache), finalize=finalize))
+    proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120,
+                          env=dict(os.environ, TI_CPU_MAX_NUM_THREADS="1"))
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    cached = list(cache.rglob("*.tic"))
+    assert bool(cached) == finalize, (finalize, cached)
