@@ -99,10 +99,9 @@ def _finalize_taichi() -> None:
     if "taichi" not in sys.modules:
         return
     try:
-        from taichi.lang import impl
+        from topocut.sim.runtime import reset_taichi
 
-        if impl.get_runtime().prog is not None:
-            sys.modules["taichi"].reset()
+        reset_taichi()  # the project's own: drops what holds fields first, frees a runtime however it was started
     except Exception:  # noqa: BLE001 - the cache is a saving; the run's own outcome is already decided
         traceback.print_exc()
 

@@ -60,7 +60,9 @@ def test_the_evaluation_films_as_it_goes_and_runs_no_episode_again(filmed_run):
     path, out = filmed_run
     assert "filmed by running their episodes again" not in out, out[-3000:]
     # each video was written before its episode's JSON was committed (Filming, in run_evaluation)
-    for video in path.glob("videos/*/*.mp4"):
+    videos = sorted(path.glob("videos/*/*.mp4"))
+    assert len(videos) == 2 * len(POLICIES), videos
+    for video in videos:
         episode = path / "episodes" / video.parent.name / f"{video.stem}.json"
         assert video.stat().st_mtime_ns <= episode.stat().st_mtime_ns, video
 
