@@ -8,8 +8,9 @@ run trained with seeds ``seed .. seed+k-1``, each evaluated as ``<policy>@s<seed
 and ``module.path:ClassName`` entries: your own Policy class, imported (topocut.policies.registry.load_external).
 Episodes are committed one by one; an interrupted evaluation resumes.  ``eval.jobs=J`` runs them in J worker
 processes (topocut.eval.runner.eval_tasks: batches, MPPI's specs one by one), then the report as usual.  Renders:
-``eval.gifs`` (GIFs of one policy's first episodes per task, the cutting-sequence figure) and ``eval.videos`` (an MP4
-of every policy run's first episodes, each cut in motion: topocut.eval.videos).
+``eval.gifs`` (GIFs of one policy run's first episodes per task and the cutting-sequence figure:
+topocut.eval.sequences) and ``eval.videos`` (an MP4 of every policy run's first episodes, each cut in motion:
+topocut.eval.videos), both filmed as the episodes are evaluated.
 """
 from __future__ import annotations
 
@@ -17,8 +18,9 @@ import dataclasses
 import logging
 
 from pipelines._common import as_dict
-from topocut.eval.runner import evaluate_in_processes, render_episodes, setup, task_configs
-from topocut.eval.videos import Filming, film_episodes
+from topocut.eval.runner import evaluate_in_processes, setup, task_configs
+from topocut.eval.sequences import Sequences
+from topocut.eval.videos import Filming, Films, film_episodes
 from topocut.utils.context import RunContext
 
 
@@ -69,8 +71,10 @@ def run(ctx: RunContext, eval, sim, topology, reward, planner, observation, data
                 "evaluates and films anew", existing)
         return {"eval": str(existing), "reused": True}
     write_json_atomic(writer.path / RUNS_FILE, runs)  # run name -> policy and training seed, for the report
-    # every policy run's first eval.videos episodes filmed as they are evaluated (an MP4 each, each cut in motion)
-    film = Filming.of(specs, eval, writer.path / "videos")
+    # filmed as they are evaluated: every policy run's first eval.videos episodes (an MP4 each, each cut in motion)
+    # and one run's first eval.gifs episodes per task (a GIF each, the cutting-sequence figure's rows)
+    sequences = Sequences.of(specs, eval, list(policies), writer.path / "gifs")
+    film = Films.of(Filming.of(specs, eval, writer.path / "videos"), sequences)
     if eval.jobs > 1:  # the episodes in worker processes; the run below then finds them all written (resume)
         evaluate_in_processes(specs, eval.jobs, env.batch_size, ctx, writer.path, eval, sim, topology, reward,
                               planner, observation, sampler, task_cfgs, film=film)
@@ -81,15 +85,16 @@ def run(ctx: RunContext, eval, sim, topology, reward, planner, observation, data
 
         run_evaluation([t.spec], {"teleop": TeleopReplay(t.cuts)}, env, task_cfgs, writer.path, reward, topology,
                        observe_fn, cfg=eval, progress=False, logger=ctx.logger, spacing=sim.spacing)
-    if eval.gifs > 0:
-        render_episodes(specs, policies, env, task_cfgs, writer.path / "gifs", eval, reward, topology,
-                        observe_fn, sim.spacing)
-    if eval.videos > 0:  # what an interrupted evaluation committed without its video: run again and filmed
+    if film is not None:  # what an interrupted evaluation committed without its films: run again and filmed
         again = film_episodes(specs, policies, env, task_cfgs, writer.path / "videos", eval, reward, topology,
-                              observe_fn, sim.spacing)
+                              observe_fn, sim.spacing, film=film)
         if again:
-            logging.getLogger("topocut").info("eval: %d videos filmed by running their episodes again (committed "
-                                              "without them by an interrupted evaluation)", again)
+            logging.getLogger("topocut").info("eval: %d episodes filmed by running them again (committed without "
+                                              "their videos or GIFs by an interrupted evaluation)", again)
+    if sequences is not None:
+        from topocut.episode import env_board_z
+
+        sequences.draw(env_board_z(env))
     report = write_report(writer.path, reference=eval.reference, normalize_by=eval.normalize_by,
                           compare_to=eval.comparison, confidence=eval.confidence,
                           n_resamples=eval.bootstrap_resamples, seed=eval.bootstrap_seed)

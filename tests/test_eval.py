@@ -311,6 +311,51 @@ def test_run_evaluation_films_the_evaluated_episodes_without_running_them_again(
     assert env2.resets == [] and len(film.written) == 4
 
 
+def test_cutting_sequences_are_filmed_as_the_evaluation_goes_beside_the_videos(tmp_path):
+    """eval.gifs (topocut.eval.sequences): PDDP's first training seed's first episode per task as a GIF, written
+    before the episode's JSON from the evaluated episode's own states, the figure's rows kept until it is drawn;
+    the videos' film still gets its episodes (Films), and no episode runs twice."""
+    from PIL import Image
+
+    from topocut.eval.sequences import Sequences
+    from topocut.eval.videos import Films
+
+    cfg = smoke(gifs=1)
+    specs = episode_specs(cfg)
+    tasks = {t: slice_task() for t in ("slice", "stick", "dice")}
+    env, pols = BoxEnv(), {"oracle": PlanePolicy(), "pddp@s0": PlanePolicy(limit=2), "pddp@s1": PlanePolicy()}
+    seq = Sequences.of(specs, cfg, list(pols), tmp_path / "gifs")
+    videos = RecordingFilm([specs[0].key], tmp_path)
+    film = Films.of(videos, seq)
+    assert seq.run == "pddp@s0" and seq.frames_per_cut == film.frames_per_cut == 0 and Films.of(None, None) is None
+    assert Films(SimpleNamespace(keys={"a"}, frames_per_cut=3), seq).frames_per_cut == 3  # the most a member asks
+    firsts = [next(s for s in specs if s.task == t) for t in cfg.tasks]  # the first episode of each task
+    assert seq.keys == {s.key for s in firsts} and [key for _, key, _ in seq.rows] == [s.key for s in firsts]
+    out = run_evaluation(specs, pols, env, tasks, tmp_path, progress=False, film=film, **FAKES)
+    assert len(env.resets) == 18  # 6 specs x 3 runs, each once
+    assert sorted(videos.written) == sorted((n, specs[0].key) for n in pols)  # the other member still films
+    gifs = sorted(p.name for p in (tmp_path / "gifs").glob("*.gif"))
+    assert gifs == sorted(f"{s.key}_pddp@s0.gif" for s in firsts)
+    for spec in firsts:
+        episode = [e for e in out["pddp@s0"] if EpisodeSpec(**e["spec"]).key == spec.key][0]
+        gif, panels = seq.gif_path(spec), seq.panels_path(spec.key)
+        assert gif.stat().st_mtime_ns <= episode_path(tmp_path, "pddp@s0", spec).stat().st_mtime_ns
+        with Image.open(gif) as im:  # the reset, then the state after each executed cut
+            assert im.n_frames == 1 + episode["num_cuts"] == 3
+        assert panels.exists() and not seq.wants("pddp@s0", spec)
+    assert not seq.wants("oracle", firsts[0]) and not seq.figure.exists()
+    # the figure from the rows' panels: a row per task, its panels the initial state, the goal and each cut
+    import pickle
+
+    with open(seq.panels_path(firsts[0].key), "rb") as f:
+        assert [caption for *_, caption in pickle.load(f)][:2] == ["initial", "goal"]
+    assert seq.draw(BOARD_Z) == seq.figure and seq.figure.stat().st_size > 0
+    assert not (tmp_path / "gifs" / "panels").exists() and not list(tmp_path.rglob("*.tmp-*"))
+    # a GIF lost after its JSON (an evaluation killed in between, by an older version) is what film_episodes redoes
+    seq.gif_path(firsts[1]).unlink()
+    assert [s.key for s in specs if film.wants("pddp@s0", s)] == [firsts[1].key]
+
+
 def test_videos_an_interrupted_evaluation_left_out_are_filmed_by_running_their_episodes_again(tmp_path):
     """film_episodes: the fallback for episodes committed without their video (a run killed between the two, or
     evaluated without the film): exactly those run again, and the film shows the committed episode."""

@@ -25,7 +25,7 @@ FRAMES_PER_CUT = 3
 # one cube, three slice episodes of two cuts each, in one batch (smoke scale: sim.batch_size=4); a coarse grid
 TINY = ["stage=eval", "device=cpu", "logger=none", "progress=false", f"eval.policies=[{','.join(POLICIES)}]",
         "eval.seen=[cube]", "eval.unseen=[]", "eval.tasks=[slice]", "eval.episodes_per_cell=3", "eval.max_cuts=2",
-        "eval.gifs=0", "eval.num_points=128", "eval.cpu_threads=1", "eval.bootstrap_resamples=100", "sim.n_grid=32",
+        "eval.num_points=128", "eval.cpu_threads=1", "eval.bootstrap_resamples=100", "sim.n_grid=32",
         "sim.cut_substeps=40", "sim.dwell_time=0.0005", "sim.push_time=0.002", "sim.settle_time=0.002",
         "topology.resolution=32"]
 
@@ -38,7 +38,8 @@ def topocut(root: Path, *overrides: str) -> subprocess.CompletedProcess:
 
 
 def _evaluation(root: Path, *overrides: str) -> tuple[Path, str]:
-    proc = topocut(root, *TINY, *overrides)
+    gifs = [] if any(o.startswith("eval.gifs=") for o in overrides) else ["eval.gifs=0"]
+    proc = topocut(root, *TINY, *gifs, *overrides)
     out = proc.stdout + proc.stderr
     assert proc.returncode == 0, out[-4000:]
     (path,) = (root / "eval" / "table1").glob("v*")
@@ -48,7 +49,7 @@ def _evaluation(root: Path, *overrides: str) -> tuple[Path, str]:
 @pytest.fixture(scope="module")
 def filmed_run(tmp_path_factory) -> tuple[Path, str]:
     return _evaluation(tmp_path_factory.mktemp("videos"), "eval.videos=2",
-                       f"eval.video_frames_per_cut={FRAMES_PER_CUT}")
+                       f"eval.video_frames_per_cut={FRAMES_PER_CUT}", "eval.gifs=1")
 
 
 @pytest.fixture(scope="module")
@@ -58,13 +59,20 @@ def filmed(filmed_run) -> Path:
 
 def test_the_evaluation_films_as_it_goes_and_runs_no_episode_again(filmed_run):
     path, out = filmed_run
-    assert "filmed by running their episodes again" not in out, out[-3000:]
+    assert "filmed by running them again" not in out, out[-3000:]
     # each video was written before its episode's JSON was committed (Filming, in run_evaluation)
     videos = sorted(path.glob("videos/*/*.mp4"))
     assert len(videos) == 2 * len(POLICIES), videos
     for video in videos:
         episode = path / "episodes" / video.parent.name / f"{video.stem}.json"
         assert video.stat().st_mtime_ns <= episode.stat().st_mtime_ns, video
+    # eval.gifs=1: the first run's (no PDDP here: the oracle's) first slice episode as a GIF, before its JSON, and
+    # the cutting-sequence figure from it; its panels are gone once the figure is drawn
+    gif = path / "gifs" / f"slice_cube_000_{POLICIES[0]}.gif"
+    assert sorted((path / "gifs").iterdir()) == sorted([gif, path / "gifs" / "sequences.png"])
+    assert gif.stat().st_mtime_ns <= (path / "episodes" / POLICIES[0] / "slice_cube_000.json").stat().st_mtime_ns
+    episode = json.loads((path / "episodes" / POLICIES[0] / "slice_cube_000.json").read_text())
+    assert len(iio.imread(gif, index=None)) == 1 + episode["num_cuts"]  # the reset, then each cut's state
 
 
 def test_every_policy_has_a_video_of_its_first_episodes_only(filmed):

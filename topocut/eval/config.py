@@ -70,7 +70,7 @@ class EvalConfig:
     num_points: int = 2048  # observation points handed to the policy (matches data.points_per_step)
     min_fragment_points: int = 4  # smaller labelled clusters are debris, not pieces
     stop_on_success: bool = False  # the paper runs all five cuts; True stops once the task's threshold is met
-    gifs: int = 0  # episodes per policy rendered to GIF by the eval stage
+    gifs: int = 0  # episodes per task of one policy run rendered to GIF, and the figure (topocut.eval.sequences)
     # rollout videos (topocut.eval.videos): the first `videos` episodes of every policy run as MP4, each cut shown
     # in motion by `video_frames_per_cut` frames; 0 films none.  Not part of the artifact's key (no episode changes)
     videos: int = 0

@@ -239,36 +239,3 @@ def setup(ctx: RunContext, eval, sim, topology, reward, planner, observation, ta
                                       policy_kwargs=eval.policy_kwargs)
     return env, policies, inputs, make_observe_fn(eval.observation, eval.num_points, observation, seed=eval.seed,
                                                   device=ctx.device)
-
-
-def render_episodes(specs, policies, env, task_cfgs, out_dir, eval, reward, topology, observe_fn, spacing):
-    """For PDDP (or the first policy), the first ``eval.gifs`` episodes per task: a GIF each (particles coloured by
-    cluster id after every cut and turn, the knife of the cut, the board: the episode engine's own frames), and
-    ``sequences.png``, the paper's cutting-sequence figure (a row per task: initial state, goal, each cut)."""
-    from topocut.episode import env_board_z, run_episodes
-    from topocut.eval.protocol import _episode, scoring_for
-    from topocut.sim.render import goal_colors, render_frames, render_sequences, write_gif
-
-    name = next((n for n in policies if n.split("@")[0] == "pddp"), next(iter(policies)))
-    sc = scoring_for(env, reward, topology, eval.min_fragment_points)
-    board_z, rows = env_board_z(env), []
-    for task in eval.tasks:
-        chosen = [s for s in specs if s.task == task][: eval.gifs]
-        logs = run_episodes(env, [_episode(s, task_cfgs[task]) for s in chosen], policies[name], sc,
-                            max_cuts=eval.max_cuts, observe_fn=observe_fn, stop_on_success=eval.stop_on_success,
-                            spacing=spacing, frames=True)
-        for spec, log in zip(chosen, logs):
-            panels = []
-            for i, (x, labels, what, knife) in enumerate(log.frames):  # knife: a cut's executed action
-                if i == 0 or knife is not None:
-                    panels.append((x, labels, knife, "initial" if i == 0 else what))
-                if i == 0 and log.goal is not None:
-                    panels.append((log.goal.points, goal_colors(log.goal.labels), None, "goal"))
-            # one view box over every frame of the episode: pieces pushed or turned away stay in view
-            gif = render_frames([dict(x=x, labels=labels, knife=knife, title=f"{name} {spec.key} {what}")
-                                 for x, labels, what, knife in log.frames], board_z=board_z)
-            write_gif(gif, out_dir / f"{spec.key}_{name}.gif", fps=1.5)
-            if len(rows) < len(eval.tasks) and spec is chosen[0]:
-                rows.append((f"{task}: {spec.object}", panels))
-    if rows:
-        render_sequences(rows, out_dir / "sequences.png", board_z=board_z)

@@ -126,13 +126,36 @@ class Filming:
         return write_mp4([img for img, r in zip(images, repeats) for _ in range(r)], video_path(self.out_dir, run, spec))
 
 
+class Films:
+    """Several films as one, as run_evaluation takes them: the videos (Filming) and the cutting sequences
+    (topocut.eval.sequences.Sequences).  A batch keeps the most frames during a cut any member asks for, and each
+    member writes what it wants of an episode."""
+
+    def __init__(self, *members):
+        self.members = [m for m in members if m is not None]
+        self.keys = frozenset().union(*(m.keys for m in self.members))
+        self.frames_per_cut = max((m.frames_per_cut for m in self.members), default=0)
+
+    @classmethod
+    def of(cls, *members) -> Films | None:
+        films = cls(*members)
+        return films if films.members else None
+
+    def wants(self, run: str, spec) -> bool:
+        return any(m.wants(run, spec) for m in self.members)
+
+    def write(self, run: str, spec, log, board_z: float) -> list:
+        return [m.write(run, spec, log, board_z) for m in self.members if m.wants(run, spec)]
+
+
 def film_episodes(specs, policies: dict, env, task_cfgs: dict, out_dir, eval, reward, topology, observe_fn,
-                  spacing, film: Filming | None = None, **score_fns) -> int:
-    """For every run of ``policies`` ({run: policy}), the first ``eval.videos`` of ``specs`` not filmed yet: an MP4
-    each under ``out_dir`` (video_path), its episode run again with frames.  The evaluation films as it goes
-    (Filming), so this is left only what an interrupted evaluation committed without its video.  ``film``: what to
-    film (default: Filming.of the config); ``score_fns``: goal_fn, discover_fn, reward_fn as run_evaluation takes
-    them.  Returns how many videos this call wrote."""
+                  spacing, film: Filming | Films | None = None, **score_fns) -> int:
+    """For every run of ``policies`` ({run: policy}), the episodes of ``specs`` that ``film`` wants and has not
+    written: their films (an MP4 each under ``out_dir``, video_path; a cutting sequence's GIF), each episode run
+    again with frames.  The evaluation films as it goes (Films), so this is left only what an interrupted
+    evaluation committed without its films.  ``film``: what to film (default: Filming.of the config);
+    ``score_fns``: goal_fn, discover_fn, reward_fn as run_evaluation takes them.  Returns how many episodes this
+    call ran again."""
     from topocut.episode import env_board_z, make_scoring, run_episodes
     from topocut.eval.protocol import _episode
 
