@@ -335,12 +335,13 @@ for f in sorted(glob.glob(sys.argv[1] + '/checkpoint/*/v*/metrics.json')):
     timeout 270 python3 -m topocut.run stage=bc $G policy.train.max_epochs=150 policy.net.n_blocks=12 \
       policy.train.batch_size=8 policy.train.lr=1e-3 2>&1 | grep -E "summary|Error" | tee -a "$OUT/train.txt"
     cp /tmp/o/checkpoint/perception/v*/metrics.json "$OUT/perception_metrics.json" ;;
-  film)  # the evaluation films as it goes (eval.videos=1) on the GPU, in EVAL_JOBS worker processes: the oracle, the
-    # heuristic and MPPI on smoke's two slice specs (and stick at 64^3: a push and a turn), an MP4 per policy run
+  film)  # the evaluation films as it goes (eval.videos=1, eval.gifs=GIFS, default 1) on the GPU, in EVAL_JOBS worker
+    # processes: the oracle, the heuristic and MPPI on smoke's two slice specs (and stick at 64^3: a push and a turn),
+    # an MP4 per policy run, the first run's GIF per task and the cutting-sequence figure
     t0=$(date +%s)
     timeout ${LIMIT:-500} python3 -m topocut.run stage=eval scale=smoke device=cuda reward=torch sim.n_grid=${GRID:-64} \
       "eval.policies=[${POLICIES:-oracle,heuristic,mppi}]" "eval.tasks=[slice,stick]" eval.jobs=${EVAL_JOBS:-2} \
-      eval.videos=1 eval.gifs=0 logger=none progress=false outputs_root=/tmp/o ${EVAL_ARGS:-} 2>&1 | grep -v -i warn \
+      eval.videos=1 eval.gifs=${GIFS:-1} logger=none progress=false outputs_root=/tmp/o ${EVAL_ARGS:-} 2>&1 | grep -v -i warn \
       | tail -25 | tee "$OUT/film.txt"
     echo "wall $(( $(date +%s) - t0 )) s" | tee -a "$OUT/film.txt"
     find /tmp/o/eval -name '*.mp4' -printf '%s %p\n' | tee -a "$OUT/film.txt"
@@ -350,8 +351,16 @@ for v in sorted(glob.glob("/tmp/o/eval/table1/v*/videos/*/*.mp4")):
     e = json.load(open(v.replace("/videos/", "/episodes/").replace(".mp4", ".json")))
     print(v.split("/videos/")[1], iio.imread(v).shape, "cuts", e["num_cuts"], "R", round(e["final_reward"], 3),
           "video before JSON:", os.path.getmtime(v) <= os.path.getmtime(v.replace("/videos/", "/episodes/").replace(".mp4", ".json")))
+for g in sorted(glob.glob("/tmp/o/eval/table1/v*/gifs/*")):
+    print(g.split("/gifs/")[1], os.path.getsize(g), "bytes")
+    if g.endswith(".gif"):  # <task>_<object>_<episode>_<run>.gif
+        d, (key, run) = os.path.dirname(os.path.dirname(g)), os.path.basename(g)[:-4].rsplit("_", 1)
+        j = f"{d}/episodes/{run}/{key}.json"
+        print("  frames", len(iio.imread(g, index=None)), "cuts", json.load(open(j))["num_cuts"],
+              "GIF before JSON:", os.path.getmtime(g) <= os.path.getmtime(j))
 PY
-    cp "$(find /tmp/o/eval -name '*.mp4' -path '*mppi*' | head -1)" "$OUT/" 2>/dev/null ;;
+    cp "$(find /tmp/o/eval -name '*.mp4' -path '*mppi*' | head -1)" "$OUT/" 2>/dev/null
+    cp /tmp/o/eval/table1/v*/gifs/sequences.png "$OUT/" 2>/dev/null ;;
   eval)
     G="scale=smoke device=cuda sim.n_grid=64 sim.batch_size=8 planner.num_samples=8 topology.resolution=64
        outputs_root=/tmp/o logger=none progress=false eval.seen=[cake] eval.unseen=[donut]
