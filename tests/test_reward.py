@@ -300,10 +300,35 @@ def test_a_fragment_past_zero_by_size_alone_is_not_described_and_scores_as_if_it
     np.testing.assert_allclose(got.distances[0], d_size, rtol=1e-9)
     assert (got.distances[0] < full[0] - 1e-6).all() and (got.distances[0] > 0.5).all()  # a strict lower bound
     np.testing.assert_allclose(got.distances[1:], full[1:], rtol=1e-6)  # the others: described as before
-    vols = [size_descriptor(f)[3] for f in frags]
-    ref = reward_from_distances(full, len(goals), cfg, vols, [size_descriptor(g)[3] for g in goals])
+    # weights by material: sampled on one lattice, a piece weighs its particle count (docs/reward.md#weights)
+    ref = reward_from_distances(full, len(goals), cfg, [len(f) for f in frags], [len(g) for g in goals])
     assert got.total == pytest.approx(ref.total, abs=1e-9) and got.stock == ref.stock == 0
     assert got.matching == ref.matching and got.cut_count == ref.cut_count
+
+
+def test_a_torn_sheet_weighs_its_particles_not_its_spread():
+    """w_f counts material (docs/reward.md#weights): pieces sampled on one lattice weigh their particle counts over a
+    goal piece's.  A chip the blade tears into a one-layer sheet spreads its particles (its own spacing estimate
+    ~1.6 H, its size descriptor's V ~4x its particles' cells); weighed by that V, two such chips overran the planned
+    offcuts' budget and charged the scene (dice / burger / 0 at 128^3: R 0.34 for a perfect die)."""
+    from topocut.reward.size import particle_spacing, size_descriptor
+
+    die, offcut = box(0.03, 0.03, 0.03), box(0.03, 0.03, 0.03, seed=5) + [0.06, 0.0, 0.0]
+    rng = np.random.default_rng(7)
+
+    def sheet(x0):  # 8 x 5 particles in one layer, 1.6 lattice steps apart
+        g = np.stack(np.meshgrid(np.arange(8) * 1.6 * H, np.arange(5) * 1.6 * H, [0.0], indexing="ij"), -1)
+        return g.reshape(-1, 3) + rng.uniform(-H / 8, H / 8, (40, 3)) + [x0, 0.08, 0.0]
+
+    sheets = [sheet(0.0), sheet(0.03)]
+    n = len(die)
+    assert all(size_descriptor(s)[3] > 3.0 * len(s) * particle_spacing(die) ** 3 for s in sheets)  # V inflated
+    cfg = RewardConfig(num_point=128, knn=12, num_eig=8)
+    clean = spectral_reward([die, offcut], [die], cfg, offcuts=[offcut])
+    torn = spectral_reward([die, offcut, *sheets], [die], cfg, offcuts=[offcut])
+    np.testing.assert_allclose(torn.weights, [1.0, 1.0, 40 / n, 40 / n], rtol=1e-12)
+    assert 2 * 40 / n < cfg.offcut_slack  # within the slack: forgiven in full, the scene scores as without them
+    assert torn.total == pytest.approx(clean.total, abs=1e-12) and clean.total > 0.99
 
 
 def test_size_tolerance_forgives_up_to_its_spacings_and_charges_the_excess():

@@ -13,7 +13,15 @@ from collections import OrderedDict
 import numpy as np
 
 from topocut.reward.config import RewardConfig
-from topocut.reward.size import PROFILE_QUANTILES, particle_spacing, size_descriptor, size_descriptors, size_distance
+from topocut.reward.size import (
+    PROFILE_QUANTILES,
+    material_volumes,
+    particle_spacing,
+    set_spacing,
+    size_descriptor,
+    size_descriptors,
+    size_distance,
+)
 from topocut.reward.spectral import _points, descriptor, descriptor_distance, resample, resample_groups
 from topocut.reward.strays import body
 
@@ -119,13 +127,15 @@ def distance_matrices(fragment_sets, goal_fragments, cfg: RewardConfig | None = 
 def distances_and_volumes(fragment_sets, goal_fragments, cfg: RewardConfig | None = None, names=None,
                           spacing: float | None = None):
     """(one (F_s,G) distance matrix per set, fragment volumes per set, goal volumes): what
-    ``reward_from_distances(D, G, cfg, volumes, goal_volumes)`` needs to score each set."""
+    ``reward_from_distances(D, G, cfg, volumes, goal_volumes)`` needs to score each set.  The volumes are the pieces'
+    material (``material_volumes``: particles x their set's lattice cell), the unit of the weights w_f."""
     return _score_sets(fragment_sets, goal_fragments, cfg, names, spacing=spacing)
 
 
 def _score_sets(fragment_sets, goal_fragments, cfg: RewardConfig | None = None, names=None, per_set=False,
                 spacing: float | None = None):
-    """(distance matrices, fragment volumes per set, goal volumes).
+    """(distance matrices, fragment volumes per set, goal volumes): the volumes are material (particle counts x the
+    set's lattice cell, ``set_spacing``; the goal's own cell for its pieces), what the weights w_f count.
 
     goal_fragments: one list of goal clouds for every set, or (per_set=True) one list per set; the goal
     volumes are then one array per set.  All sets' fragments go through one descriptor call, so the torch
@@ -161,6 +171,7 @@ def _score_sets(fragment_sets, goal_fragments, cfg: RewardConfig | None = None, 
                 ugoals.append((k, g))
             row.append(keys[k])
         gidx.append(row)
+    ucounts = [len(g) for _, g in ugoals]  # the goal pieces' material, in particles (strays and all)
     # goal pieces by their bodies as the fragments (ideal pieces have no strays: the same points), and their sizes
     pieces = [_cached(("goal piece", k, *skey, cfg.stray_share), lambda g=g: _goal_piece(g, spacing, cfg))
               for k, g in ugoals]
@@ -170,15 +181,20 @@ def _score_sets(fragment_sets, goal_fragments, cfg: RewardConfig | None = None, 
     set_goals = gidx if per_set else gidx * len(raw)  # each set's goal indices into ugoals
     # every scene's pieces at once (on the device, or in one host thread pool: reward.size_solver), each profiled only
     # where its extents and fill leave R > 0, each described by its body (its strays left out) where that matters
+    counts = [[len(f) for f in fs] for fs in raw]  # each fragment's material, in particles (strays and all)
     todo = [(f, gsizes[row]) for fs, row in zip(raw, set_goals) for f in fs]
     flat_sizes = iter(_fragment_sizes(todo, cfg, spacing))
     sized = [[next(flat_sizes) for _ in fs] for fs in raw]
     sizes = [[sz for sz, _ in fs] for fs in sized]
     raw = [[b for _, b in fs] for fs in sized]
-    uvols = gsizes[:, 3] if len(gsizes) else np.zeros(0)
     Ds = [np.full((len(fs), len(row)), np.inf) for fs, row in zip(raw, set_goals)]
-    vols = [np.array([sz[3] for sz in fs]) for fs in sizes]
-    gvols = [uvols[row] for row in gidx] if per_set else uvols[gidx[0]]
+    # the weights count material, not the size descriptor's V (the body's particles x the piece's own spacing
+    # estimate, which a chip or a torn sheet inflates): docs/reward.md#weights
+    gcells = [set_spacing(gsizes[row, -1] if len(row) else [], [ucounts[u] for u in row]) for row in gidx]
+    gvols = [material_volumes([ucounts[u] for u in row], c) for row, c in zip(gidx, gcells)]
+    set_cells = gcells if per_set else gcells * len(raw)
+    vols = [_fragment_material(n, [sz[-1] for sz in fs], c) for fs, n, c in zip(sizes, counts, set_cells)]
+    gvols = gvols if per_set else gvols[0]
     flat = [f for fs in raw for f in fs]
     if not flat or not any(len(g) >= cfg.min_points for g in gres):
         return Ds, vols, gvols
@@ -265,7 +281,22 @@ def _goal_descriptors(keys: list, clouds: list, sigma, cfg: RewardConfig) -> lis
             for j, k in enumerate(keys)]
 
 
-def _offcut_volumes(offcuts) -> np.ndarray:
-    """(O,) volumes of a goal's planned offcuts (cached by content, as the goal pieces' descriptors are)."""
-    clouds = [_points(o, f"offcuts[{i}]") for i, o in enumerate(offcuts or [])]
-    return np.array([_cached(("size", _hash(o)), lambda o=o: size_descriptor(o))[3] for o in clouds])
+SAME_LATTICE = 0.25  # fragments whose spacing is within this share of their goal's were sampled on its lattice
+
+
+def _fragment_material(counts, spacings, goal_cell: float) -> np.ndarray:
+    """A set's fragments' material (F,) in its goal's unit: their particles x the goal's lattice cell where the set
+    was sampled on the goal's lattice (its spacing, set_spacing, within SAME_LATTICE of the goal's: every goal the
+    project makes is what its steps make on the scene's own particles), so a fragment weighs its particle count over
+    a goal piece's; another set (a goal sampled apart, at another spacing) its own cell."""
+    own = set_spacing(spacings, counts)
+    same = goal_cell > 0 and own > 0 and abs(own / goal_cell - 1.0) <= SAME_LATTICE
+    return material_volumes(counts, goal_cell if same else own)
+
+
+def _offcut_volumes(offcuts, goal_fragments, goal_volumes) -> np.ndarray:
+    """(O,) material of a goal's planned offcuts in its goal pieces' unit: their particles x the goal's lattice cell
+    (goal_volumes over the goal pieces' particles: a goal's pieces and offcuts are one sampling)."""
+    counts = np.array([len(_points(o, f"offcuts[{i}]")) for i, o in enumerate(offcuts or [])], np.float64)
+    n_goal = sum(len(g) for g in goal_fragments)
+    return counts * (float(np.sum(goal_volumes)) / n_goal if n_goal else 0.0)

@@ -199,7 +199,7 @@ def spectral_rewards(fragment_sets, goal_fragments, cfg: RewardConfig | None = N
         raise ValueError("spectral_rewards needs at least one goal fragment")
     cfg = (cfg or RewardConfig()).validate()
     Ds, vols, gvols = _score_sets(fragment_sets, goal_fragments, cfg)  # the shared goal hashed once
-    ov = _offcut_volumes(offcuts)
+    ov = _offcut_volumes(offcuts, goal_fragments, gvols)
     return [reward_from_distances(D, len(goal_fragments), cfg, v, gvols, ov) for D, v in zip(Ds, vols)]
 
 
@@ -221,7 +221,7 @@ def spectral_rewards_per_goal(fragment_sets, goal_sets, cfg: RewardConfig | None
     if len(offcut_sets) != len(goal_sets):
         raise ValueError(f"spectral_rewards_per_goal: {len(offcut_sets)} offcut lists for {len(goal_sets)} sets")
     Ds, vols, gvols = _score_sets(fragment_sets, goal_sets, cfg, per_set=True)
-    ovols = [_offcut_volumes(off) for off in offcut_sets]
+    ovols = [_offcut_volumes(off, gs, gv) for off, gs, gv in zip(offcut_sets, goal_sets, gvols)]
     return [reward_from_distances(D, len(gs), cfg, v, gv, ov)
             for D, v, gv, ov, gs in zip(Ds, vols, gvols, ovols, goal_sets)]
 
@@ -234,4 +234,4 @@ def spectral_reward(fragments, goal_fragments, cfg: RewardConfig | None = None, 
     if G == 0:
         raise ValueError("spectral_reward needs at least one goal fragment")
     Ds, vols, gvols = _score_sets([fragments], goal_fragments, cfg, names=("fragments",))
-    return reward_from_distances(Ds[0], G, cfg, vols[0], gvols, _offcut_volumes(offcuts))
+    return reward_from_distances(Ds[0], G, cfg, vols[0], gvols, _offcut_volumes(offcuts, goal_fragments, gvols))
