@@ -329,6 +329,13 @@ def test_a_torn_sheet_weighs_its_particles_not_its_spread():
     np.testing.assert_allclose(torn.weights, [1.0, 1.0, 40 / n, 40 / n], rtol=1e-12)
     assert 2 * 40 / n < cfg.offcut_slack  # within the slack: forgiven in full, the scene scores as without them
     assert torn.total == pytest.approx(clean.total, abs=1e-12) and clean.total > 0.99
+    # fragments sampled on another lattice (twice the spacing: an eighth of the particles) weigh their own cells
+    coarse = box(0.03, 0.03, 0.03, seed=9, h=2 * H)
+    other = spectral_reward([coarse], [die], cfg)
+    cell = lambda p: particle_spacing(p) ** 3  # noqa: E731
+    assert len(coarse) < len(die) / 4 and other.weights[0] == pytest.approx(min(1.0, len(coarse) * cell(coarse)
+                                                                               / (n * cell(die))), rel=1e-9)
+    assert other.weights[0] > 0.8
 
 
 def test_size_tolerance_forgives_up_to_its_spacings_and_charges_the_excess():

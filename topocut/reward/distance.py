@@ -128,14 +128,15 @@ def distances_and_volumes(fragment_sets, goal_fragments, cfg: RewardConfig | Non
                           spacing: float | None = None):
     """(one (F_s,G) distance matrix per set, fragment volumes per set, goal volumes): what
     ``reward_from_distances(D, G, cfg, volumes, goal_volumes)`` needs to score each set.  The volumes are the pieces'
-    material (``material_volumes``: particles x their set's lattice cell), the unit of the weights w_f."""
+    material (``material_volumes``: particles x the goal's lattice cell, ``_fragment_material``), what w_f counts."""
     return _score_sets(fragment_sets, goal_fragments, cfg, names, spacing=spacing)
 
 
 def _score_sets(fragment_sets, goal_fragments, cfg: RewardConfig | None = None, names=None, per_set=False,
                 spacing: float | None = None):
     """(distance matrices, fragment volumes per set, goal volumes): the volumes are material (particle counts x the
-    set's lattice cell, ``set_spacing``; the goal's own cell for its pieces), what the weights w_f count.
+    goal's lattice cell, ``set_spacing``; a set sampled at another spacing its own: ``_fragment_material``), what the
+    weights w_f count.
 
     goal_fragments: one list of goal clouds for every set, or (per_set=True) one list per set; the goal
     volumes are then one array per set.  All sets' fragments go through one descriptor call, so the torch
