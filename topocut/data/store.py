@@ -109,6 +109,22 @@ def config_key(config: Any, inputs: Iterable[str] = ()) -> str:
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
+def write_atomic(path, write) -> Path:
+    """``write(tmp)`` to a temporary name beside ``path`` (the same suffix: writers such as imageio's pick the format by
+    it), then os.replace: the file is whole or absent (a killed run's ``.*.tmp-*`` leftover is dropped by the
+    artifact's commit)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
 def write_json_atomic(path: Path, obj: Any) -> Path:
     """Write to a temp file in the same directory, then os.replace: readers see the old or the new file,
     never half of one."""

@@ -14,27 +14,14 @@ episode an interrupted evaluation committed without them is run again (topocut.e
 """
 from __future__ import annotations
 
-import os
 import pickle
 import shutil
 from pathlib import Path
 
+from topocut.data.store import write_atomic
+
 GIF_FPS = 1.5  # a state every 0.67 s
 FIGURE = "sequences.png"
-
-
-def _replace_into(path: Path, write) -> Path:
-    """``write(tmp)`` to a temporary name beside ``path`` (same suffix: the writers pick formats by it), then
-    rename: the file is whole or absent (a killed run's ``.*.tmp-*`` leftover is dropped by the artifact's commit)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
 
 
 class Sequences:
@@ -89,7 +76,7 @@ class Sequences:
         # one view box over every frame of the episode: pieces pushed or turned away stay in view
         images = render_frames([dict(x=x, labels=labels, knife=knife, title=f"{run} {spec.key} {what}")
                                 for x, labels, what, knife in log.frames], board_z=board_z)
-        path = _replace_into(self.gif_path(spec), lambda tmp: write_gif(images, tmp, fps=GIF_FPS))
+        path = write_atomic(self.gif_path(spec), lambda tmp: write_gif(images, tmp, fps=GIF_FPS))
         if spec.key in self.row_keys:
             panels = []
             for i, (x, labels, what, knife) in enumerate(log.frames):  # knife: a cut's executed action
@@ -102,7 +89,7 @@ class Sequences:
                 with open(tmp, "wb") as f:
                     pickle.dump(panels, f, protocol=pickle.HIGHEST_PROTOCOL)
 
-            _replace_into(self.panels_path(spec.key), dump)
+            write_atomic(self.panels_path(spec.key), dump)
         return path
 
     def draw(self, board_z: float) -> Path | None:
@@ -120,6 +107,6 @@ class Sequences:
             return None
         from topocut.sim.render import render_sequences
 
-        _replace_into(self.figure, lambda tmp: render_sequences(rows, tmp, board_z=board_z))
+        write_atomic(self.figure, lambda tmp: render_sequences(rows, tmp, board_z=board_z))
         shutil.rmtree(self.out_dir / "panels", ignore_errors=True)
         return self.figure

@@ -17,7 +17,6 @@ has damaged so far dark, the blade at its edge of the time): ``STATE_HOLD_FRAMES
 """
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
@@ -72,15 +71,15 @@ def write_mp4(frames, path, fps: float = VIDEO_FPS) -> Path:
     (a killed run's leftover, ``.*.tmp-*``, is dropped by the artifact's commit)."""
     import imageio.v2 as imageio
 
+    from topocut.data.store import write_atomic
+
     imgs = [np.asarray(f)[..., :3] for f in frames]
     if not imgs:
         raise ValueError("write_mp4 needs at least one frame")
     h = -(-max(i.shape[0] for i in imgs) // MACRO_BLOCK) * MACRO_BLOCK
     w = -(-max(i.shape[1] for i in imgs) // MACRO_BLOCK) * MACRO_BLOCK
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")  # ffmpeg picks the container by suffix
-    try:
+
+    def encode(tmp):  # ffmpeg picks the container by the temporary name's suffix
         writer = imageio.get_writer(tmp, format="FFMPEG", mode="I", fps=fps, codec="libx264",
                                     pixelformat="yuv420p", macro_block_size=MACRO_BLOCK, ffmpeg_log_level="error")
         try:
@@ -91,11 +90,8 @@ def write_mp4(frames, path, fps: float = VIDEO_FPS) -> Path:
                 writer.append_data(canvas)
         finally:
             writer.close()
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
+
+    return write_atomic(path, encode)
 
 
 class Filming:
