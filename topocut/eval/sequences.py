@@ -60,24 +60,27 @@ class Sequences:
     def figure(self) -> Path:
         return self.out_dir / FIGURE
 
+    def _row_missing(self, spec) -> bool:
+        return spec.key in self.row_keys and not self.figure.exists() and not self.panels_path(spec.key).exists()
+
     def wants(self, run: str, spec) -> bool:
         if run != self.run or spec.key not in self.keys:
             return False
-        row_missing = spec.key in self.row_keys and not self.figure.exists() and not self.panels_path(spec.key).exists()
-        return row_missing or not self.gif_path(spec).exists()
+        return self._row_missing(spec) or not self.gif_path(spec).exists()
 
     def write(self, run: str, spec, log, board_z: float) -> Path | None:
-        """The GIF of ``log`` (an EpisodeLog kept with frames), and a figure row's panels; None for an episode that
-        reached no state."""
+        """What is missing of ``log`` (an EpisodeLog kept with frames): its GIF, a figure row's panels; the GIF's path,
+        None for an episode that reached no state."""
         if not log.frames:
             return None
         from topocut.sim.render import goal_colors, render_frames, write_gif
 
-        # one view box over every frame of the episode: pieces pushed or turned away stay in view
-        images = render_frames([dict(x=x, labels=labels, knife=knife, title=f"{run} {spec.key} {what}")
-                                for x, labels, what, knife in log.frames], board_z=board_z)
-        path = write_atomic(self.gif_path(spec), lambda tmp: write_gif(images, tmp, fps=GIF_FPS))
-        if spec.key in self.row_keys:
+        path = self.gif_path(spec)
+        if not path.exists():  # one view box over every frame of the episode: pieces pushed or turned away stay in view
+            images = render_frames([dict(x=x, labels=labels, knife=knife, title=f"{run} {spec.key} {what}")
+                                    for x, labels, what, knife in log.frames], board_z=board_z)
+            write_atomic(path, lambda tmp: write_gif(images, tmp, fps=GIF_FPS))
+        if self._row_missing(spec):
             panels = []
             for i, (x, labels, what, knife) in enumerate(log.frames):  # knife: a cut's executed action
                 if i == 0 or knife is not None:
